@@ -1,0 +1,208 @@
+"""HDF5 artifacts: atomic writes, provenance, schema checks.
+
+Every stage writes one HDF5 file through :func:`write_artifact`: the content goes to a
+temporary file in the target's folder and is renamed over the final name only once complete,
+so a crash or a bad input never leaves a half-written or clobbered artifact. Root attributes
+record what made the file (schema, version, time, config, input hashes, seed). Readers go
+through :func:`open_artifact`, which checks the schema and names the file, the expected and the
+found schema on a mismatch.
+"""
+from __future__ import annotations
+
+import contextlib
+import datetime as _dt
+import hashlib
+import json
+import os
+from pathlib import Path
+from typing import Any, Iterator, Sequence
+
+import h5py
+import numpy as np
+
+from .errors import ArtifactError
+
+#: Current major version of each artifact kind. Bump on an incompatible layout change.
+SCHEMAS = {
+    "simulations": 1,
+    "surrogate": 1,
+    "observations": 1,
+    "truth": 1,
+    "posterior": 1,
+    "forecast": 1,
+    "gap": 1,
+}
+
+
+def schema_name(kind: str) -> str:
+    return f"twinmon.{kind}/{SCHEMAS[kind]}"
+
+
+def file_sha256(path: str | os.PathLike) -> str:
+    """SHA-256 of a file's bytes (hex)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def input_records(paths: Sequence[str | os.PathLike]) -> list[dict]:
+    """``[{path, sha256}]`` for the files a stage read, for provenance and up-to-date checks."""
+    return [{"path": str(p), "sha256": file_sha256(p)} for p in paths]
+
+
+def _version() -> str:
+    from . import __version__
+    return __version__
+
+
+@contextlib.contextmanager
+def write_artifact(path: str | os.PathLike, kind: str, *, config: str = "",
+                   inputs: Sequence[str | os.PathLike] = (), seed: int | None = None,
+                   extra_attrs: dict | None = None) -> Iterator[h5py.File]:
+    """Open a temporary HDF5 file for writing an artifact; rename it into place on success.
+
+    Parameters
+    ----------
+    path : path-like
+        Final artifact path. Its folder is created if needed.
+    kind : str
+        Artifact kind, a key of :data:`SCHEMAS`.
+    config : str
+        The resolved YAML of the config sections that made it.
+    inputs : sequence of path-like
+        Files the stage read; their SHA-256 is recorded.
+    seed : int, optional
+        Seed of the randomness used, if any.
+
+    Yields
+    ------
+    h5py.File
+        The open temporary file. If the body raises, the temporary file is removed and the
+        existing artifact at ``path`` (if any) is left untouched.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    records = input_records(inputs)  # hash before writing: an input may be overwritten
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with h5py.File(tmp, "w") as f:
+            set_provenance(f, kind, config=config, records=records, seed=seed)
+            for key, value in (extra_attrs or {}).items():
+                f.attrs[key] = value
+            yield f
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+def utc_now() -> str:
+    """Current UTC time, ISO 8601 to the second."""
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+
+
+def set_provenance(f: h5py.File, kind: str, *, config: str, records: list[dict],
+                   seed: int | None) -> None:
+    """Write the root attributes every artifact carries."""
+    f.attrs["schema"] = schema_name(kind)
+    f.attrs["twinmon_version"] = _version()
+    f.attrs["created"] = utc_now()
+    f.attrs["config"] = config
+    f.attrs["inputs"] = json.dumps(records)
+    if seed is not None:
+        f.attrs["seed"] = int(seed)
+
+
+def open_artifact(path: str | os.PathLike, kind: str) -> h5py.File:
+    """Open an artifact read-only after checking it exists and has the expected schema.
+
+    Raises
+    ------
+    ArtifactError
+        Missing file, not HDF5, or a schema other than ``twinmon.<kind>/<major>``.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise ArtifactError(f"{path}: file not found (expected a {kind} artifact)")
+    try:
+        f = h5py.File(path, "r")
+    except OSError:
+        raise ArtifactError(f"{path}: not a readable HDF5 file (expected a {kind} artifact)") from None
+    found = f.attrs.get("schema", None)
+    if isinstance(found, bytes):
+        found = found.decode()
+    expected = schema_name(kind)
+    if found != expected:
+        f.close()
+        raise ArtifactError(f"{path}: schema is {found!r}, expected {expected!r}")
+    return f
+
+
+def put(group: h5py.Group, name: str, data: Any, units: str, description: str,
+        **kwargs) -> h5py.Dataset:
+    """Create a dataset with its ``units`` and ``description`` attributes."""
+    if isinstance(data, (list, tuple)) and data and isinstance(data[0], str):
+        data = np.array(data, dtype=h5py.string_dtype())
+    ds = group.create_dataset(name, data=data, **kwargs)
+    ds.attrs["units"] = units
+    ds.attrs["description"] = description
+    return ds
+
+
+def get(group: h5py.Group, name: str, path: str | os.PathLike | None = None) -> np.ndarray:
+    """Read a dataset, raising :class:`ArtifactError` naming the file and the dataset when
+    it is missing (an artifact of the right schema but the wrong content)."""
+    if name not in group:
+        where = path or group.file.filename
+        raise ArtifactError(f"{where}: dataset {group.name.rstrip('/')}/{name} is missing")
+    ds = group[name]
+    if h5py.check_string_dtype(ds.dtype) is not None:
+        return np.array([s.decode() if isinstance(s, bytes) else s for s in ds[()]])
+    return ds[()]
+
+
+def read_provenance(path: str | os.PathLike) -> dict:
+    """The root attributes of an artifact as plain Python (any schema)."""
+    with h5py.File(path, "r") as f:
+        out = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
+    if "inputs" in out:
+        out["inputs"] = json.loads(out["inputs"])
+    return out
+
+
+def is_up_to_date(output: str | os.PathLike, kind: str, config: str,
+                  inputs: Sequence[str | os.PathLike]) -> bool:
+    """True when ``output`` exists, has the right schema, was made from the same config
+    section and from inputs with the same hashes. Used by ``twinmon run`` to skip stages."""
+    output = Path(output)
+    if not output.exists():
+        return False
+    try:
+        prov = read_provenance(output)
+    except OSError:
+        return False
+    if prov.get("schema") != schema_name(kind) or prov.get("config") != config:
+        return False
+    try:
+        want = input_records(inputs)
+    except OSError:
+        return False
+    return [r["sha256"] for r in prov.get("inputs", [])] == [r["sha256"] for r in want]
+
+
+def json_attr(obj: Any) -> str:
+    """JSON text for an attribute (numpy scalars and arrays made plain)."""
+    return json.dumps(obj, default=_plain)
+
+
+def _plain(o: Any) -> Any:
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON-able: {type(o).__name__}")
+

@@ -1,0 +1,55 @@
+"""twinmon's command line: a thin click shell over the library, one module per command group.
+
+Every command reads a config (``-c``), applies ``--set`` overrides, calls one library function
+and prints a short human summary, or a machine-readable one with ``--json``. Errors of the
+:class:`~twinmon.errors.TwinmonError` family become one line on stderr and the family's exit
+code; the traceback is shown only with ``--verbose``.
+"""
+from __future__ import annotations
+
+import sys
+
+import click
+
+from .. import __version__
+from ..errors import TwinmonError
+
+
+class TwinmonGroup(click.Group):
+    """Turns twinmon errors into one stderr line and a per-family exit code."""
+
+    def invoke(self, ctx):
+        try:
+            return super().invoke(ctx)
+        except TwinmonError as exc:
+            if ctx.obj and ctx.obj.get("verbose"):
+                import traceback
+                traceback.print_exc()
+            click.echo(f"twinmon: {exc.family}: {exc.message}", err=True)
+            ctx.exit(exc.exit_code)
+
+
+@click.group(cls=TwinmonGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="twinmon")
+@click.option("-v", "--verbose", is_flag=True, help="Show tracebacks and details.")
+@click.option("-q", "--quiet", is_flag=True, help="No progress bars or human summaries.")
+@click.pass_context
+def main(ctx, verbose, quiet):
+    """Health monitoring of machines through calibrated digital twins.
+
+    Exit codes: 0 ok, 2 usage, 3 config, 4 input data, 5 artifact, 6 simulation,
+    7 calibration.
+    """
+    ctx.ensure_object(dict)
+    ctx.obj["verbose"] = verbose
+    ctx.obj["quiet"] = quiet
+
+
+def _register() -> None:
+    from . import data, pipeline  # noqa: F401  (modules attach their commands to main)
+
+
+_register()
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,69 @@
+"""Options and helpers shared by the commands."""
+from __future__ import annotations
+
+import json
+import sys
+from contextlib import contextmanager
+
+import click
+
+from ..config import Config, load_config
+
+
+def config_options(f):
+    """``-c/--config`` and repeated ``--set KEY=VALUE``."""
+    f = click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
+                     help="Override a config value (YAML syntax), e.g. --set seed=3.")(f)
+    f = click.option("-c", "--config", "config_path", required=True,
+                     type=click.Path(dir_okay=False),
+                     help="YAML config file.")(f)
+    return f
+
+
+def json_option(f):
+    return click.option("--json", "as_json", is_flag=True,
+                        help="Print a machine-readable JSON summary on stdout.")(f)
+
+
+def load(config_path: str, overrides) -> Config:
+    return load_config(config_path, overrides)
+
+
+def quiet() -> bool:
+    ctx = click.get_current_context()
+    return bool(ctx.obj and ctx.obj.get("quiet"))
+
+
+def say(text: str = "") -> None:
+    """Human output, on stderr so that stdout stays clean for --json."""
+    if not quiet():
+        click.echo(text, err=True)
+
+
+def emit_json(obj) -> None:
+    click.echo(json.dumps(obj, indent=2, default=_plain))
+
+
+def _plain(o):
+    import numpy as np
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, np.generic):
+        return o.item()
+    return str(o)
+
+
+@contextmanager
+def progress_bar(total: int, label: str):
+    """Yields ``update(done, total)``; a bar on stderr only for a terminal and not --quiet."""
+    show = sys.stderr.isatty() and not quiet() and total > 0
+    if not show:
+        yield lambda done, total=total: None
+        return
+    with click.progressbar(length=total, label=label, file=sys.stderr) as bar:
+        state = {"done": 0}
+
+        def update(done, total=total):
+            bar.update(done - state["done"])
+            state["done"] = done
+        yield update

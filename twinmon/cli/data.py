@@ -1,0 +1,89 @@
+"""Commands that make data: ``simulate``, ``fabricate``, ``import-csv``."""
+from __future__ import annotations
+
+import click
+
+from . import main
+from .common import config_options, emit_json, json_option, load, progress_bar, say
+
+
+@main.command()
+@config_options
+@click.option("-o", "--output", default="out/simulations.h5", show_default=True,
+              type=click.Path(dir_okay=False), help="Simulations artifact to write.")
+@click.option("-j", "--workers", type=int, default=None,
+              help="Worker processes (default: simulate.workers, 0 = one per core).")
+@json_option
+def simulate(config_path, overrides, output, workers, as_json):
+    """Run the design of experiments through the FMU."""
+    from ..simulate import simulate as run
+    cfg = load(config_path, overrides)
+    total = cfg.simulate.train_size + cfg.simulate.test_size
+    with progress_bar(total, "simulate") as update:
+        summary = run(cfg, output, workers=workers, progress=update)
+    if as_json:
+        emit_json(summary.as_dict())
+    else:
+        say(f"simulate: {summary.runs} runs ({summary.resumed} resumed), {summary.failures} "
+            f"failed, {summary.wall_time:.2f} s on {summary.workers} workers "
+            f"({summary.runs_per_second:.0f} runs/s) -> {output}")
+
+
+@main.command()
+@config_options
+@click.option("-o", "--output", default="data/fleet.h5", show_default=True,
+              type=click.Path(dir_okay=False), help="Observations file to write.")
+@click.option("--truth", "truth", default=None, type=click.Path(dir_okay=False),
+              help="Truth file to write [default: OUTPUT with _truth before .h5].")
+@json_option
+def fabricate(config_path, overrides, output, truth, as_json):
+    """Synthetic observations (simulation + noise) and their withheld truth."""
+    from ..fabricate import fabricate as run
+    cfg = load(config_path, overrides)
+    truth = truth or (output[:-3] if output.endswith(".h5") else output) + "_truth.h5"
+    summary = run(cfg, output, truth)
+    if as_json:
+        emit_json(summary.as_dict())
+    else:
+        say(f"fabricate: {summary.units} units x {summary.years} years -> {output} "
+            f"(truth: {truth})")
+
+
+@main.command("import-csv")
+@click.argument("csv_file", type=click.Path(dir_okay=False))
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False),
+              help="Observations file to write.")
+@click.option("--noise-std", type=float, default=None,
+              help="Known flow noise standard deviation (kg/s).")
+@json_option
+def import_csv(csv_file, output, noise_std, as_json):
+    """Convert long CSV measurements (unit,year,time,m_flow[,...]) to observations."""
+    from ..observations import import_csv as run
+    obs = run(csv_file, output, noise_std)
+    summary = {"units": {u: {"years": o.years.tolist(), "channels": sorted(o.channels)}
+                         for u, o in obs.units.items()},
+               "samples_per_year": int(obs.time.size), "output": output}
+    if as_json:
+        emit_json(summary)
+    else:
+        say(f"import-csv: {len(obs.units)} units, {obs.time.size} samples per start-up "
+            f"-> {output}")
+
+
+@main.command("build-fmu")
+@click.argument("source", type=click.Path(file_okay=False))
+@click.option("--force", is_flag=True, help="Rebuild even if the cached binary is current.")
+@click.option("--validate/--no-validate", default=True, show_default=True,
+              help="Check the built FMU with fmpy.validate_fmu.")
+def build_fmu(source, force, validate):
+    """Build a hand-written FMU from its C sources (cached by a hash of the sources)."""
+    from ..errors import SimulationError
+    from ..fmu import build_fmu as build
+    path = build(source, force=force)
+    if validate:
+        import fmpy
+        problems = fmpy.validate_fmu(str(path))
+        if problems:
+            raise SimulationError(f"{path}: fmpy.validate_fmu found {len(problems)} problems, "
+                                  f"first: {problems[0]}")
+    say(f"build-fmu: {path}" + (" (validated)" if validate else ""))

@@ -1,0 +1,547 @@
+"""Typed, frozen, validated configuration.
+
+A config is one YAML file (optionally ``extends:`` another, merged key by key) holding the
+sections below. It is loaded once, ``--set a.b=v`` overrides are applied to the raw mapping,
+and only then is it validated: every unknown key is rejected and every error names the file,
+the YAML path and the value received, so a typo never silently falls back to a default.
+
+The sections are plain frozen dataclasses; :func:`_build` turns a mapping into one by reading
+the dataclass's type hints, so adding a field is a one-line change and needs no parser code.
+"""
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+import os
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, Mapping, Optional
+
+import numpy as np
+import yaml
+
+from .errors import ConfigError
+
+
+# ---------------------------------------------------------------------------------------
+# Sections
+# ---------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class InputSpec:
+    """One calibrated (degradation) input of the model.
+
+    ``low``/``high`` bound the design box that the surrogate is trained on and that the
+    year-1 uniform prior covers; ``normal_rate`` is the yearly drift normal ageing allows
+    (signed: a pump coefficient normally falls a little), used for root-cause tests.
+    """
+
+    variable: str
+    low: float
+    high: float
+    nominal: float
+    units: str = "1"
+    description: str = ""
+    component: str = ""
+    normal_rate: float = 0.0
+    normal_rate_tolerance: float = 0.0
+
+    def _check(self):
+        if not self.low < self.high:
+            yield "high", f"must be greater than low ({self.low})", self.high
+        if not self.low <= self.nominal <= self.high:
+            yield "nominal", f"must lie in [{self.low}, {self.high}]", self.nominal
+        if self.normal_rate_tolerance < 0:
+            yield "normal_rate_tolerance", "must be >= 0", self.normal_rate_tolerance
+
+
+@dataclass(frozen=True)
+class TimeGrid:
+    """Sample times ``start, start+step, ..., stop`` in seconds."""
+
+    start: float = 2.0
+    stop: float = 50.0
+    step: float = 2.0
+
+    def _check(self):
+        if self.step <= 0:
+            yield "step", "must be > 0", self.step
+        if self.start <= 0:
+            yield "start", "must be > 0 (the model starts from rest at t = 0)", self.start
+        if self.stop < self.start:
+            yield "stop", f"must be >= start ({self.start})", self.stop
+
+    @property
+    def times(self) -> np.ndarray:
+        """Sample times, shape [n_t], seconds."""
+        n = int(round((self.stop - self.start) / self.step)) + 1
+        return self.start + self.step * np.arange(n)
+
+
+@dataclass(frozen=True)
+class OutputSpec:
+    """The observed model output (the flowmeter) and its sample grid."""
+
+    variable: str = "sensor.m_flow"
+    units: str = "kg/s"
+    times: TimeGrid = TimeGrid()
+
+
+@dataclass(frozen=True)
+class EffectSpec:
+    """A candidate unmodelled effect, keyed by its FMU parameter; its ``baseline`` value
+    switches it off (gives exactly the base model). (Not ``off``: YAML reads that as false.)"""
+
+    baseline: float
+    low: float
+    high: float
+    units: str = "1"
+    description: str = ""
+
+    def _check(self):
+        if not self.low < self.high:
+            yield "high", f"must be greater than low ({self.low})", self.high
+        if not self.low <= self.baseline <= self.high:
+            yield "baseline", f"must lie in [{self.low}, {self.high}]", self.baseline
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Which FMU, which inputs are calibrated, what is observed."""
+
+    fmu: Path
+    inputs: dict[str, InputSpec]
+    output: OutputSpec = OutputSpec()
+    fmi_type: Literal["CoSimulation", "ModelExchange"] = "CoSimulation"
+    #: Further FMU outputs recorded as extra channels (speed, pump pressure, current).
+    channels: tuple[str, ...] = ("motor.w", "pump.dp", "motor.I")
+    #: FMU output that is 1 when the twin left its physical domain; "" if the FMU has none.
+    nonphysical: str = "nonphysical"
+    #: FMU parameters held at a value other than the FMU's default.
+    fixed: dict[str, float] = field(default_factory=dict)
+    #: Candidate unmodelled effects, screened by ``diagnose``.
+    effects: dict[str, EffectSpec] = field(default_factory=dict)
+
+    def _check(self):
+        if len(self.inputs) == 0:
+            yield "inputs", "at least one input is needed", {}
+
+    @property
+    def input_names(self) -> list[str]:
+        return list(self.inputs)
+
+    @property
+    def bounds(self) -> np.ndarray:
+        """Design box, shape [n_inputs, 2] (low, high), in each input's units."""
+        return np.array([[s.low, s.high] for s in self.inputs.values()])
+
+
+@dataclass(frozen=True)
+class SafetyConfig:
+    """A unit is unsafe when it does not reach ``fraction`` of ``nominal_flow`` within
+    ``max_time`` seconds of start, or its twin is non-physical."""
+
+    nominal_flow: float = 400.0
+    fraction: float = 0.9
+    max_time: float = 30.0
+    failure_probability: float = 0.05
+
+    def _check(self):
+        if self.nominal_flow <= 0:
+            yield "nominal_flow", "must be > 0", self.nominal_flow
+        if not 0 < self.fraction <= 1:
+            yield "fraction", "must lie in (0, 1]", self.fraction
+        if not 0 < self.failure_probability < 1:
+            yield "failure_probability", "must lie in (0, 1)", self.failure_probability
+
+
+@dataclass(frozen=True)
+class SimulateConfig:
+    train_size: int = 128
+    test_size: int = 64
+    design: Literal["lhs", "sobol", "halton"] = "lhs"
+    #: Worker processes; 0 means one per core.
+    workers: int = 0
+    executor: Literal["process", "serial"] = "process"
+    #: Runs flushed to the partial artifact at a time (what a crash can lose).
+    chunk_size: int = 64
+
+    def _check(self):
+        if self.train_size < 2:
+            yield "train_size", "must be >= 2", self.train_size
+        if self.test_size < 0:
+            yield "test_size", "must be >= 0", self.test_size
+        if self.workers < 0:
+            yield "workers", "must be >= 0", self.workers
+        if self.chunk_size < 1:
+            yield "chunk_size", "must be >= 1", self.chunk_size
+
+
+@dataclass(frozen=True)
+class TrajectorySpec:
+    """True yearly trajectory of one input: ``start + slope * (year - 1)`` plus jitter."""
+
+    start: float
+    slope: float = 0.0
+    #: Standard deviation of the year-to-year jitter, in the input's units.
+    jitter: float = 0.0
+    #: Quadratic term, for trajectories that are not quite linear.
+    curvature: float = 0.0
+
+
+@dataclass(frozen=True)
+class InjectedEffect:
+    """An effect switched on in a fabricated unit from ``onset`` (year) on."""
+
+    value: float
+    onset: int = 1
+
+
+@dataclass(frozen=True)
+class Disturbance:
+    """An additive disturbance outside the candidate list (e.g. a pulsation), kg/s."""
+
+    amplitude: float
+    period: float = 7.0
+    onset: int = 1
+    #: "sine": A*sin(2*pi*t/period); "bump": A*exp(-((t-period)/4)^2).
+    shape: Literal["sine", "bump"] = "sine"
+
+
+@dataclass(frozen=True)
+class UnitSpec:
+    trajectories: dict[str, TrajectorySpec]
+    effects: dict[str, InjectedEffect] = field(default_factory=dict)
+    disturbance: Optional[Disturbance] = None
+
+
+@dataclass(frozen=True)
+class FabricateConfig:
+    """Synthetic plant data: simulations of known trajectories plus noise."""
+
+    units: dict[str, UnitSpec]
+    years: int = 10
+    #: Flow noise standard deviation as a fraction of the nominal flow.
+    noise_fraction: float = 0.01
+    #: Noise of the extra channels, as a fraction of each channel's healthy plateau.
+    channel_noise_fraction: float = 0.01
+    #: Record the extra channels (speed, pump pressure, current) in the observations.
+    record_channels: bool = False
+    #: Write ``noise_std`` into the observations (False: the user must estimate it).
+    record_noise: bool = True
+    seed: int = 2024
+
+    def _check(self):
+        if self.years < 1:
+            yield "years", "must be >= 1", self.years
+        if self.noise_fraction < 0:
+            yield "noise_fraction", "must be >= 0", self.noise_fraction
+
+
+@dataclass(frozen=True)
+class ReduceConfig:
+    #: Keep the fewest Karhunen-Loeve modes whose variance ratio reaches this.
+    variance_threshold: float = 0.99999
+    #: "log": reduce log(flow), so the error is relative at every time step (the early,
+    #: small samples of a start-up are otherwise learnt to absolute, not relative, accuracy).
+    transform: Literal["log", "none"] = "log"
+    max_modes: int = 8
+    kernel: Literal["squared_exponential", "matern52", "matern32", "exponential"] = "matern52"
+    trend: Literal["constant", "linear", "quadratic"] = "linear"
+
+    def _check(self):
+        if not 0 < self.variance_threshold <= 1:
+            yield "variance_threshold", "must lie in (0, 1]", self.variance_threshold
+        if self.max_modes < 1:
+            yield "max_modes", "must be >= 1", self.max_modes
+
+
+@dataclass(frozen=True)
+class CalibrateConfig:
+    chains: int = 4
+    samples: int = 2000
+    burn_in: int = 500
+    #: Width (std) of the Gaussian prior of year n+1 around year n's estimate, as a
+    #: fraction of each input's design range. See docs/calibration.md for the default.
+    prior_width: float = 0.05
+    #: Noise standard deviation of the flow (kg/s); None: from the observations, else estimated.
+    noise_std: Optional[float] = None
+    rhat_warn: float = 1.05
+    ess_warn: float = 400.0
+
+    def _check(self):
+        if self.chains < 2:
+            yield "chains", "must be >= 2 (split R-hat needs several chains)", self.chains
+        if self.samples < 100:
+            yield "samples", "must be >= 100", self.samples
+        if self.burn_in < 0:
+            yield "burn_in", "must be >= 0", self.burn_in
+        if self.prior_width <= 0:
+            yield "prior_width", "must be > 0", self.prior_width
+
+
+@dataclass(frozen=True)
+class ForecastConfig:
+    horizon: int = 7
+    confidence: float = 0.90
+    samples: int = 2000
+    #: Significance level of the root-cause trend tests.
+    alpha: float = 0.01
+
+    def _check(self):
+        if self.horizon < 1:
+            yield "horizon", "must be >= 1", self.horizon
+        if not 0 < self.confidence < 1:
+            yield "confidence", "must lie in (0, 1)", self.confidence
+
+
+@dataclass(frozen=True)
+class WindowSpec:
+    start: float
+    stop: float
+
+
+@dataclass(frozen=True)
+class DiagnoseConfig:
+    #: Time windows of the transient (seconds), for locating the gap.
+    windows: dict[str, WindowSpec] = field(default_factory=lambda: {
+        "start-up": WindowSpec(0.0, 8.0), "rise": WindowSpec(8.0, 24.0),
+        "plateau": WindowSpec(24.0, 1e9)})
+    #: Significance level of the gap tests.
+    alpha: float = 0.01
+    #: Minimum BIC gain to accept an effect (or a further one).
+    bic_gain: float = 10.0
+    #: Candidates whose fitted BIC lie within this of the best are reported as one group.
+    group_bic: float = 6.0
+    max_effects: int = 2
+
+
+@dataclass(frozen=True)
+class Config:
+    """A whole resolved twinmon configuration."""
+
+    model: ModelConfig
+    seed: int = 0
+    safety: SafetyConfig = SafetyConfig()
+    simulate: SimulateConfig = SimulateConfig()
+    reduce: ReduceConfig = ReduceConfig()
+    calibrate: CalibrateConfig = CalibrateConfig()
+    forecast: ForecastConfig = ForecastConfig()
+    diagnose: DiagnoseConfig = DiagnoseConfig()
+    fabricate: Optional[FabricateConfig] = None
+    #: Where this config came from (not a YAML key).
+    source: Path = field(default=Path("<memory>"), compare=False)
+    #: The raw merged mapping after overrides (not a YAML key), for provenance.
+    raw: Mapping[str, Any] = field(default_factory=dict, compare=False, repr=False)
+
+    def section_yaml(self, *names: str) -> str:
+        """The resolved YAML of the named sections, recorded in artifacts as provenance."""
+        out = {n: to_plain(getattr(self, n)) for n in names}
+        return yaml.safe_dump(out, sort_keys=True)
+
+
+_NOT_KEYS = {"source", "raw"}
+
+
+# ---------------------------------------------------------------------------------------
+# Loading
+# ---------------------------------------------------------------------------------------
+def load_config(path: str | os.PathLike, overrides: typing.Sequence[str] = ()) -> Config:
+    """Load, merge (``extends``), override and validate a YAML config.
+
+    Parameters
+    ----------
+    path : path-like
+        The YAML file.
+    overrides : sequence of str
+        ``"a.b.c=value"`` items; the value is parsed as YAML (so ``3``, ``0.5``, ``true``,
+        ``[1, 2]`` keep their types).
+
+    Raises
+    ------
+    ConfigError
+        On a missing file, malformed YAML, an unknown key or an invalid value; the message
+        names the file, the YAML path and the value.
+    """
+    path = Path(path)
+    raw = _load_yaml_tree(path, seen=())
+    for item in overrides:
+        _apply_override(raw, item, path)
+    return config_from_mapping(raw, path)
+
+
+def config_from_mapping(raw: Mapping[str, Any], source: Path = Path("<memory>")) -> Config:
+    """Validate an already-merged mapping into a :class:`Config` (paths relative to
+    ``source``'s folder)."""
+    raw = copy.deepcopy(dict(raw))
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{source}: top level must be a mapping, got {type(raw).__name__}")
+    cfg = _build(Config, raw, (), source)
+    return dataclasses.replace(cfg, source=source, raw=raw)
+
+
+def _load_yaml_tree(path: Path, seen: tuple) -> dict:
+    if path.resolve() in seen:
+        raise ConfigError(f"{path}: 'extends' forms a cycle")
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: config file not found") from None
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read config: {exc.strerror}") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise ConfigError(f"{path}: malformed YAML at {where}{problem}") from None
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: top level must be a mapping, got {type(data).__name__}")
+    parent = data.pop("extends", None)
+    if parent is None:
+        return _absolutise_paths(data, path.parent)
+    if not isinstance(parent, str):
+        raise ConfigError(f"{path}: extends: expected a file name, got {parent!r}")
+    base = _load_yaml_tree(path.parent / parent, seen + (path.resolve(),))
+    return _merge(base, _absolutise_paths(data, path.parent))
+
+
+def _absolutise_paths(data: dict, folder: Path) -> dict:
+    # model.fmu is written relative to the YAML file that names it, so that a config that
+    # extends another from elsewhere still finds the FMU.
+    model = data.get("model")
+    if isinstance(model, dict) and isinstance(model.get("fmu"), str):
+        fmu = Path(model["fmu"])
+        if not fmu.is_absolute():
+            model["fmu"] = os.path.normpath(folder / fmu)
+    return data
+
+
+def _merge(base: dict, top: dict) -> dict:
+    out = dict(base)
+    for key, value in top.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _merge(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+def _apply_override(raw: dict, item: str, source: Path) -> None:
+    if "=" not in item:
+        raise ConfigError(f"--set {item!r}: expected KEY.PATH=VALUE")
+    key, _, text = item.partition("=")
+    parts = [p for p in key.strip().split(".") if p]
+    if not parts:
+        raise ConfigError(f"--set {item!r}: empty key")
+    try:
+        value = yaml.safe_load(text)
+    except yaml.YAMLError:
+        raise ConfigError(f"--set {item!r}: value {text!r} is not valid YAML") from None
+    node = raw
+    for i, part in enumerate(parts[:-1]):
+        child = node.get(part)
+        if child is None:
+            child = node[part] = {}
+        if not isinstance(child, dict):
+            raise ConfigError(
+                f"--set {item!r}: {'.'.join(parts[:i + 1])} is not a mapping in {source}")
+        node = child
+    if parts == ["model", "fmu"] and isinstance(value, str):
+        value = os.path.abspath(value)
+    node[parts[-1]] = value
+
+
+def _where(source: Path, path: tuple) -> str:
+    return f"{source}: {'.'.join(str(p) for p in path) or '<top>'}"
+
+
+def _build(tp: Any, value: Any, path: tuple, source: Path) -> Any:
+    """Turn ``value`` (parsed YAML) into type ``tp``, or raise ConfigError naming ``path``."""
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+    if dataclasses.is_dataclass(tp):
+        return _build_dataclass(tp, value, path, source)
+    if origin is typing.Union:  # Optional[X]
+        if value is None:
+            return None
+        inner = [a for a in args if a is not type(None)]
+        return _build(inner[0], value, path, source)
+    if origin is Literal:
+        if value not in args:
+            raise ConfigError(f"{_where(source, path)}: expected one of "
+                              f"{', '.join(map(str, args))}, got {value!r}")
+        return value
+    if origin is dict:
+        if not isinstance(value, dict):
+            raise ConfigError(f"{_where(source, path)}: expected a mapping, got {value!r}")
+        return {str(k): _build(args[1], v, path + (k,), source) for k, v in value.items()}
+    if origin is tuple:
+        if isinstance(value, str) or not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{_where(source, path)}: expected a list, got {value!r}")
+        return tuple(_build(args[0], v, path + (i,), source) for i, v in enumerate(value))
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{_where(source, path)}: expected true or false, got {value!r}")
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{_where(source, path)}: expected an integer, got {value!r}")
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{_where(source, path)}: expected a number, got {value!r}")
+        if not math.isfinite(value):
+            raise ConfigError(f"{_where(source, path)}: expected a finite number, got {value!r}")
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{_where(source, path)}: expected a string, got {value!r}")
+        return value
+    if tp is Path:
+        if not isinstance(value, str) or not value:
+            raise ConfigError(f"{_where(source, path)}: expected a path, got {value!r}")
+        return Path(value)
+    raise TypeError(f"config type {tp!r} is not supported")  # programming error
+
+
+def _build_dataclass(cls: type, value: Any, path: tuple, source: Path) -> Any:
+    if not isinstance(value, dict):
+        raise ConfigError(f"{_where(source, path)}: expected a mapping, got {value!r}")
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls) if f.name not in _NOT_KEYS}
+    unknown = [k for k in value if not isinstance(k, str) or k not in fields]
+    if unknown:
+        key = unknown[0]
+        raise ConfigError(f"{_where(source, path + (key,))}: unknown key (value {value[key]!r}); "
+                          f"expected one of {', '.join(fields)}")
+    kwargs = {}
+    for name, f in fields.items():
+        if name in value:
+            kwargs[name] = _build(hints[name], value[name], path + (name,), source)
+        elif f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+            raise ConfigError(f"{_where(source, path + (name,))}: required key is missing")
+    obj = cls(**kwargs)
+    check = getattr(obj, "_check", None)
+    if check is not None:
+        for key, msg, got in check():
+            raise ConfigError(f"{_where(source, path + (key,))}: {msg}, got {got!r}")
+    return obj
+
+
+def to_plain(obj: Any) -> Any:
+    """A config object as plain YAML-able Python (for printing and provenance)."""
+    if dataclasses.is_dataclass(obj):
+        return {f.name: to_plain(getattr(obj, f.name)) for f in dataclasses.fields(obj)
+                if f.name not in _NOT_KEYS}
+    if isinstance(obj, dict):
+        return {k: to_plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [to_plain(v) for v in obj]
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj

@@ -1,0 +1,198 @@
+"""Stage ``fabricate``: synthetic plant data, as the paper made its own.
+
+Each unit follows true yearly trajectories of the degradation inputs (linear trend, optional
+curvature, year-to-year jitter); optionally an unmodelled effect (an FMU parameter outside the
+calibrated inputs) is switched on from an onset year, or an additive disturbance outside the
+candidate list is added. Every unit-year is simulated through the real FMU and measurement
+noise is added. The observations file carries only what a plant would record; the truth file
+(``twinmon.truth/1``) holds the true inputs and effects and is read by evaluation only.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from . import artifacts
+from .config import Config, Disturbance
+from .errors import ConfigError, SimulationError
+from .observations import FLOW, Observations, UnitObservations, write_observations
+from .simulate import run_batch, spec_for
+
+
+@dataclass
+class FabricateSummary:
+    units: int
+    years: int
+    observations: str
+    truth: str
+
+    def as_dict(self) -> dict:
+        return {"units": self.units, "years": self.years, "observations": self.observations,
+                "truth": self.truth}
+
+
+def true_inputs(cfg: Config, rng: np.random.Generator) -> dict[str, dict[str, np.ndarray]]:
+    """True degradation inputs per unit and year.
+
+    Returns
+    -------
+    dict unit -> dict input name -> ndarray, shape [years]
+        Values in each input's units.
+    """
+    fab = cfg.fabricate
+    year = np.arange(fab.years, dtype=float)
+    out = {}
+    for unit, spec in fab.units.items():
+        vals = {}
+        for name in cfg.model.inputs:
+            tr = spec.trajectories.get(name)
+            if tr is None:
+                raise ConfigError(f"{cfg.source}: fabricate.units.{unit}.trajectories.{name}: "
+                                  "required key is missing")
+            vals[name] = (tr.start + tr.slope * year + tr.curvature * year ** 2
+                          + tr.jitter * rng.standard_normal(fab.years))
+        extra = set(spec.trajectories) - set(cfg.model.inputs)
+        if extra:
+            key = sorted(extra)[0]
+            raise ConfigError(f"{cfg.source}: fabricate.units.{unit}.trajectories.{key}: "
+                              f"not an input of the model (inputs: {', '.join(cfg.model.inputs)})")
+        out[unit] = vals
+    return out
+
+
+def disturbance_signal(d: Disturbance, time: np.ndarray) -> np.ndarray:
+    """Additive flow disturbance (kg/s) at the sample times, shape [n_t]."""
+    if d.shape == "sine":
+        return d.amplitude * np.sin(2 * np.pi * time / d.period)
+    return d.amplitude * np.exp(-((time - d.period) / 4.0) ** 2)
+
+
+def fabricate(cfg: Config, observations: str | os.PathLike, truth: str | os.PathLike,
+              executor=None) -> FabricateSummary:
+    """Simulate the fleet of ``cfg.fabricate`` and write observations and truth files.
+
+    Parameters
+    ----------
+    cfg : Config
+        Must have a ``fabricate`` section.
+    observations, truth : path-like
+        Files to write (``twinmon.observations/1`` and ``twinmon.truth/1``).
+    """
+    fab = cfg.fabricate
+    if fab is None:
+        raise ConfigError(f"{cfg.source}: fabricate: section is missing")
+    rng = np.random.default_rng(fab.seed)
+    inputs = true_inputs(cfg, rng)
+    channels = list(cfg.model.channels) if fab.record_channels else []
+    outputs = [cfg.model.output.variable, "pump.m_flow"] + channels
+    outputs = list(dict.fromkeys(outputs))
+    spec = spec_for(cfg, outputs=outputs)
+    time = spec.times
+    years = np.arange(1, fab.years + 1)
+
+    # One batch for the whole fleet: the FMU defaults stand for "effect off" before onset.
+    params, keys = [], []
+    for unit, spec_u in fab.units.items():
+        for k, yr in enumerate(years):
+            p = {cfg.model.inputs[n].variable: float(v[k]) for n, v in inputs[unit].items()}
+            for var, eff in spec_u.effects.items():
+                if yr >= eff.onset:
+                    p[var] = eff.value
+            params.append(p)
+            keys.append((unit, k))
+    batch = run_batch(spec, params, executor)
+    if not batch.ok.all():
+        i = int(np.flatnonzero(~batch.ok)[0])
+        unit, k = keys[i]
+        raise SimulationError(f"{cfg.source}: fabricate.units.{unit}: year {years[k]} failed "
+                              f"to simulate: {batch.messages[i]}")
+
+    # Noise levels: flow relative to the nominal flow, other channels relative to their
+    # healthy plateau (so 1 % means the same thing on every channel).
+    healthy = run_batch(spec, [{s.variable: s.nominal for s in cfg.model.inputs.values()}])
+    flow_std = fab.noise_fraction * cfg.safety.nominal_flow
+    ch_std = {c: fab.channel_noise_fraction * abs(float(healthy.outputs[c][0, -1]))
+              for c in channels}
+
+    obs_units, truth_rows = {}, {}
+    for unit, spec_u in fab.units.items():
+        rows = [i for i, key in enumerate(keys) if key[0] == unit]
+        clean = batch.outputs[cfg.model.output.variable][rows]
+        if spec_u.disturbance is not None:
+            d = spec_u.disturbance
+            clean = clean + np.where(years[:, None] >= d.onset,
+                                     disturbance_signal(d, time)[None, :], 0.0)
+        chans = {FLOW: clean + flow_std * rng.standard_normal(clean.shape)}
+        for c in channels:
+            x = batch.outputs[c][rows]
+            chans[c] = x + ch_std[c] * rng.standard_normal(x.shape)
+        noise = {FLOW: flow_std, **ch_std} if fab.record_noise else {}
+        obs_units[unit] = UnitObservations(years.copy(), chans, noise)
+        truth_rows[unit] = (rows, clean)
+
+    section = cfg.section_yaml("model", "fabricate", "safety")
+    fmu_inputs = [spec.fmu]
+    write_observations(observations, Observations(time, obs_units, Path(observations)),
+                       config=section, inputs=fmu_inputs, seed=fab.seed)
+    _write_truth(truth, cfg, inputs, truth_rows, batch, spec, time, years, flow_std,
+                 section, fmu_inputs)
+    return FabricateSummary(len(fab.units), fab.years, str(observations), str(truth))
+
+
+def _write_truth(path, cfg, inputs, truth_rows, batch, spec, time, years, flow_std, section,
+                 fmu_inputs) -> None:
+    fab = cfg.fabricate
+    with artifacts.write_artifact(path, "truth", config=section, inputs=fmu_inputs,
+                                  seed=fab.seed) as f:
+        artifacts.put(f, "time", time, "s", "sample times")
+        f.attrs["noise_std"] = flow_std
+        for unit, spec_u in fab.units.items():
+            g = f.create_group(f"units/{unit}")
+            artifacts.put(g, "years", years, "year", "year of service")
+            for name, v in inputs[unit].items():
+                artifacts.put(g, f"inputs/{name}", v, cfg.model.inputs[name].units,
+                              f"true {name} ({cfg.model.inputs[name].variable}) per year")
+            for var, eff in spec_u.effects.items():
+                on = years >= eff.onset
+                artifacts.put(g, f"effects/{var}", np.where(on, eff.value, np.nan), "",
+                              f"injected value of {var} per year; NaN = off (FMU default)")
+                g[f"effects/{var}"].attrs["onset"] = eff.onset
+            if spec_u.disturbance is not None:
+                d = spec_u.disturbance
+                g.attrs["disturbance"] = artifacts.json_attr(
+                    {"amplitude": d.amplitude, "period": d.period, "onset": d.onset,
+                     "shape": d.shape})
+            rows, clean = truth_rows[unit]
+            artifacts.put(g, "m_flow_clean", clean, cfg.model.output.units,
+                          "noise-free measured flow (with effects and disturbance)")
+            artifacts.put(g, "pump_m_flow", batch.outputs["pump.m_flow"][rows], "kg/s",
+                          "true delivered flow (pump.m_flow)")
+
+
+@dataclass
+class Truth:
+    """A loaded truth file: per unit, years [n_y], inputs {name: [n_y]}, effects {var: [n_y]}."""
+
+    years: dict[str, np.ndarray]
+    inputs: dict[str, dict[str, np.ndarray]]
+    effects: dict[str, dict[str, np.ndarray]]
+    disturbance: dict[str, dict]
+    noise_std: float
+
+
+def read_truth(path: str | os.PathLike) -> Truth:
+    """Load a ``twinmon.truth/1`` file."""
+    import json
+    path = Path(path)
+    with artifacts.open_artifact(path, "truth") as f:
+        years, inputs, effects, dist = {}, {}, {}, {}
+        for unit, g in f["units"].items():
+            years[unit] = artifacts.get(g, "years", path)
+            inputs[unit] = {k: v[()] for k, v in g["inputs"].items()}
+            effects[unit] = {k: v[()] for k, v in g["effects"].items()} if "effects" in g else {}
+            if "disturbance" in g.attrs:
+                dist[unit] = json.loads(g.attrs["disturbance"])
+        return Truth(years, inputs, effects, dist, float(f.attrs["noise_std"]))
