@@ -1,0 +1,342 @@
+"""Tests of twinmon.fmu and of the PumpCircuit FMU against an independent scipy integration.
+
+The reference below is written from DESIGN.md section 2 and docs/model.md (not ported from
+the C sources): same equations, same guards, integrated with scipy's DOP853 at rtol 1e-10.
+"""
+from __future__ import annotations
+
+import math
+import os
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+from scipy.optimize import brentq
+
+from twinmon.errors import SimulationError
+from twinmon.fmu import FMUModel, build_fmu, resolve_fmu, source_hash
+
+ROOT = Path(__file__).resolve().parents[2]
+SRC = ROOT / "fmus" / "PumpCircuit"
+TIMES = np.arange(2.0, 50.0 + 1e-9, 2.0)
+OUTPUTS = ["sensor.m_flow", "pump.m_flow", "motor.w", "pump.dp", "motor.I", "nonphysical"]
+
+DEFAULTS = {
+    "motor.D": 10.0, "pump.b2": 3.61, "sensor.tau": 0.0, "sensor.gain": 1.0,
+    "valve.opening_time": 0.0, "pipe.fouling": 0.0, "pump.leak": 0.0,
+    "motor.start_delay": 0.0, "motor.supply_ratio": 1.0, "valve.opening": 0.16425,
+}
+EFFECTS_ON = {
+    "sensor.tau": 2.0, "sensor.gain": 0.95, "valve.opening_time": 8.0, "pipe.fouling": 0.3,
+    "pump.leak": 5e-5, "motor.start_delay": 3.0, "motor.supply_ratio": 0.9,
+}
+EFFECTS_OFF = {"sensor.tau": 0.0, "sensor.gain": 1.0, "valve.opening_time": 0.0,
+               "pipe.fouling": 0.0, "pump.leak": 0.0, "motor.start_delay": 0.0,
+               "motor.supply_ratio": 1.0}
+DESIGN_POINTS = [(10.0, 3.61), (5.0, 3.0), (25.0, 2.6), (15.0, 3.9)]
+
+
+# ----------------------------------------------------------------------------------------
+# independent reference model (DESIGN.md section 2)
+
+UALIM, VROT, LM, RM, KI, JM, JP = 380.0, 1400.0, 1.0, 1e-5, 1.0, 4.0, 10.0
+A1, A2, A3 = -88.67, 0.0, 43.15
+B1, B3, RHMIN, CF0 = -3.7751, -0.0075464, 0.05, 10.0
+RHO, G = 998.0, 9.80665
+L, DP, LAM = 10.0, 0.2, 0.03
+AREA = math.pi * DP ** 2 / 4
+KV, CVMAX = 1.733e12, 8005.42
+WN = VROT * math.pi / 30
+KM = 30 * UALIM / (math.pi * VROT)
+WEPS = 1e-3   # rad/s
+
+
+def _head(qi, R):
+    return A1 * qi * abs(qi) + A2 * qi * R + A3 * R * abs(R)
+
+
+def _impeller_flow(Q, R, leak):
+    """qi = Q/rho + leak*sqrt(max(dp(qi), 0)), solved with brentq."""
+    q0 = Q / RHO
+    if leak == 0.0:
+        return q0
+
+    def f(q):
+        return q - q0 - leak * math.sqrt(max(RHO * G * _head(q, R), 0.0))
+
+    hi = q0 + leak * math.sqrt(max(RHO * G * _head(q0, R), 0.0))
+    if hi == q0:
+        return q0
+    return brentq(f, q0, hi, xtol=1e-300, rtol=8.9e-16, maxiter=500)
+
+
+def _algebraic(t, x, p):
+    w, I, Q, y = x
+    R = w / WN
+    qi = _impeller_flow(Q, R, p["pump.leak"])
+    hn = _head(qi, R)
+    if abs(R) < 1e-6:
+        rh_raw = B3
+    else:
+        rh_raw = B1 * (qi / R) ** 2 + p["pump.b2"] * (qi / R) + B3
+    rh = max(rh_raw, RHMIN)
+    Ch = RHO * G * qi * hn * w / (rh * (w * w + WEPS ** 2))   # regularised at w = 0
+    return R, qi, hn, rh_raw, rh, Ch
+
+
+def _opening(t, p):
+    T = p["valve.opening_time"]
+    if T > 0:
+        return p["valve.opening"] * max(min(t / T, 1.0), 0.01)
+    return p["valve.opening"]
+
+
+def _rhs(t, x, p, motor_on):
+    w, I, Q, y = x
+    R, qi, hn, _, _, Ch = _algebraic(t, x, p)
+    Cf = CF0 * (1 - abs(R)) if abs(R) < 1 else 0.0
+    Um = p["motor.supply_ratio"] * UALIM if motor_on else 0.0
+    kf = 1 + p["pipe.fouling"]
+    Cv = _opening(t, p) * CVMAX
+    dP_pipe = kf * LAM * L / DP * Q * abs(Q) / (2 * AREA ** 2 * RHO)
+    dP_valve = kf * KV * Q * abs(Q) / (RHO ** 2 * Cv ** 2)
+    tau = p["sensor.tau"]
+    return [
+        (KI * I - p["motor.D"] * w - Ch - Cf) / (JM + JP),
+        (Um - KM * w - RM * I) / LM,
+        (RHO * G * hn - dP_pipe - dP_valve) / (L / AREA),
+        (Q - y) / tau if tau > 0 else 0.0,
+    ]
+
+
+def _nonphysical_now(x, p):
+    R, qi, _, rh_raw, _, _ = _algebraic(0.0, x, p)
+    return R > 0.1 and rh_raw <= RHMIN and qi / R > p["pump.b2"] / (2 * abs(B1))
+
+
+def reference(params, times=TIMES):
+    """Outputs of the documented model at ``times`` (scipy DOP853, rtol 1e-10)."""
+    p = {**DEFAULTS, **params}
+    t_end = float(times[-1])
+    cuts = {0.0, t_end}
+    if p["motor.start_delay"] > 0:
+        cuts.add(p["motor.start_delay"])
+    if p["valve.opening_time"] > 0:
+        cuts |= {0.01 * p["valve.opening_time"], p["valve.opening_time"]}
+    cuts = sorted(c for c in cuts if c <= t_end)
+    x = np.zeros(4)
+    ts, xs = [], []
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        on = a >= p["motor.start_delay"]
+        grid = np.linspace(a, b, max(2, int(math.ceil((b - a) / 0.01)) + 1))
+        keep = [t for t in times if a < t <= b]
+        t_eval = np.unique(np.concatenate([grid, keep]))
+        sol = solve_ivp(_rhs, (a, b), x, method="DOP853", t_eval=t_eval, args=(p, on),
+                        rtol=1e-10, atol=[1e-8, 1e-7, 1e-8, 1e-8], max_step=0.05)
+        assert sol.success, sol.message
+        ts.append(sol.t)
+        xs.append(sol.y.T)
+        x = sol.y[:, -1]
+    ts = np.concatenate(ts)
+    xs = np.concatenate(xs)
+    flag = np.maximum.accumulate([1.0 if _nonphysical_now(xi, p) else 0.0 for xi in xs])
+    out = {k: [] for k in OUTPUTS}
+    for t in times:
+        i = int(np.flatnonzero(np.isclose(ts, t, rtol=0, atol=1e-9))[-1])
+        w, I, Q, y = xs[i]
+        _, qi, hn, _, _, _ = _algebraic(t, xs[i], p)
+        out["sensor.m_flow"].append(p["sensor.gain"] * (y if p["sensor.tau"] > 0 else Q))
+        out["pump.m_flow"].append(Q)
+        out["motor.w"].append(w)
+        out["pump.dp"].append(RHO * G * hn)
+        out["motor.I"].append(I)
+        out["nonphysical"].append(flag[i])
+    return {k: np.asarray(v) for k, v in out.items()}
+
+
+def rel_err(fmu, ref):
+    scale = np.max(np.abs(ref))
+    return float(np.max(np.abs(fmu - ref) / np.maximum(np.abs(ref), 1e-3 * scale)))
+
+
+# ----------------------------------------------------------------------------------------
+# fixtures
+
+@pytest.fixture(scope="session")
+def fmu_path() -> Path:
+    return build_fmu(SRC)
+
+
+@pytest.fixture(scope="module")
+def model(fmu_path):
+    with FMUModel(fmu_path, OUTPUTS, TIMES) as m:
+        yield m
+
+
+# ----------------------------------------------------------------------------------------
+# tests
+
+def test_validate_fmu(fmu_path):
+    from fmpy.validation import validate_fmu
+    assert validate_fmu(str(fmu_path)) == []
+
+
+CASES = [dict(zip(("motor.D", "pump.b2"), pt)) for pt in DESIGN_POINTS] + \
+        [{"motor.D": 12.0, "pump.b2": 3.3, name: value} for name, value in EFFECTS_ON.items()] + \
+        [{"motor.D": 10.0, "pump.b2": 1.6}]   # non-physical run
+
+
+@pytest.mark.parametrize("params", CASES, ids=lambda p: ",".join(f"{k}={v:g}" for k, v in p.items()))
+def test_matches_scipy_reference(model, params):
+    got = model.run(params)
+    ref = reference(params)
+    for name in OUTPUTS:
+        if name == "nonphysical":
+            np.testing.assert_array_equal(got[name], ref[name])
+        else:
+            assert rel_err(got[name], ref[name]) < 1e-4, (name, rel_err(got[name], ref[name]))
+
+
+def test_nonphysical_triggers_for_low_b2(model):
+    assert model.run({"pump.b2": 1.6})["nonphysical"][-1] == 1.0
+    assert model.run({})["nonphysical"].max() == 0.0
+
+
+@pytest.mark.parametrize("name", sorted(EFFECTS_OFF))
+def test_effect_off_gives_base_model(model, name):
+    for base in ({}, {"motor.D": 18.0, "pump.b2": 2.9}):
+        a = model.run(base)
+        b = model.run({**base, name: EFFECTS_OFF[name]})
+        for k in OUTPUTS:
+            np.testing.assert_allclose(b[k], a[k], rtol=1e-12, atol=0)
+
+
+def test_effects_change_the_output(model):
+    base = model.run({})["sensor.m_flow"]
+    for name, value in EFFECTS_ON.items():
+        assert np.max(np.abs(model.run({name: value})["sensor.m_flow"] - base)) > 1.0, name
+
+
+def test_model_exchange_agrees_with_cosimulation(fmu_path, model):
+    import fmpy
+    for params in ({}, {"motor.D": 20.0, "pump.b2": 2.8, "motor.start_delay": 3.0,
+                        "valve.opening_time": 8.0, "sensor.tau": 2.0},
+                   {"pump.b2": 1.6, "pump.leak": 5e-5}):
+        res = fmpy.simulate_fmu(str(fmu_path), fmi_type="ModelExchange", stop_time=50.0,
+                                output_interval=2.0, relative_tolerance=1e-8,
+                                start_values=params, output=OUTPUTS)
+        cs = model.run(params)
+        for name in OUTPUTS:
+            me = np.interp(TIMES, res["time"], res[name])
+            if name == "nonphysical":
+                np.testing.assert_array_equal(me, cs[name])
+            else:
+                assert rel_err(me, cs[name]) < 1e-3, (name, rel_err(me, cs[name]))
+
+
+def test_build_cache(tmp_path, fmu_path):
+    src = tmp_path / "PumpCircuit"
+    shutil.copytree(SRC / "sources", src / "sources")
+    shutil.copy(SRC / "modelDescription.xml", src / "modelDescription.xml")
+    first = build_fmu(src)
+    mtime = first.stat().st_mtime_ns
+    time.sleep(0.01)
+    assert build_fmu(src) == first
+    assert first.stat().st_mtime_ns == mtime
+    assert resolve_fmu(src) == first
+    h = source_hash(src)
+    with open(src / "sources" / "model.c", "a") as fh:
+        fh.write("\n/* changed */\n")
+    assert source_hash(src) != h
+    second = build_fmu(src)
+    assert second != first and second.parent.name == source_hash(src)[:16]
+    assert first.read_bytes() != second.read_bytes()
+
+
+def test_build_error_names_folder(tmp_path):
+    src = tmp_path / "Broken"
+    shutil.copytree(SRC / "sources", src / "sources")
+    shutil.copy(SRC / "modelDescription.xml", src / "modelDescription.xml")
+    (src / "sources" / "model.c").write_text("this is not C;\n")
+    with pytest.raises(SimulationError, match="Broken") as e:
+        build_fmu(src)
+    assert "\n" not in str(e.value)
+
+
+def test_resolve_fmu(fmu_path, tmp_path):
+    assert resolve_fmu(fmu_path) == fmu_path
+    with pytest.raises(SimulationError, match="nowhere"):
+        resolve_fmu(tmp_path / "nowhere")
+
+
+def test_fmumodel_reuse_and_errors(model):
+    a = model.run({"motor.D": 14.0, "pump.b2": 3.1})
+    b = model.run({"motor.D": 14.0, "pump.b2": 3.1})
+    for k in OUTPUTS:
+        np.testing.assert_array_equal(a[k], b[k])
+    with pytest.raises(SimulationError, match="no_such_param"):
+        model.run({"no_such_param": 1.0})
+    assert set(model.output_names) == set(OUTPUTS)
+    assert "motor.D" in model.parameter_names and "pump.b2" in model.parameter_names
+
+
+def test_fmumodel_recovers_after_failure(model):
+    ok = model.run({})
+    with pytest.raises(SimulationError, match="motor.D=nan|pump.b2"):
+        model.run({"motor.D": float("nan"), "pump.b2": 3.0})
+    again = model.run({})
+    np.testing.assert_array_equal(again["sensor.m_flow"], ok["sensor.m_flow"])
+
+
+def test_start_values_apply_to_every_run(fmu_path):
+    with FMUModel(fmu_path, ["sensor.m_flow"], TIMES, start_values={"sensor.gain": 0.5}) as m:
+        half = m.run({})["sensor.m_flow"]
+        full = m.run({"sensor.gain": 1.0})["sensor.m_flow"]
+    np.testing.assert_allclose(half, 0.5 * full, rtol=1e-15)
+
+
+def test_fmumodel_close_removes_extraction(fmu_path):
+    m = FMUModel(fmu_path, ["pump.m_flow"], TIMES)
+    tmp = m._tmpdir
+    assert os.path.isdir(tmp)
+    m.close()
+    assert not os.path.exists(tmp)
+
+
+def test_fmumodel_speed(model):
+    n = 200
+    t0 = time.perf_counter()
+    for i in range(n):
+        model.run({"motor.D": 10.0 + 0.05 * i, "pump.b2": 3.61 - 0.005 * i})
+    rate = n / (time.perf_counter() - t0)
+    assert rate > 300   # >= 1000/s on an idle core; loose bound for loaded CI machines
+
+
+def test_step_guard_fails_cleanly_instead_of_hanging(model):
+    # a 1 ns flowmeter lag is far too stiff for the explicit integrator: the FMU must give up
+    t0 = time.perf_counter()
+    with pytest.raises(SimulationError, match=r"sensor.tau=1e-09.*internal steps"):
+        model.run({"sensor.tau": 1e-9})
+    assert time.perf_counter() - t0 < 5.0
+    assert model.run({})["nonphysical"].max() == 0.0
+
+
+def test_fmumodel_model_exchange(fmu_path, model):
+    with FMUModel(fmu_path, OUTPUTS, TIMES, fmi_type="ModelExchange") as me:
+        a = me.run({"motor.D": 14.0})
+    b = model.run({"motor.D": 14.0})
+    for name in OUTPUTS:
+        assert rel_err(a[name], b[name]) < 1e-3 if name != "nonphysical" else \
+            np.array_equal(a[name], b[name])
+
+
+def test_fmumodel_rejects_bad_construction(fmu_path):
+    with pytest.raises(SimulationError, match="no_such_output"):
+        FMUModel(fmu_path, ["no_such_output"], TIMES)
+    with pytest.raises(SimulationError, match="times"):
+        FMUModel(fmu_path, ["pump.m_flow"], np.array([0.0, 1.0]))
+    with pytest.raises(SimulationError, match="bogus"):
+        FMUModel(fmu_path, ["pump.m_flow"], TIMES, start_values={"bogus": 1.0})
