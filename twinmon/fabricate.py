@@ -129,7 +129,9 @@ def fabricate(cfg: Config, observations: str | os.PathLike, truth: str | os.Path
         for c in channels:
             x = batch.outputs[c][rows]
             chans[c] = x + ch_std[c] * rng.standard_normal(x.shape)
-        noise = {FLOW: flow_std, **ch_std} if fab.record_noise else {}
+        # Noise-free data (noise_fraction 0) record no level: zero is not a usable std.
+        noise = ({k: v for k, v in {FLOW: flow_std, **ch_std}.items() if v > 0}
+                 if fab.record_noise else {})
         obs_units[unit] = UnitObservations(years.copy(), chans, noise)
         truth_rows[unit] = (rows, clean)
 

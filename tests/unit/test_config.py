@@ -1,0 +1,99 @@
+"""Config loading: validation, overrides, extends, and errors that name file, path and value."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from twinmon.config import load_config
+from twinmon.errors import ConfigError
+
+from ..conftest import CONFIGS, write_yaml
+
+
+def test_paper_config_loads_with_its_values():
+    cfg = load_config(CONFIGS / "pump.yaml")
+    assert cfg.model.input_names == ["motor_damping", "pump_coef"]
+    assert cfg.model.inputs["motor_damping"].variable == "motor.D"
+    assert cfg.model.inputs["pump_coef"].variable == "pump.b2"
+    assert cfg.simulate.train_size == 128 and cfg.simulate.test_size == 64
+    t = cfg.model.output.times.times
+    assert t.shape == (25,) and t[0] == 2.0 and t[-1] == 50.0
+    assert set(cfg.model.effects) == {"sensor.tau", "sensor.gain", "valve.opening_time",
+                                      "pipe.fouling", "pump.leak", "motor.start_delay",
+                                      "motor.supply_ratio"}
+    assert cfg.safety.max_time == 30.0 and cfg.safety.fraction == 0.9
+
+
+def test_config_is_frozen():
+    cfg = load_config(CONFIGS / "pump.yaml")
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cfg.seed = 3
+
+
+def test_extends_merges_and_keeps_fmu_path_relative_to_its_file(tmp_path):
+    cfg = load_config(CONFIGS / "fleet.yaml")
+    assert cfg.fabricate is not None and set(cfg.fabricate.units) == {"Park", "Colt", "Monk"}
+    assert (cfg.model.fmu / "modelDescription.xml").exists()
+    child = write_yaml(tmp_path / "c.yaml", {"extends": str(CONFIGS / "pump.yaml"), "seed": 5})
+    assert load_config(child).seed == 5
+    assert (load_config(child).model.fmu / "modelDescription.xml").exists()
+
+
+def test_set_overrides_apply_before_validation():
+    cfg = load_config(CONFIGS / "pump.yaml", ["simulate.train_size=16", "reduce.kernel=matern32"])
+    assert cfg.simulate.train_size == 16 and cfg.reduce.kernel == "matern32"
+    with pytest.raises(ConfigError, match=r"simulate.train_size: must be >= 2, got 1"):
+        load_config(CONFIGS / "pump.yaml", ["simulate.train_size=1"])
+
+
+@pytest.mark.parametrize("override, message", [
+    ("simulate.bogus=1", r"simulate.bogus: unknown key \(value 1\)"),
+    ("seed=abc", r"seed: expected an integer, got 'abc'"),
+    ("simulate.design=random", r"simulate.design: expected one of lhs, sobol, halton, got 'random'"),
+    ("safety.fraction=1.5", r"safety.fraction: must lie in \(0, 1\], got 1.5"),
+    ("model.inputs.pump_coef.low=5", r"model.inputs.pump_coef.high: must be greater than low"),
+    ("reduce.variance_threshold=.nan", r"reduce.variance_threshold: expected a finite number"),
+    ("novalue", r"expected KEY.PATH=VALUE"),
+])
+def test_bad_values_name_file_path_and_value(override, message):
+    with pytest.raises(ConfigError, match=message) as exc:
+        load_config(CONFIGS / "pump.yaml", [override])
+    assert "\n" not in str(exc.value)
+
+
+def test_unknown_top_level_key_is_rejected(tmp_path):
+    p = write_yaml(tmp_path / "typo.yaml", {"extends": str(CONFIGS / "pump.yaml"),
+                                            "simulat": {"train_size": 3}})
+    with pytest.raises(ConfigError, match=r"typo.yaml: simulat: unknown key"):
+        load_config(p)
+
+
+def test_malformed_yaml_names_line(tmp_path):
+    p = tmp_path / "bad.yaml"
+    p.write_text("model:\n  fmu: x\n  inputs: [1, 2\n")
+    with pytest.raises(ConfigError, match=r"bad.yaml: malformed YAML at line \d+"):
+        load_config(p)
+
+
+def test_missing_file_and_missing_required_key(tmp_path):
+    with pytest.raises(ConfigError, match="config file not found"):
+        load_config(tmp_path / "nope.yaml")
+    p = write_yaml(tmp_path / "nomodel.yaml", {"seed": 1})
+    with pytest.raises(ConfigError, match=r"nomodel.yaml: model: required key is missing"):
+        load_config(p)
+
+
+def test_extends_cycle_is_an_error(tmp_path):
+    write_yaml(tmp_path / "a.yaml", {"extends": "b.yaml"})
+    write_yaml(tmp_path / "b.yaml", {"extends": "a.yaml"})
+    with pytest.raises(ConfigError, match="cycle"):
+        load_config(tmp_path / "a.yaml")
+
+
+def test_section_yaml_is_resolved_with_defaults():
+    cfg = load_config(CONFIGS / "pump.yaml")
+    text = cfg.section_yaml("simulate")
+    assert "chunk_size: 64" in text  # a default not written in the file
+    assert np.isclose(cfg.model.bounds, [[4.0, 30.0], [2.2, 4.0]]).all()

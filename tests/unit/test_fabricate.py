@@ -1,0 +1,96 @@
+"""fabricate: synthetic fleets from the real FMU; the shipped data regenerate identically."""
+from __future__ import annotations
+
+import h5py
+import numpy as np
+import pytest
+
+from twinmon.config import load_config
+from twinmon.errors import ConfigError
+from twinmon.fabricate import fabricate, read_truth
+from twinmon.observations import read_observations
+
+from ..conftest import CONFIGS, ROOT, write_yaml
+
+
+@pytest.mark.parametrize("name", ["fleet", "fleet_gap"])
+def test_shipped_data_regenerate_identically(tmp_path, name, fmu_path):
+    cfg_path = CONFIGS / f"{name}.yaml"
+    if not cfg_path.exists():
+        pytest.skip(f"{cfg_path} not shipped")
+    cfg = load_config(cfg_path)
+    fabricate(cfg, tmp_path / "o.h5", tmp_path / "t.h5")
+    for new, old in ((tmp_path / "o.h5", ROOT / "data" / f"{name}.h5"),
+                     (tmp_path / "t.h5", ROOT / "data" / f"{name}_truth.h5")):
+        with h5py.File(new) as a, h5py.File(old) as b:
+            names = []
+            a.visit(names.append)
+            other = []
+            b.visit(other.append)
+            assert names == other
+            for n in names:
+                if isinstance(a[n], h5py.Dataset):
+                    assert np.array_equal(a[n][()], b[n][()], equal_nan=True), n
+
+
+def test_shipped_fleet_matches_the_issue(fmu_path):
+    truth = read_truth(ROOT / "data" / "fleet_truth.h5")
+    obs = read_observations(ROOT / "data" / "fleet.h5")
+    assert set(obs.units) == {"Park", "Colt", "Monk"}
+    for u in obs.units.values():
+        assert np.array_equal(u.years, np.arange(1, 11))
+        assert u.noise_std["m_flow"] == pytest.approx(4.0)  # 1 % of 400 kg/s
+    slope = {u: {k: np.polyfit(truth.years[u], v, 1)[0] for k, v in truth.inputs[u].items()}
+             for u in truth.inputs}
+    assert abs(slope["Park"]["motor_damping"]) < 0.2 and -0.05 < slope["Park"]["pump_coef"] < 0
+    assert slope["Colt"]["pump_coef"] == pytest.approx(-0.1, abs=0.02)
+    assert slope["Monk"]["motor_damping"] == pytest.approx(1.2, abs=0.15)
+
+
+def test_noise_level_and_truth_separation(small_fleet_config, tmp_path):
+    cfg = load_config(small_fleet_config)
+    fabricate(cfg, tmp_path / "o.h5", tmp_path / "t.h5")
+    obs = read_observations(tmp_path / "o.h5")
+    with h5py.File(tmp_path / "t.h5") as f:
+        clean = {u: f[f"units/{u}/m_flow_clean"][()] for u in obs.units}
+    with h5py.File(tmp_path / "o.h5") as f:
+        names = []
+        f.visit(names.append)
+    assert not any("inputs" in n or "clean" in n for n in names)  # no truth in observations
+    resid = np.concatenate([(obs.units[u].m_flow - clean[u]).ravel() for u in obs.units])
+    assert resid.std() == pytest.approx(4.0, rel=0.15)
+    assert abs(resid.mean()) < 4.0 * 4 / np.sqrt(resid.size)
+
+
+def test_injected_effect_starts_at_onset(tmp_path, fmu_path):
+    p = write_yaml(tmp_path / "eff.yaml", {
+        "extends": str(CONFIGS / "pump.yaml"),
+        "fabricate": {"years": 4, "noise_fraction": 0.0, "units": {
+            "A": {"trajectories": {"motor_damping": {"start": 10.0},
+                                   "pump_coef": {"start": 3.61}}},
+            "B": {"trajectories": {"motor_damping": {"start": 10.0},
+                                   "pump_coef": {"start": 3.61}},
+                  "effects": {"sensor.tau": {"value": 2.0, "onset": 3}}},
+            "C": {"trajectories": {"motor_damping": {"start": 10.0},
+                                   "pump_coef": {"start": 3.61}},
+                  "disturbance": {"amplitude": 8.0, "period": 10.0, "onset": 2}}}}})
+    cfg = load_config(p)
+    fabricate(cfg, tmp_path / "o.h5", tmp_path / "t.h5")
+    obs = read_observations(tmp_path / "o.h5")
+    a, b, c = (obs.units[u].m_flow for u in "ABC")
+    assert np.array_equal(a[:2], b[:2])                 # identical before onset
+    assert np.all(b[2:, :5] < a[2:, :5] - 1.0)          # a lagging meter reads low while rising
+    assert np.array_equal(a[0], c[0]) and not np.allclose(a[1], c[1])
+    truth = read_truth(tmp_path / "t.h5")
+    assert np.isnan(truth.effects["B"]["sensor.tau"][:2]).all()
+    assert np.all(truth.effects["B"]["sensor.tau"][2:] == 2.0)
+    assert truth.disturbance["C"]["amplitude"] == 8.0
+
+
+def test_missing_trajectory_is_a_config_error(tmp_path, fmu_path):
+    p = write_yaml(tmp_path / "bad.yaml", {
+        "extends": str(CONFIGS / "pump.yaml"),
+        "fabricate": {"units": {"A": {"trajectories": {"motor_damping": {"start": 10.0}}}}}})
+    with pytest.raises(ConfigError, match=r"fabricate.units.A.trajectories.pump_coef: required"):
+        fabricate(load_config(p), tmp_path / "o.h5", tmp_path / "t.h5")
+    assert not (tmp_path / "o.h5").exists()

@@ -1,0 +1,96 @@
+"""Observations format and the CSV importer: validation and one-line errors naming the line."""
+from __future__ import annotations
+
+import h5py
+import numpy as np
+import pytest
+
+from twinmon.errors import ArtifactError, InputDataError
+from twinmon.observations import (Observations, UnitObservations, import_csv,
+                                  read_observations, write_observations)
+
+
+def _csv(tmp_path, text, name="m.csv"):
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+GOOD = """unit,year,time,m_flow,motor.w
+A,1,2,10.5,50
+A,1,4,20.5,80
+A,2,2,9.5,49
+A,2,4,19.0,
+B,1,2,11.0,51
+B,1,4,21.0,82
+"""
+
+
+def test_import_csv_round_trip(tmp_path):
+    obs = import_csv(_csv(tmp_path, GOOD), tmp_path / "o.h5", noise_std=4.0)
+    back = read_observations(tmp_path / "o.h5")
+    assert np.array_equal(back.time, [2.0, 4.0])
+    assert list(back.units) == ["A", "B"]
+    assert np.array_equal(back.units["A"].years, [1, 2])
+    assert np.array_equal(back.units["A"].m_flow, [[10.5, 20.5], [9.5, 19.0]])
+    assert np.isnan(back.units["A"].channels["motor.w"][1, 1])  # empty cell = missing
+    assert back.units["B"].noise_std == {"m_flow": 4.0}
+    assert obs.units["B"].m_flow.shape == (1, 2)
+
+
+@pytest.mark.parametrize("text, message", [
+    ("unit,year,m_flow\nA,1,3\n", r"line 1: missing column 'time'"),
+    ("unit,year,time,m_flow\nA,1,2,abc\n", r"line 2: column 'm_flow' is 'abc', expected a number"),
+    ("unit,year,time,m_flow\nA,x,2,1\n", r"line 2: column 'year' is 'x', expected an integer"),
+    ("unit,year,time,m_flow\nA,1,2,1\nA,1,2,2\n", r"line 3: duplicate row for unit 'A' year 1 "
+                                                   r"time 2 \(first on line 2\)"),
+    ("unit,year,time,m_flow\nA,1,2,1\nA,1,4,1\nA,2,2,1\nA,2,6,1\n",
+     r"line \d: unit 'A' year 2 has a time grid unlike unit 'A' year 1"),
+    ("unit,year,time,m_flow\nA,1,2\n", r"line 2: 3 fields, expected 4"),
+    ("unit,year,time,m_flow\nA,1,inf,1\n", r"line 2: column 'time' is 'inf', expected a finite"),
+    ("", r"line 1: file is empty"),
+])
+def test_import_csv_errors_name_the_line(tmp_path, text, message):
+    out = tmp_path / "o.h5"
+    with pytest.raises(InputDataError, match=message) as exc:
+        import_csv(_csv(tmp_path, text), out)
+    assert "m.csv" in str(exc.value) and not out.exists()
+
+
+def test_import_csv_missing_file(tmp_path):
+    with pytest.raises(InputDataError, match="nope.csv: file not found"):
+        import_csv(tmp_path / "nope.csv", tmp_path / "o.h5")
+
+
+def _obs(**over):
+    u = UnitObservations(np.array([1, 2]), {"m_flow": np.ones((2, 3))}, {"m_flow": 1.0})
+    for k, v in over.items():
+        setattr(u, k, v)
+    return Observations(np.array([2.0, 4.0, 6.0]), {"A": u})
+
+
+@pytest.mark.parametrize("over, message", [
+    ({"channels": {"m_flow": np.ones((2, 4))}}, r"/units/A/m_flow has shape \(2, 4\), expected \(2, 3\)"),
+    ({"channels": {"m_flow": np.array([[1, np.inf, 1], [1, 1, 1.0]])}}, r"m_flow\[0, 1\] is inf"),
+    ({"years": np.array([2, 1])}, r"years\[1\] = 1 is not after 2"),
+    ({"noise_std": {"m_flow": -1.0}}, r"noise_std\['m_flow'\] is -1.0"),
+    ({"channels": {"m_flow": np.array([[np.nan] * 3, [1, 1, 1.0]])}}, r"year 1 has no sample"),
+])
+def test_bad_observations_are_never_written(tmp_path, over, message):
+    out = tmp_path / "o.h5"
+    with pytest.raises(InputDataError, match=message):
+        write_observations(out, _obs(**over))
+    assert not out.exists()
+
+
+def test_read_rejects_wrong_schema_and_missing_flow(tmp_path):
+    out = tmp_path / "o.h5"
+    write_observations(out, _obs())
+    with h5py.File(out, "a") as f:
+        del f["units/A/m_flow"]
+    with pytest.raises(ArtifactError, match=r"o.h5: dataset /units/A/m_flow is missing"):
+        read_observations(out)
+    with h5py.File(out, "a") as f:
+        f.attrs["schema"] = "twinmon.observations/0"
+    with pytest.raises(ArtifactError, match="expected 'twinmon.observations/1'"):
+        read_observations(out)

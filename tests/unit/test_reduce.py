@@ -1,0 +1,91 @@
+"""reduce: Karhunen-Loeve + GP surrogate on real FMU runs; reload predicts exactly."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from twinmon.config import load_config
+from twinmon.errors import ArtifactError
+from twinmon.reduce import read_surrogate, read_validation, reduce
+from twinmon.simulate import read_simulations, simulate
+
+from ..conftest import write_yaml
+
+
+@pytest.fixture(scope="module")
+def fitted(tmp_path_factory, fmu_path):
+    tmp = tmp_path_factory.mktemp("reduce")
+    from ..conftest import CONFIGS
+    cfg_path = write_yaml(tmp / "c.yaml", {"extends": str(CONFIGS / "pump.yaml"),
+                                           "simulate": {"train_size": 48, "test_size": 16}})
+    cfg = load_config(cfg_path)
+    simulate(cfg, tmp / "sims.h5")
+    summary = reduce(cfg, tmp / "sims.h5", tmp / "sur.h5")
+    return cfg, tmp, summary
+
+
+def test_modes_chosen_by_variance_threshold(fitted):
+    cfg, tmp, summary = fitted
+    s = read_surrogate(tmp / "sur.h5")
+    ratios = np.cumsum(s.eigenvalues) / s.eigenvalues.sum()
+    assert s.variance_ratio >= cfg.reduce.variance_threshold
+    assert s.n_modes == 1 or ratios[s.n_modes - 2] < cfg.reduce.variance_threshold
+    assert summary.modes == s.n_modes
+
+
+def test_reloaded_surrogate_predicts_exactly_what_the_fitted_one_did(fitted):
+    from twinmon.reduce import fit_surrogate
+    cfg, tmp, _ = fitted
+    sims = read_simulations(tmp / "sims.h5")
+    fresh = fit_surrogate(sims.X["train"], sims.Y["train"], sims.time, sims.bounds,
+                          sims.input_names, cfg.reduce)
+    loaded = read_surrogate(tmp / "sur.h5")
+    X = sims.X["test"]
+    m1, v1 = fresh.predict_with_var(X)
+    m2, v2 = loaded.predict_with_var(X)
+    assert np.array_equal(m1, m2) and np.array_equal(v1, v2)
+
+
+def test_surrogate_interpolates_training_runs_and_is_accurate_on_test_runs(fitted):
+    _, tmp, summary = fitted
+    sims = read_simulations(tmp / "sims.h5")
+    s = read_surrogate(tmp / "sur.h5")
+    # Kriging interpolates the kept modes' coefficients at the training points; what is left
+    # is the truncation of the discarded modes, which truncation_var accounts for.
+    xi = s.coefficients(sims.X["train"])
+    assert np.allclose(xi, s.xi_train, rtol=0, atol=1e-6 * np.abs(s.xi_train).max())
+    z_err = np.log(s.predict(sims.X["train"])) - np.log(sims.Y["train"])
+    assert np.all(np.abs(z_err) <= 6 * np.sqrt(s.truncation_var) + 1e-9)
+    v = summary.validation
+    assert v.n_test == 16 and v.max_rel_error < 0.02 and v.mean_rel_error < 2e-3
+    assert all(q > 0.99 for q in v.q2[:2])
+    assert read_validation(tmp / "sur.h5")["max_rel_error"] == pytest.approx(v.max_rel_error)
+
+
+def test_predictive_variance_is_small_at_training_points_and_positive(fitted):
+    _, tmp, _ = fitted
+    s = read_surrogate(tmp / "sur.h5")
+    sims = read_simulations(tmp / "sims.h5")
+    _, v_train = s.predict_with_var(sims.X["train"][:5])
+    _, v_test = s.predict_with_var(sims.X["test"][:5])
+    assert np.all(v_train >= 0) and np.all(v_test > 0)
+    assert v_train.mean() < v_test.mean()
+
+
+def test_in_box(fitted):
+    _, tmp, _ = fitted
+    s = read_surrogate(tmp / "sur.h5")
+    lo, hi = s.bounds[:, 0], s.bounds[:, 1]
+    X = np.array([(lo + hi) / 2, lo - 1e-3, hi])
+    assert s.in_box(X).tolist() == [True, False, True]
+
+
+def test_input_mismatch_is_an_artifact_error(fitted):
+    cfg, tmp, _ = fitted
+    other = load_config(cfg.source, [])
+    import dataclasses
+    model = dataclasses.replace(other.model, inputs={"x": other.model.inputs["pump_coef"],
+                                                     "y": other.model.inputs["motor_damping"]})
+    with pytest.raises(ArtifactError, match=r"sims.h5: inputs are \['motor_damping', 'pump_coef'\]"):
+        reduce(dataclasses.replace(other, model=model), tmp / "sims.h5", tmp / "bad.h5")
+    assert not (tmp / "bad.h5").exists()
