@@ -81,8 +81,8 @@ def build_fmu(source, force, validate):
     from ..fmu import build_fmu as build
     path = build(source, force=force)
     if validate:
-        import fmpy
-        problems = fmpy.validate_fmu(str(path))
+        from fmpy.validation import validate_fmu
+        problems = validate_fmu(str(path))
         if problems:
             raise SimulationError(f"{path}: fmpy.validate_fmu found {len(problems)} problems, "
                                   f"first: {problems[0]}")
