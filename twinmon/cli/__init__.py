@@ -27,6 +27,15 @@ class TwinmonGroup(click.Group):
                 traceback.print_exc()
             click.echo(f"twinmon: {exc.family}: {exc.message}", err=True)
             ctx.exit(exc.exit_code)
+        except OSError as exc:
+            # A file system problem (permissions, full disk) that no stage anticipated: still one
+            # line naming the file, with its own exit code.
+            if ctx.obj and ctx.obj.get("verbose"):
+                import traceback
+                traceback.print_exc()
+            where = f"{exc.filename}: " if exc.filename else ""
+            click.echo(f"twinmon: I/O error: {where}{exc.strerror or exc}", err=True)
+            ctx.exit(8)
 
 
 @click.group(cls=TwinmonGroup, context_settings={"help_option_names": ["-h", "--help"]})
@@ -38,7 +47,7 @@ def main(ctx, verbose, quiet):
     """Health monitoring of machines through calibrated digital twins.
 
     Exit codes: 0 ok, 2 usage, 3 config, 4 input data, 5 artifact, 6 simulation,
-    7 calibration.
+    7 calibration, 8 I/O.
     """
     ctx.ensure_object(dict)
     ctx.obj["verbose"] = verbose
@@ -46,7 +55,7 @@ def main(ctx, verbose, quiet):
 
 
 def _register() -> None:
-    from . import data, pipeline  # noqa: F401  (modules attach their commands to main)
+    from . import data, forecast_cmd, pipeline  # noqa: F401  (modules attach their commands to main)
 
 
 _register()

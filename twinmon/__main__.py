@@ -1,0 +1,4 @@
+"""``python -m twinmon`` is the ``twinmon`` command."""
+from .cli import main
+
+main()
