@@ -259,16 +259,27 @@ class ReduceConfig:
 
 @dataclass(frozen=True)
 class CalibrateConfig:
+    """Bayesian calibration per unit and year (see docs/calibration.md).
+
+    ``samples`` and ``burn_in`` count draws per chain; year-1 chains (uniform prior, a
+    longer and more curved posterior) run twice as long and keep every second draw."""
+
     chains: int = 4
-    samples: int = 2000
-    burn_in: int = 500
+    samples: int = 1500
+    burn_in: int = 250
     #: Width (std) of the Gaussian prior of year n+1 around year n's estimate, as a
     #: fraction of each input's design range. See docs/calibration.md for the default.
     prior_width: float = 0.05
-    #: Noise standard deviation of the flow (kg/s); None: from the observations, else estimated.
+    #: Flow noise standard deviation (kg/s), used for units whose observations file does not
+    #: record one; None: estimated from the residuals of a least-squares fit of each year.
     noise_std: Optional[float] = None
+    #: Add the previous year's posterior variance to the year-to-year prior variance (the
+    #: Kalman predictive variance of a random walk): prior std = sqrt((w * range)^2 + var).
+    prior_carry_variance: bool = True
     rhat_warn: float = 1.05
     ess_warn: float = 400.0
+    #: Worker processes (units run in parallel); 0 means one per core, 1 runs in-process.
+    workers: int = 0
 
     def _check(self):
         if self.chains < 2:
@@ -279,6 +290,14 @@ class CalibrateConfig:
             yield "burn_in", "must be >= 0", self.burn_in
         if self.prior_width <= 0:
             yield "prior_width", "must be > 0", self.prior_width
+        if self.noise_std is not None and self.noise_std <= 0:
+            yield "noise_std", "must be > 0 (or null to estimate it)", self.noise_std
+        if self.rhat_warn <= 1:
+            yield "rhat_warn", "must be > 1", self.rhat_warn
+        if self.ess_warn < 0:
+            yield "ess_warn", "must be >= 0", self.ess_warn
+        if self.workers < 0:
+            yield "workers", "must be >= 0", self.workers
 
 
 @dataclass(frozen=True)
@@ -288,12 +307,23 @@ class ForecastConfig:
     samples: int = 2000
     #: Significance level of the root-cause trend tests.
     alpha: float = 0.01
+    #: Draw the inputs of a future year jointly, correlated as their regression residuals
+    #: (a multivariate Student t); false: independent Student t marginals.
+    correlate: bool = True
+    #: Posterior samples per observed year run through the twin (P(unsafe) and t90 history).
+    observed_samples: int = 500
 
     def _check(self):
         if self.horizon < 1:
             yield "horizon", "must be >= 1", self.horizon
         if not 0 < self.confidence < 1:
             yield "confidence", "must lie in (0, 1)", self.confidence
+        if self.samples < 10:
+            yield "samples", "must be >= 10", self.samples
+        if not 0 < self.alpha < 1:
+            yield "alpha", "must lie in (0, 1)", self.alpha
+        if self.observed_samples < 1:
+            yield "observed_samples", "must be >= 1", self.observed_samples
 
 
 @dataclass(frozen=True)
@@ -304,17 +334,76 @@ class WindowSpec:
 
 @dataclass(frozen=True)
 class DiagnoseConfig:
+    """Settings of ``diagnose`` (the sim-to-real gap); docs/diagnose.md explains each."""
+
     #: Time windows of the transient (seconds), for locating the gap.
     windows: dict[str, WindowSpec] = field(default_factory=lambda: {
         "start-up": WindowSpec(0.0, 8.0), "rise": WindowSpec(8.0, 24.0),
         "plateau": WindowSpec(24.0, 1e9)})
-    #: Significance level of the gap tests.
+    #: Significance level of the gap tests (family-wise: Bonferroni over years and tests).
     alpha: float = 0.01
     #: Minimum BIC gain to accept an effect (or a further one).
     bic_gain: float = 10.0
     #: Candidates whose fitted BIC lie within this of the best are reported as one group.
     group_bic: float = 6.0
     max_effects: int = 2
+    #: Candidate effects (FMU parameters, keys of model.effects); empty: all of them.
+    candidates: tuple[str, ...] = ()
+    #: Confirmation fits try the screened onset year and this many years either side.
+    onset_search: int = 1
+    #: Effect values per side of the baseline on the screening grid.
+    screen_points: int = 8
+    #: Candidates confirmed by a full fit when looking for a further effect.
+    confirm_further: int = 3
+    #: Below this percentage of the excess gap closed, the verdict is "unexplained".
+    min_closed: float = 50.0
+    #: An accepted effect that closes at least this percentage of the excess gap is the
+    #: verdict even when the remainder still fails the noise tests.
+    explained_closed: float = 90.0
+    #: The degradation inputs are fitted in their design box widened by this fraction of
+    #: its width on each side (a twin far outside its box is itself a sign of a gap).
+    fit_margin: float = 0.1
+    #: Lags of the Ljung-Box test of structure in a year's residual.
+    ljung_box_lags: int = 5
+    #: Noise of an unrecorded channel, as a fraction of its healthy plateau, for choosing
+    #: the channel that would separate a group.
+    channel_noise_fraction: float = 0.01
+    #: Worker processes over units; 0 means one per core.
+    workers: int = 0
+
+    def _check(self):
+        for name, w in self.windows.items():
+            if not w.start < w.stop:
+                yield f"windows.{name}.stop", f"must be greater than start ({w.start})", w.stop
+        if len(self.windows) == 0:
+            yield "windows", "at least one window is needed", {}
+        if not 0 < self.alpha < 1:
+            yield "alpha", "must lie in (0, 1)", self.alpha
+        if self.bic_gain < 0:
+            yield "bic_gain", "must be >= 0", self.bic_gain
+        if self.group_bic < 0:
+            yield "group_bic", "must be >= 0", self.group_bic
+        if self.max_effects < 1:
+            yield "max_effects", "must be >= 1", self.max_effects
+        if self.onset_search < 0:
+            yield "onset_search", "must be >= 0", self.onset_search
+        if self.screen_points < 2:
+            yield "screen_points", "must be >= 2", self.screen_points
+        if self.confirm_further < 1:
+            yield "confirm_further", "must be >= 1", self.confirm_further
+        if not 0 <= self.min_closed <= 100:
+            yield "min_closed", "must lie in [0, 100]", self.min_closed
+        if not self.min_closed <= self.explained_closed <= 100:
+            yield "explained_closed", f"must lie in [min_closed ({self.min_closed}), 100]", \
+                self.explained_closed
+        if self.fit_margin < 0:
+            yield "fit_margin", "must be >= 0", self.fit_margin
+        if self.ljung_box_lags < 1:
+            yield "ljung_box_lags", "must be >= 1", self.ljung_box_lags
+        if self.channel_noise_fraction <= 0:
+            yield "channel_noise_fraction", "must be > 0", self.channel_noise_fraction
+        if self.workers < 0:
+            yield "workers", "must be >= 0", self.workers
 
 
 @dataclass(frozen=True)

@@ -55,7 +55,7 @@ def main(ctx, verbose, quiet):
 
 
 def _register() -> None:
-    from . import data, forecast_cmd, pipeline  # noqa: F401  (modules attach their commands to main)
+    from . import calibrate_cmd, data, diagnose_cmd, forecast_cmd, pipeline, report_cmd  # noqa: F401  (modules attach their commands to main)
 
 
 _register()

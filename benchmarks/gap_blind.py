@@ -1,0 +1,261 @@
+"""Blind benchmark of ``twinmon diagnose``: random withheld effects, scored against the truth.
+
+Each case is one fabricated unit (random degradation trajectory, random candidate effect
+and magnitude, random onset year, its own noise); null cases carry no effect, out-of-list
+cases an additive disturbance. All cases of a run share one observations file (one unit per
+case), diagnosed exactly as ``twinmon diagnose`` does; only this script reads the truth.
+
+The gap of a case is the RMS, in noise standard deviations, of (flow with the effect - flow
+of the same unit without it) over its worst config window and its affected years. The
+targets are measured on cases whose gap is at least 3.
+
+Usage: ``python benchmarks/gap_blind.py [--cases 60] [--nulls 20] [--out-of-list 10]
+[--years 8] [--seed 7] [--workers 2]``
+"""
+from __future__ import annotations
+
+import argparse
+import copy
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from twinmon.config import config_from_mapping, load_config  # noqa: E402
+from twinmon.diagnose import diagnose  # noqa: E402
+from twinmon.config import Disturbance  # noqa: E402
+from twinmon.fabricate import disturbance_signal, fabricate, read_truth  # noqa: E402
+from twinmon.fmu import FMUModel, resolve_fmu  # noqa: E402
+
+#: Effects whose flow signature is distinct (DESIGN.md section 2: transient-type effects);
+#: the plateau-type ones look alike on the flow channel alone.
+FLOW_SEPARABLE = ("sensor.tau", "valve.opening_time", "motor.start_delay")
+
+
+def _window_gap(cfg, delta_sigma: np.ndarray) -> float:
+    """Max over windows of the RMS of [years, time] deltas (noise units)."""
+    t = cfg.model.output.times.times
+    best = 0.0
+    for w in cfg.diagnose.windows.values():
+        m = (t >= w.start) & (t < w.stop)
+        if m.any():
+            best = max(best, float(np.sqrt(np.mean(delta_sigma[:, m] ** 2))))
+    return best
+
+
+def min_magnitudes(cfg, model, sigma: float, target: float = 3.0) -> dict:
+    """Per effect, the value (on each side of the baseline) whose gap at nominal inputs is
+    ``target`` noise standard deviations; None if the range never gets there."""
+    nominal = {s.variable: s.nominal for s in cfg.model.inputs.values()}
+    base = model.run(nominal)["sensor.m_flow"]
+    out = {}
+    for name, e in cfg.model.effects.items():
+        sides = []
+        for end in (e.high, e.low):
+            if end == e.baseline:
+                continue
+            vals = e.baseline + np.linspace(0, 1, 101)[1:] * (end - e.baseline)
+            gaps = [_window_gap(cfg, ((model.run({**nominal, name: v})["sensor.m_flow"] - base)
+                                      / sigma)[None]) for v in vals]
+            ok = np.flatnonzero(np.array(gaps) >= target)
+            if ok.size:
+                sides.append((vals[ok[0]], end))
+        out[name] = sides
+    return out
+
+
+def build_cases(cfg, rng, n_cases, n_nulls, n_ool, years, mags):
+    units, labels = {}, {}
+    effects = [n for n in cfg.model.effects if mags[n]]
+    for i in range(n_cases + n_nulls + n_ool):
+        u = f"case{i:03d}"
+        spec = {"trajectories": {
+            "motor_damping": {"start": float(rng.uniform(9.0, 11.0)),
+                              "slope": float(rng.uniform(0.0, 0.8)), "jitter": 0.15},
+            "pump_coef": {"start": float(rng.uniform(3.5, 3.8)),
+                          "slope": float(rng.uniform(-0.06, -0.01)), "jitter": 0.01}}}
+        onset = int(rng.integers(2, years))
+        if i < n_cases:
+            name = effects[i % len(effects)]
+            lo, end = mags[name][int(rng.integers(len(mags[name])))]
+            value = float(lo + rng.uniform(0, 1) * (end - lo))
+            spec["effects"] = {name: {"value": value, "onset": onset}}
+            labels[u] = ("effect", name)
+        elif i < n_cases + n_nulls:
+            labels[u] = ("none", None)
+        else:
+            shape = "sine" if rng.uniform() < 0.5 else "bump"
+            spec["disturbance"] = {"amplitude": float(rng.uniform(12.0, 24.0)),
+                                   "period": float(rng.uniform(5.0, 12.0)),
+                                   "onset": onset, "shape": shape}
+            labels[u] = ("out-of-list", shape)
+        units[u] = spec
+    return units, labels
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--cases", type=int, default=63, help="effect cases (9 per candidate)")
+    ap.add_argument("--nulls", type=int, default=20)
+    ap.add_argument("--out-of-list", type=int, default=10)
+    ap.add_argument("--years", type=int, default=8)
+    ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("-v", "--verbose", action="count", default=0,
+                    help="list the cases missed (-vv: every case)")
+    ap.add_argument("--config", default=str(ROOT / "configs" / "fleet_gap.yaml"))
+    args = ap.parse_args(argv)
+
+    base = load_config(args.config)
+    raw = copy.deepcopy(dict(base.raw))
+    sigma = base.fabricate.noise_fraction * base.safety.nominal_flow
+    fmu = resolve_fmu(base.model.fmu)
+    t = base.model.output.times.times
+    with FMUModel(fmu, ["sensor.m_flow"], t) as model:
+        mags = min_magnitudes(base, model, sigma)
+    rng = np.random.default_rng(args.seed)
+    units, labels = build_cases(base, rng, args.cases, args.nulls, args.out_of_list,
+                                args.years, mags)
+    raw["fabricate"] = {"years": args.years, "noise_fraction": base.fabricate.noise_fraction,
+                        "seed": int(rng.integers(1 << 30)), "units": units}
+    cfg = config_from_mapping(raw, Path(args.config))
+
+    with tempfile.TemporaryDirectory(prefix="gap-blind-") as tmp:
+        obs, truth_path = Path(tmp) / "obs.h5", Path(tmp) / "truth.h5"
+        fabricate(cfg, obs, truth_path)
+        t0 = time.perf_counter()
+        summary = diagnose(cfg, obs, Path(tmp) / "gap.h5", workers=args.workers)
+        wall = time.perf_counter() - t0
+        truth = read_truth(truth_path)          # only the scorer reads it
+        gaps = case_gaps(cfg, fmu, truth, sigma)
+
+        # Timing target: 3 units x 10 years x 7 candidates.
+        cfg3 = load_config(args.config)
+        obs3 = Path(tmp) / "fleet3.h5"
+        fabricate(cfg3, obs3, Path(tmp) / "fleet3_truth.h5")
+        t1 = time.perf_counter()
+        diagnose(cfg3, obs3, Path(tmp) / "gap3.h5", workers=args.workers)
+        wall3 = time.perf_counter() - t1
+
+    report(cfg, summary, labels, gaps, wall, wall3, args, mags)
+
+
+def case_gaps(cfg, fmu, truth, sigma) -> dict:
+    """Gap (noise units, worst window, affected years) of each effect case, from the truth."""
+    t = cfg.model.output.times.times
+    out = {}
+    with FMUModel(fmu, ["sensor.m_flow"], t) as model:
+        for u, eff in truth.effects.items():
+            if not eff:
+                continue
+            on = np.all([np.isfinite(v) for v in eff.values()], axis=0)
+            clean = []
+            for k in np.flatnonzero(on):
+                p = {cfg.model.inputs[n].variable: float(v[k]) for n, v in truth.inputs[u].items()}
+                clean.append(model.run(p)["sensor.m_flow"])
+            # m_flow_clean is not in Truth: rebuild the with-effect run too.
+            with_eff = []
+            for k in np.flatnonzero(on):
+                p = {cfg.model.inputs[n].variable: float(v[k]) for n, v in truth.inputs[u].items()}
+                p.update({n: float(v[k]) for n, v in eff.items()})
+                with_eff.append(model.run(p)["sensor.m_flow"])
+            out[u] = _window_gap(cfg, (np.array(with_eff) - np.array(clean)) / sigma)
+    for u, d in truth.disturbance.items():
+        sig = disturbance_signal(Disturbance(**d), t)
+        out[u] = _window_gap(cfg, sig[None] / sigma)
+    return out
+
+
+def report(cfg, summary, labels, gaps, wall, wall3, args, mags):
+    names = list(cfg.model.effects)
+    cols = names + ["none", "unexplained"]
+    conf = {n: {c: 0 for c in cols} for n in names + ["none"]}
+    top1 = {n: [0, 0] for n in names}
+    in_group, group_sizes, closed, detected, n_eff = 0, [], [], 0, 0
+    below = []
+    for u, (kind, name) in labels.items():
+        g = summary.units[u]
+        if kind != "effect":
+            continue
+        if gaps[u] < 3.0:
+            below.append(u)
+            continue
+        n_eff += 1
+        pred = g.effects[0] if g.verdict == "effect" else g.verdict
+        conf[name][pred] += 1
+        top1[name][1] += 1
+        top1[name][0] += int(pred == name)
+        detected += int(g.verdict != "none")
+        if g.verdict == "effect":
+            group_sizes.append(len(g.group))
+            in_group += int(name in g.effects)
+            if name in g.effects:
+                closed.append(g.closed_percent)
+    nulls = [u for u, (k, _) in labels.items() if k == "none"]
+    for u in nulls:
+        g = summary.units[u]
+        conf["none"][g.effects[0] if g.verdict == "effect" else g.verdict] += 1
+    false_alarms = sum(summary.units[u].verdict != "none" for u in nulls)
+    ool = [u for u, (k, _) in labels.items() if k == "out-of-list"]
+
+    print(f"gap_blind: {n_eff} effect cases with gap >= 3 sigma ({len(below)} below, "
+          f"excluded), {len(nulls)} null, {len(ool)} out-of-list; {args.years} years each, "
+          f"onset years 2..{args.years - 1}, noise 1 % of nominal, seed {args.seed}")
+    print("smallest magnitude with a 3-sigma gap at nominal inputs: " + ", ".join(
+        f"{n} {'/'.join(f'{lo:.3g}' for lo, _ in s)}" for n, s in mags.items() if s))
+    w = max(len(c) for c in cols)
+    print("\nconfusion matrix (rows: truth; columns: verdict's first effect, or none/unexplained)")
+    print(" " * (w + 2) + " ".join(f"{i:>4d}" for i in range(len(cols))))
+    for r in names + ["none"]:
+        print(f"{r:>{w}}  " + " ".join(f"{conf[r][c]:>4d}" for c in cols))
+    print("columns: " + ", ".join(f"{i}={c}" for i, c in enumerate(cols)))
+
+    def pct(a, b):
+        return f"{100 * a / b:.1f} % ({a}/{b})" if b else "n/a"
+    sep_hits = sum(top1[n][0] for n in FLOW_SEPARABLE)
+    sep_n = sum(top1[n][1] for n in FLOW_SEPARABLE)
+    print(f"\ndetection (verdict != none)             : {pct(detected, n_eff)}   target >= 95 %")
+    print(f"true effect inside the reported group   : {pct(in_group, n_eff)}   target >= 95 %")
+    print(f"top-1 accuracy, all effects             : {pct(sum(v[0] for v in top1.values()), n_eff)}")
+    print(f"top-1 accuracy, flow-separable effects  : {pct(sep_hits, sep_n)}   target >= 80 %"
+          f"   ({', '.join(FLOW_SEPARABLE)})")
+    for n in names:
+        print(f"    top-1 {n:<20s}: {pct(*top1[n])}")
+    print(f"mean group size                         : "
+          f"{np.mean(group_sizes) if group_sizes else float('nan'):.2f}")
+    print(f"false alarms on null cases              : {pct(false_alarms, len(nulls))}   target <= 5 %")
+    print(f"mean % of excess gap closed (true effect found): "
+          f"{np.mean(closed) if closed else float('nan'):.1f} %   target >= 90 %"
+          f"   (min {np.min(closed) if closed else float('nan'):.1f} %)")
+    v_ool = [summary.units[u].verdict for u in ool if gaps[u] >= 3.0]
+    print(f"out-of-list disturbances, gap >= 3 sigma: " + ", ".join(
+        f"{v} {v_ool.count(v)}" for v in ("unexplained", "effect", "none"))
+        + f"   ({sum(gaps[u] < 3.0 for u in ool)} below 3 sigma excluded)")
+    if closed_ool := [summary.units[u].closed_percent for u in ool
+                      if gaps[u] >= 3.0 and summary.units[u].verdict == "effect"]:
+        print(f"    closed % when an effect was (wrongly) accepted: "
+              + ", ".join(f"{c:.0f}" for c in closed_ool))
+    if args.verbose:
+        for u, (kind, name) in labels.items():
+            g = summary.units[u]
+            ok = (kind == "effect" and name in g.effects) or (kind == "none" and g.verdict == "none") \
+                or (kind == "out-of-list" and g.verdict == "unexplained")
+            if not ok or args.verbose > 1:
+                print(f"  {u} truth {kind} {name or ''} gap {gaps.get(u, float('nan')):.1f}: "
+                      f"{g.verdict} {g.effects} onset {g.onset} p_gap {g.p_gap:.2g} "
+                      f"rms {g.rms_before:.2f}->{g.rms_after:.2f} closed {g.closed_percent:.0f} "
+                      f"ranking " + ", ".join(f"{c} {b:.0f}" for c, b in
+                                               zip(g.candidates[:3], g.delta_bic[:3])))
+    print(f"\nwall time: {wall:.1f} s for {len(labels)} units x {args.years} years "
+          f"({args.workers} workers)")
+    print(f"wall time, 3 units x 10 years x 7 candidates (configs/fleet_gap.yaml): "
+          f"{wall3:.1f} s on {args.workers} workers   target < 120 s")
+
+
+if __name__ == "__main__":
+    main()

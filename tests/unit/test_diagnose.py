@@ -1,0 +1,250 @@
+"""Unit tests of twinmon.diagnose: tests of structure, noise estimate, the twin's fits through
+the real FMU, the artifact and the command (tiny fabricated fleets)."""
+from __future__ import annotations
+
+import copy
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from twinmon import artifacts
+from twinmon.config import config_from_mapping, load_config
+from twinmon.diagnose import (JointFit, Twin, candidate_names, diagnose, diagnose_unit,
+                              estimate_noise, ljung_box, pooled_onset_pvalues, read_gap)
+from twinmon.errors import ArtifactError, ConfigError, InputDataError
+from twinmon.fabricate import fabricate
+from twinmon.fmu import resolve_fmu
+
+ROOT = Path(__file__).resolve().parents[2]
+PUMP = ROOT / "configs" / "pump.yaml"
+SIGMA = 4.0
+
+
+@pytest.fixture(scope="module")
+def cfg():
+    return load_config(PUMP)
+
+
+@pytest.fixture(scope="module")
+def fmu(cfg):
+    return resolve_fmu(cfg.model.fmu)
+
+
+@pytest.fixture(scope="module")
+def twin(cfg, fmu):
+    t = Twin(cfg, fmu, ["m_flow"], cfg.model.output.times.times, {"m_flow": SIGMA},
+             list(cfg.model.effects))
+    yield t
+    t.close()
+
+
+def small_fleet_cfg(units: dict, years: int = 3, **diag):
+    raw = copy.deepcopy(dict(load_config(PUMP).raw))
+    raw["fabricate"] = {"years": years, "noise_fraction": 0.01, "seed": 11, "units": units}
+    if diag:
+        raw["diagnose"] = diag
+    return config_from_mapping(raw, PUMP)
+
+
+HEALTHY = {"trajectories": {"motor_damping": {"start": 10.0, "slope": 0.1},
+                            "pump_coef": {"start": 3.7, "slope": -0.02}}}
+
+
+# -- statistics ------------------------------------------------------------------------------
+def test_ljung_box_tells_white_from_correlated_noise():
+    rng = np.random.default_rng(0)
+    white = rng.standard_normal(200)
+    ar = np.zeros(200)
+    for i in range(1, 200):
+        ar[i] = 0.8 * ar[i - 1] + rng.standard_normal()
+    assert ljung_box(white, 5) > 0.01
+    assert ljung_box(ar, 5) < 1e-6
+    assert ljung_box(np.array([1.0, np.nan, 2.0]), 5) == 1.0   # too short: no evidence
+
+
+def test_pooled_onset_pvalues_find_the_excess():
+    dof = np.full(6, 23.0)
+    chi2 = np.array([23.0, 22.0, 24.0, 80.0, 90.0, 85.0])
+    p = pooled_onset_pvalues(chi2, dof)
+    assert p.shape == (6,)
+    assert int(np.argmin(p)) == 3
+    assert pooled_onset_pvalues(dof, dof).min() > 0.4
+
+
+def test_estimate_noise_from_the_plateau():
+    rng = np.random.default_rng(1)
+    t = np.arange(2.0, 52.0, 2.0)
+    clean = 400 * (1 - np.exp(-t / 5.0))
+    y = clean + 4.0 * rng.standard_normal((10, t.size))
+    assert estimate_noise(y, t, 24.0) == pytest.approx(4.0, rel=0.2)
+    with pytest.raises(InputDataError):
+        estimate_noise(np.full((1, t.size), 1.0), t, 24.0)
+
+
+# -- the twin --------------------------------------------------------------------------------
+def test_vanishing_lag_runs_as_the_baseline(twin):
+    theta = np.array([10.0, 3.61])
+    np.testing.assert_array_equal(twin.predict(theta, {"sensor.tau": 1e-6}), twin.predict(theta))
+    assert np.abs(twin.predict(theta, {"sensor.tau": 0.5}) - twin.predict(theta)).max() > 1.0
+
+
+def test_base_fit_recovers_the_inputs(twin):
+    truth = np.array([14.0, 3.3])
+    y = twin.predict(truth)[None]
+    fit = JointFit(twin, y, np.array([1])).solve(twin.u_of([10.0, 3.61]))
+    np.testing.assert_allclose(twin.theta_of(fit.x), truth, rtol=1e-4)
+    assert fit.chi2_rows[0] < 1e-6
+
+
+def test_joint_fit_recovers_an_effect_shared_over_years(twin):
+    # Two years with different inputs share one valve opening time from year 2 on.
+    thetas = np.array([[11.0, 3.6], [12.0, 3.5]])
+    y = np.array([twin.predict(thetas[0]), twin.predict(thetas[1], {"valve.opening_time": 7.0})])
+    prob = JointFit(twin, y[1:], np.array([2]), [("valve.opening_time", 2)])
+    x0 = np.concatenate([[twin.effect_u("valve.opening_time", 5.0)],
+                         twin.u_of([[13.0, 3.7]]).ravel()])
+    fit = prob.solve(x0)
+    ue, ut = prob.unpack(fit.x)
+    assert twin.effect_of("valve.opening_time", ue[0]) == pytest.approx(7.0, abs=0.05)
+    np.testing.assert_allclose(twin.theta_of(ut[0]), thetas[1], rtol=1e-3)
+
+
+def test_jacobian_matches_central_differences(twin):
+    y = twin.predict(np.array([12.0, 3.5]), {"sensor.tau": 0.6})[None]
+    prob = JointFit(twin, y, np.array([1]), [("sensor.tau", 1)])
+    x = np.array([0.3, 0.4, 0.6])
+    J = prob.jacobian(x)
+    h = 1e-4
+    for j in range(3):
+        e = np.zeros(3)
+        e[j] = h
+        num = (prob.residuals(x + e) - prob.residuals(x - e)) / (2 * h)
+        np.testing.assert_allclose(J[:, j], num, rtol=2e-2, atol=1e-2 * np.abs(num).max())
+
+
+# -- the stage -------------------------------------------------------------------------------
+def test_null_unit_gives_no_gap(cfg, fmu, twin):
+    rng = np.random.default_rng(5)
+    years = np.arange(1, 4)
+    flows = np.array([twin.run(np.array([10.0 + 0.2 * k, 3.7]))["sensor.m_flow"]
+                      for k in range(3)]) + SIGMA * rng.standard_normal((3, 25))
+    g = diagnose_unit(cfg, fmu, "U", cfg.model.output.times.times, years, {"m_flow": flows},
+                      {"m_flow": SIGMA}, twin=twin)
+    assert g.verdict == "none"
+    assert g.effects == [] and g.where_years == []
+    assert g.residual_before.shape == (3, 25)
+    assert g.window_rms_before.shape == (3, len(cfg.diagnose.windows))
+    assert 0.6 < g.rms_before < 1.4
+    assert len(g.candidates) == len(cfg.model.effects)
+
+
+def test_diagnose_writes_gap_and_reads_back(tmp_path):
+    cfg = small_fleet_cfg({"A": HEALTHY,
+                           "B": {**HEALTHY, "effects": {"motor.start_delay":
+                                                        {"value": 1.5, "onset": 2}}}})
+    fabricate(cfg, tmp_path / "obs.h5", tmp_path / "truth.h5")
+    s = diagnose(cfg, tmp_path / "obs.h5", tmp_path / "gap.h5", workers=1)
+    assert s.units["A"].verdict == "none"
+    b = s.units["B"]
+    assert b.verdict == "effect" and b.effects[0] == "motor.start_delay"
+    lo, hi = b.estimate["motor.start_delay"][1:]
+    assert lo <= 1.5 <= hi
+    gap = read_gap(tmp_path / "gap.h5")
+    assert gap.windows == list(cfg.diagnose.windows)
+    rb = gap.units["B"]
+    assert rb.verdict == "effect" and rb.effects == b.effects and rb.onset == b.onset
+    np.testing.assert_allclose(rb.residual_before, b.residual_before)
+    assert rb.predicted_after.shape == (3, 25)
+    assert rb.estimate["motor.start_delay"][0] == pytest.approx(b.estimate["motor.start_delay"][0])
+    with artifacts.open_artifact(tmp_path / "gap.h5", "gap") as f:
+        assert f["units/B/residual_before"].attrs["units"] == "1"
+        inputs = json.loads(f.attrs["inputs"])
+        assert inputs[0]["path"].endswith("obs.h5")
+    d = s.as_dict()["units"]["B"]
+    assert set(d) >= {"verdict", "effects", "where", "shrink", "estimate"}
+    assert set(d["shrink"]) == {"rms_before", "rms_after", "closed_percent"}
+    assert set(d["estimate"]["motor.start_delay"]) == {"mean", "q05", "q95"}
+
+
+def test_read_gap_rejects_another_artifact(tmp_path):
+    with artifacts.write_artifact(tmp_path / "x.h5", "forecast") as f:
+        f.attrs["x"] = 1
+    with pytest.raises(ArtifactError, match="schema"):
+        read_gap(tmp_path / "x.h5")
+
+
+def test_unknown_candidate_is_a_config_error(tmp_path):
+    cfg = small_fleet_cfg({"A": HEALTHY}, candidates=["valve.stuck"])
+    with pytest.raises(ConfigError, match="valve.stuck"):
+        candidate_names(cfg)
+
+
+@pytest.mark.parametrize("key, value", [("alpha", 1.5), ("min_closed", 120.0),
+                                        ("windows", {"x": {"start": 5.0, "stop": 1.0}}),
+                                        ("max_effects", 0), ("bogus", 1)])
+def test_invalid_diagnose_section_is_rejected(key, value):
+    with pytest.raises(ConfigError, match=f"diagnose.*{key}"):
+        small_fleet_cfg({"A": HEALTHY}, **{key: value})
+
+
+def test_time_grid_mismatch_is_an_input_error(tmp_path):
+    cfg = small_fleet_cfg({"A": HEALTHY}, years=1)
+    fabricate(cfg, tmp_path / "obs.h5", tmp_path / "truth.h5")
+    other = copy.deepcopy(dict(cfg.raw))
+    other["model"]["output"]["times"] = {"start": 1.0, "stop": 50.0, "step": 1.0}
+    cfg2 = config_from_mapping(other, PUMP)
+    with pytest.raises(InputDataError, match="time"):
+        diagnose(cfg2, tmp_path / "obs.h5", tmp_path / "gap.h5", workers=1)
+    assert not (tmp_path / "gap.h5").exists()
+
+
+def test_cli_json_and_summary(tmp_path):
+    from twinmon.cli import main
+    cfg_path = tmp_path / "fleet.yaml"
+    cfg_path.write_text(f"extends: {PUMP}\nfabricate:\n  years: 3\n  seed: 3\n  units:\n"
+                        "    A:\n      trajectories:\n"
+                        "        motor_damping: {start: 10.0}\n        pump_coef: {start: 3.7}\n")
+    runner = CliRunner()
+    r = runner.invoke(main, ["fabricate", "-c", str(cfg_path), "-o", str(tmp_path / "o.h5")])
+    assert r.exit_code == 0, r.output
+    r = runner.invoke(main, ["diagnose", "-c", str(cfg_path), "--observations",
+                             str(tmp_path / "o.h5"), "-o", str(tmp_path / "gap.h5"), "--json",
+                             "-j", "1"])
+    assert r.exit_code == 0, r.output
+    out = json.loads(r.stdout)
+    assert out["units"]["A"]["verdict"] == "none"
+    assert "A: no significant gap" in r.stderr
+    r = runner.invoke(main, ["diagnose", "-c", str(cfg_path), "--observations",
+                             str(tmp_path / "missing.h5")])
+    assert r.exit_code == 5 and "missing.h5" in r.stderr
+
+
+def test_posterior_predictive_map_and_mismatched_posterior(cfg, fmu, twin):
+    from twinmon.calibrate import Posterior, UnitPosterior
+    from twinmon.diagnose import _posterior_for
+    rng = np.random.default_rng(2)
+    years = np.arange(1, 3)
+    flows = np.array([twin.run(np.array([10.0, 3.7]))["sensor.m_flow"]] * 2) \
+        + SIGMA * rng.standard_normal((2, 25))
+    mean = np.array([[10.0, 3.7], [10.0, 3.7]])
+    cov = np.array([np.diag([0.5 ** 2, 0.05 ** 2])] * 2)
+    g_ml = diagnose_unit(cfg, fmu, "U", cfg.model.output.times.times, years,
+                         {"m_flow": flows}, {"m_flow": SIGMA}, twin=twin)
+    g_post = diagnose_unit(cfg, fmu, "U", cfg.model.output.times.times, years,
+                           {"m_flow": flows}, {"m_flow": SIGMA}, twin=twin,
+                           posterior=(mean, cov))
+    assert np.isfinite(g_post.residual_before).all()
+    assert not np.allclose(g_post.residual_before, g_ml.residual_before)
+    assert g_post.verdict == g_ml.verdict == "none"
+    samples = rng.normal(mean[:, None, :], [0.5, 0.05], size=(2, 50, 2))
+    z = np.zeros((2, 2))
+    up = UnitPosterior(np.array([1, 3]), samples, mean, mean, mean, mean, z, z,
+                       np.zeros((2, 2)), np.full(2, SIGMA), "file")
+    post = Posterior(cfg.model.input_names, {"U": up})
+    with pytest.raises(ArtifactError, match="years"):
+        _posterior_for("p.h5", post, cfg, "U", years)
+    with pytest.raises(ArtifactError, match="no posterior"):
+        _posterior_for("p.h5", post, cfg, "V", years)

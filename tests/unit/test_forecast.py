@@ -1,0 +1,332 @@
+"""forecast: Student-t trends, twin propagation (surrogate in the box, FMU outside), root cause."""
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import h5py
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from scipy import stats
+
+from twinmon import artifacts
+from twinmon.calibrate import UnitPosterior, write_posterior
+from twinmon.config import load_config
+from twinmon.errors import ArtifactError, CalibrationError
+from twinmon.forecast import (SOURCE_FAILED, SOURCE_FMU, SOURCE_SURROGATE, TwinResult,
+                              degrading_directions, evaluate_twin, fit_trend, forecast,
+                              maintenance_plan, read_forecast, residual_correlation,
+                              sample_predictive, slope_test, verdict)
+from twinmon.reduce import read_surrogate, reduce
+from twinmon.safety import time_to_fraction
+from twinmon.simulate import simulate
+
+from ..conftest import CONFIGS, write_yaml
+
+YEARS = np.arange(1, 11)
+
+
+# ---------------------------------------------------------------------------------------
+# Fixtures
+# ---------------------------------------------------------------------------------------
+def write_synthetic_posterior(path, cfg, lines: dict, seed: int = 0, n_s: int = 200,
+                              scatter=(0.25, 0.03), post_std=(0.3, 0.05)):
+    """A posterior artifact (calibrate's writer) whose yearly estimates follow given lines.
+
+    ``lines``: unit -> [(intercept, slope)] per input. The yearly means scatter about the
+    line by ``scatter`` (per input); draws scatter about the mean by ``post_std``.
+    """
+    rng = np.random.default_rng(seed)
+    d = len(cfg.model.inputs)
+    units = {}
+    for unit, coefs in lines.items():
+        n_y = YEARS.size
+        centre = np.column_stack([a + b * YEARS for a, b in coefs])
+        centre = centre + rng.standard_normal((n_y, d)) * np.asarray(scatter)
+        samples = centre[:, None, :] + rng.standard_normal((n_y, n_s, d)) * np.asarray(post_std)
+        units[unit] = UnitPosterior(
+            years=YEARS.copy(), samples=samples, mean=samples.mean(axis=1),
+            median=np.median(samples, axis=1), q05=np.quantile(samples, 0.05, axis=1),
+            q95=np.quantile(samples, 0.95, axis=1), rhat=np.ones((n_y, d)),
+            ess=np.full((n_y, d), float(n_s)), acceptance=np.full((n_y, 2), 0.3),
+            noise_std=np.full(n_y, 4.0), noise_source="file",
+            surrogate_var_ratio=np.zeros(n_y))
+    write_posterior(path, units, cfg.model.input_names, cfg, [])
+    return path
+
+
+HEALTHY = [(10.0, 0.0), (3.75, -0.02)]
+PUMP = [(10.0, 0.0), (3.7, -0.12)]
+MOTOR = [(9.0, 1.0), (3.7, -0.02)]
+BOTH = [(9.0, 1.0), (3.7, -0.12)]
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory, fmu_path):
+    """A real surrogate, a small-sample config and a four-unit synthetic posterior."""
+    tmp = tmp_path_factory.mktemp("forecast")
+    cfg_path = write_yaml(tmp / "c.yaml", {
+        "extends": str(CONFIGS / "pump.yaml"),
+        "simulate": {"executor": "serial"},
+        "forecast": {"samples": 300, "observed_samples": 40},
+    })
+    cfg = load_config(cfg_path)
+    simulate(cfg, tmp / "sims.h5")
+    reduce(cfg, tmp / "sims.h5", tmp / "sur.h5")
+    post = write_synthetic_posterior(tmp / "post.h5", cfg, {
+        "Healthy": HEALTHY, "Pumpy": PUMP, "Motory": MOTOR, "Bothy": BOTH})
+    summary = forecast(cfg, post, tmp / "sur.h5", tmp / "fc.h5")
+    return cfg, cfg_path, tmp, summary
+
+
+# ---------------------------------------------------------------------------------------
+# Trends and intervals
+# ---------------------------------------------------------------------------------------
+def test_linear_model_slope_equals_numpy_polyfit():
+    rng = np.random.default_rng(1)
+    y = 3.7 - 0.08 * YEARS + 0.05 * rng.standard_normal(YEARS.size)
+    t, resid = fit_trend(YEARS, y)
+    slope, icpt = np.polyfit(YEARS, y, 1)
+    assert t.slope == pytest.approx(slope, rel=1e-10)
+    assert t.intercept == pytest.approx(icpt, rel=1e-10)
+    assert np.allclose(resid, y - (icpt + slope * YEARS), atol=1e-12)
+    assert t.residual_std == pytest.approx(np.sqrt(np.sum(resid ** 2) / (YEARS.size - 2)))
+
+
+def test_prediction_interval_is_student_t_by_hand():
+    x = np.array([1.0, 2, 3, 5, 8])
+    y = np.array([2.1, 2.9, 4.2, 5.8, 9.1])
+    t, _ = fit_trend(x, y)
+    x0 = np.array([9.0, 12.0])
+    mean, lo, hi, _ = t.predict(x0, 0.90)
+    # Hand computation: yhat +- t_{n-2,0.95} s sqrt(1 + 1/n + (x0-xbar)^2/Sxx)
+    n = x.size
+    b1 = np.sum((x - x.mean()) * (y - y.mean())) / np.sum((x - x.mean()) ** 2)
+    b0 = y.mean() - b1 * x.mean()
+    s = np.sqrt(np.sum((y - b0 - b1 * x) ** 2) / (n - 2))
+    half = stats.t.ppf(0.95, n - 2) * s * np.sqrt(1 + 1 / n + (x0 - x.mean()) ** 2
+                                                  / np.sum((x - x.mean()) ** 2))
+    assert np.allclose(mean, b0 + b1 * x0)
+    assert np.allclose(hi - mean, half) and np.allclose(mean - lo, half)
+    # Not the normal quantile: with 3 dof the t interval is much wider.
+    assert np.all(hi - mean > 1.3 * stats.norm.ppf(0.95) * s)
+    # The slope interval is the t interval of the slope.
+    se = s / np.sqrt(np.sum((x - x.mean()) ** 2))
+    assert np.allclose(t.slope_ci, (b1 - stats.t.ppf(0.95, n - 2) * se,
+                                    b1 + stats.t.ppf(0.95, n - 2) * se))
+
+
+def test_predictive_samples_follow_the_interval_and_the_correlation():
+    rng = np.random.default_rng(2)
+    y1 = 10 + 1.0 * YEARS + 0.3 * rng.standard_normal(10)
+    y2 = 3.7 - 0.1 * YEARS + 0.05 * rng.standard_normal(10)
+    t1, r1 = fit_trend(YEARS, y1)
+    t2, r2 = fit_trend(YEARS, y2)
+    corr = np.array([[1.0, 0.8], [0.8, 1.0]])
+    fut = np.array([11, 15])
+    X = sample_predictive([t1, t2], fut, corr, 40000, np.random.default_rng(3))
+    assert X.shape == (2, 40000, 2)
+    for i, t in enumerate((t1, t2)):
+        _, lo, hi, _ = t.predict(fut, 0.90)
+        inside = np.mean((X[:, :, i] >= lo[:, None]) & (X[:, :, i] <= hi[:, None]), axis=1)
+        assert np.allclose(inside, 0.90, atol=0.01)
+    assert np.corrcoef(X[1].T)[0, 1] == pytest.approx(0.8, abs=0.02)
+    R = residual_correlation(np.column_stack([r1, r2]))
+    assert R.shape == (2, 2) and np.allclose(np.diag(R), 1)
+    assert R[0, 1] == pytest.approx(np.corrcoef(r1, r2)[0, 1], abs=1e-6)
+
+
+@pytest.mark.parametrize("slope, expect", [(-0.5, False), (0.2, False), (0.4, True), (0.9, True)])
+def test_slope_test_is_one_sided_against_normal_ageing(slope, expect):
+    rng = np.random.default_rng(4)
+    y = 10 + slope * YEARS + 0.2 * rng.standard_normal(10)
+    t, _ = fit_trend(YEARS, y)
+    t = slope_test(t, normal_rate=0.0, tolerance=0.25, direction=+1, alpha=0.01)
+    bound = 0.25
+    assert t.p_value == pytest.approx(stats.t.sf((t.slope - bound) / t.slope_se, 8))
+    assert t.rejects is expect and "one-sided t test" in t.test
+    # A falling input whose degrading direction is downwards is tested the other way.
+    down, _ = fit_trend(YEARS, 3.7 - slope / 8 * YEARS + 0.02 * rng.standard_normal(10))
+    down = slope_test(down, -0.02, 0.03, direction=-1, alpha=0.01)
+    assert down.p_value == pytest.approx(
+        stats.t.sf((-down.slope - 0.05) / down.slope_se, 8))
+
+
+def test_degrading_directions_from_the_surrogate(setup):
+    cfg, _, tmp, _ = setup
+    d = degrading_directions(cfg, read_surrogate(tmp / "sur.h5"))
+    assert d == {"motor_damping": 1, "pump_coef": -1}
+
+
+# ---------------------------------------------------------------------------------------
+# The stage
+# ---------------------------------------------------------------------------------------
+def test_root_cause_verdicts_on_synthetic_posteriors(setup):
+    _, _, _, s = setup
+    causes = {u: f.root_cause for u, f in s.units.items()}
+    assert causes == {"Healthy": "healthy", "Pumpy": "pump", "Motory": "motor",
+                      "Bothy": "both"}
+    alpha = setup[0].forecast.alpha
+    for unit, f in s.units.items():
+        for name, t in f.trends.items():
+            assert (t.p_value < alpha) == t.rejects
+    assert verdict(s.units["Bothy"].trends) == "both"
+
+
+def test_failure_year_and_plan(setup):
+    cfg, _, _, s = setup
+    for unit, f in s.units.items():
+        fy = [int(y) for y, p in zip(f.years_future, f.p_unsafe)
+              if p > cfg.safety.failure_probability]
+        assert f.failure_year == (fy[0] if fy else None)
+    healthy, pump = s.units["Healthy"], s.units["Pumpy"]
+    assert healthy.failure_year is None and healthy.plan.startswith("No action")
+    # b2 = 3.7 - 0.12 y crosses ~2.2 near year 12.5: the pump unit fails in the horizon.
+    assert pump.failure_year is not None and 11 <= pump.failure_year <= 14
+    assert "pump" in pump.plan and "motor within normal ageing" in pump.plan
+    deadline = "now" if pump.failure_year == 11 else f"year {pump.failure_year - 1}"
+    assert deadline in pump.plan
+    # The probability of being unsafe grows with the years for a degrading unit.
+    assert np.all(np.diff(pump.p_unsafe) >= -0.03)
+
+
+def test_points_outside_the_box_go_through_the_fmu(setup):
+    from twinmon.fmu import FMUModel
+    from twinmon.simulate import spec_for
+    cfg, _, tmp, s = setup
+    sur = read_surrogate(tmp / "sur.h5")
+    X = np.array([[10.0, 3.61],     # inside
+                  [35.0, 3.61],     # damping above the box
+                  [10.0, 2.0],      # pump coefficient below the box, still physical
+                  [10.0, 1.5]])     # non-physical
+    r = evaluate_twin(cfg, sur, X)
+    assert list(r.source) == [SOURCE_SURROGATE, SOURCE_FMU, SOURCE_FMU, SOURCE_FMU]
+    spec = spec_for(cfg)
+    with FMUModel(spec.fmu, spec.outputs, spec.times) as m:
+        for k in (1, 2):
+            out = m.run({"motor.D": X[k, 0], "pump.b2": X[k, 1]})
+            assert r.t90[k] == time_to_fraction(spec.times, out["sensor.m_flow"], cfg.safety)
+    assert r.t90[0] == time_to_fraction(sur.time, sur.predict(X[:1]), cfg.safety)[0]
+    assert list(r.nonphysical) == [False, False, False, True]
+    assert list(r.unsafe(cfg.safety)) == [False, True, True, True]
+    # A degrading unit leaves the box in the later years: those samples used the FMU.
+    f = s.units["Bothy"]
+    outside = ~sur.in_box(f.samples.reshape(-1, 2))
+    assert f.fmu_fraction > 0 and f.fmu_fraction == pytest.approx(outside.mean())
+    assert np.all(f.source.ravel()[outside] != SOURCE_SURROGATE)
+
+
+def test_failed_fmu_runs_count_as_unsafe(setup):
+    cfg = setup[0]
+    r = TwinResult(t90=np.array([10.0, np.nan]), nonphysical=np.zeros(2, bool),
+                   source=np.array([SOURCE_FMU, SOURCE_FAILED], np.int8))
+    assert list(r.unsafe(cfg.safety)) == [False, True]
+
+
+def test_same_seed_same_forecast_and_another_seed_differs(setup, tmp_path):
+    cfg, _, tmp, s = setup
+    again = forecast(cfg, tmp / "post.h5", tmp / "sur.h5", tmp_path / "fc.h5")
+    other = forecast(dataclasses.replace(cfg, seed=cfg.seed + 1),
+                     tmp / "post.h5", tmp / "sur.h5", tmp_path / "fc2.h5")
+    for unit in s.units:
+        a, b = s.units[unit], again.units[unit]
+        assert np.array_equal(a.samples, b.samples)
+        assert np.array_equal(a.t90, b.t90, equal_nan=True)
+        assert np.array_equal(a.p_unsafe, b.p_unsafe)
+        assert not np.array_equal(a.samples, other.units[unit].samples)
+    with h5py.File(tmp_path / "fc.h5") as f1, h5py.File(tmp / "fc.h5") as f2:
+        assert np.array_equal(f1["units/Pumpy/t90"][()], f2["units/Pumpy/t90"][()],
+                              equal_nan=True)
+
+
+def test_artifact_round_trip_and_provenance(setup):
+    cfg, _, tmp, s = setup
+    fc = read_forecast(tmp / "fc.h5")
+    assert fc.input_names == cfg.model.input_names and set(fc.units) == set(s.units)
+    for unit, u in s.units.items():
+        r = fc.units[unit]
+        assert r.root_cause == u.root_cause and r.failure_year == u.failure_year
+        assert np.array_equal(r.p_unsafe, u.p_unsafe) and r.plan == u.plan
+        for name, t in u.trends.items():
+            assert r.trends[name].slope == t.slope and r.trends[name].p_value == t.p_value
+            assert np.array_equal(r.pred_hi[name], u.pred_hi[name])
+        assert r.as_dict() == u.as_dict()
+    prov = artifacts.read_provenance(tmp / "fc.h5")
+    assert prov["schema"] == "twinmon.forecast/1" and "seed" in prov
+    assert [p["path"] for p in prov["inputs"]] == [str(tmp / "post.h5"), str(tmp / "sur.h5")]
+    with h5py.File(tmp / "fc.h5") as f:
+        def check(name, obj):
+            if isinstance(obj, h5py.Dataset):
+                assert "units" in obj.attrs and obj.attrs["description"], name
+        f.visititems(check)
+
+
+def test_json_shape_via_cli(setup, tmp_path):
+    from twinmon.cli import main
+    _, cfg_path, tmp, _ = setup
+    res = CliRunner().invoke(main, ["forecast", "-c", str(cfg_path), "--posterior",
+                                    str(tmp / "post.h5"), "--surrogate", str(tmp / "sur.h5"),
+                                    "-o", str(tmp_path / "fc.h5"), "--json"])
+    assert res.exit_code == 0, res.output
+    out = json.loads(res.stdout)
+    assert set(out["units"]) == {"Healthy", "Pumpy", "Motory", "Bothy"}
+    for u in out["units"].values():
+        assert u["root_cause"] in ("healthy", "pump", "motor", "both")
+        assert u["failure_year"] is None or isinstance(u["failure_year"], int)
+        assert len(u["years"]) == len(u["p_unsafe"]) == 7
+        assert all(isinstance(y, int) for y in u["years"])
+        assert set(u["trends"]) == {"motor_damping", "pump_coef"}
+        assert set(u["trends"]["pump_coef"]) >= {"slope", "slope_ci90", "intercept",
+                                                 "p_value", "test", "normal_rate"}
+        assert set(u["t90"]) == {"median", "q05", "q95"} and isinstance(u["plan"], str)
+        assert 0 <= u["fmu_fraction"] <= 1 and "true_failure_year" not in u
+
+
+# ---------------------------------------------------------------------------------------
+# Bad input
+# ---------------------------------------------------------------------------------------
+def test_posterior_for_other_inputs_is_an_artifact_error(setup, tmp_path):
+    cfg, cfg_path, tmp, _ = setup
+    bad = write_synthetic_posterior(tmp_path / "posterior_other_inputs.h5", cfg,
+                                    {"U": HEALTHY})
+    with h5py.File(bad, "r+") as f:
+        f.attrs["input_names"] = json.dumps(["speed", "pump_coef"])
+    with pytest.raises(ArtifactError, match="posterior_other_inputs.h5"):
+        forecast(cfg, bad, tmp / "sur.h5", tmp_path / "fc.h5")
+    assert not (tmp_path / "fc.h5").exists()
+    from twinmon.cli import main
+    res = CliRunner().invoke(main, ["forecast", "-c", str(cfg_path), "--posterior", str(bad),
+                                    "--surrogate", str(tmp / "sur.h5"),
+                                    "-o", str(tmp_path / "fc.h5")])
+    assert res.exit_code == ArtifactError.exit_code
+    assert "posterior_other_inputs.h5" in res.stderr
+
+
+def test_posterior_with_two_years_is_a_calibration_error(setup, tmp_path):
+    cfg, _, tmp, _ = setup
+    path = write_synthetic_posterior(tmp_path / "posterior_two_years.h5", cfg, {"U": HEALTHY})
+    with h5py.File(path, "r+") as f:
+        g = f["units/U"]
+        for name in list(g):
+            data = g[name][()]
+            attrs = dict(g[name].attrs)
+            del g[name]
+            g.create_dataset(name, data=data[:2])
+            g[name].attrs.update(attrs)
+    with pytest.raises(CalibrationError, match="at least 3"):
+        forecast(cfg, path, tmp / "sur.h5", tmp_path / "fc.h5")
+
+
+def test_wrong_kind_of_file_names_it(setup, tmp_path):
+    cfg, _, tmp, _ = setup
+    with pytest.raises(ArtifactError, match="sur.h5"):
+        forecast(cfg, tmp / "sur.h5", tmp / "sur.h5", tmp_path / "fc.h5")
+
+
+def test_plan_says_now_when_already_unsafe(setup):
+    cfg, _, _, s = setup
+    f = s.units["Pumpy"]
+    plan = maintenance_plan(f.trends, f.years_future, np.ones(7), int(f.years_future[0]),
+                            10, 0.5, cfg.safety)
+    assert "now (already unsafe" in plan and "pump" in plan

@@ -1,0 +1,228 @@
+"""report: figures, a self-contained HTML page, summary.json, on a small real pipeline.
+
+The pipeline is built once per module in a tmp folder: a small design through the real FMU,
+the surrogate, three fabricated units over four years, and the later stages (calibrate,
+forecast, diagnose) when their modules are present, with small sample sizes.
+"""
+from __future__ import annotations
+
+import base64
+import importlib.util
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from twinmon.config import load_config
+from twinmon.errors import ArtifactError
+from twinmon.report import _t90_rows, report
+
+from ..conftest import CONFIGS, write_yaml
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def _has(module: str) -> bool:
+    return importlib.util.find_spec(f"twinmon.{module}") is not None
+
+
+@pytest.fixture(scope="module")
+def pipeline(tmp_path_factory, fmu_path):
+    """Artifacts of a small pipeline; keys are report() argument names (None: not built)."""
+    tmp = tmp_path_factory.mktemp("report")
+    cfg_path = write_yaml(tmp / "c.yaml", {
+        "extends": str(CONFIGS / "fleet.yaml"),
+        "simulate": {"train_size": 40, "test_size": 8, "executor": "serial"},
+        "calibrate": {"chains": 2, "samples": 300, "burn_in": 150, "workers": 1},
+        "forecast": {"samples": 300, "horizon": 5},
+        "diagnose": {"candidates": ["valve.opening_time", "sensor.tau"], "workers": 1},
+        "fabricate": {"years": 4, "units": {
+            "Park": {"trajectories": {"motor_damping": {"start": 9.5, "slope": 0.05},
+                                      "pump_coef": {"start": 3.75, "slope": -0.02}}},
+            "Colt": {"trajectories": {"motor_damping": {"start": 10.5, "slope": 0.05},
+                                      "pump_coef": {"start": 3.2, "slope": -0.25}}},
+            # A valve that opens slowly from year 3: a gap diagnose can find.
+            "Monk": {"trajectories": {"motor_damping": {"start": 12.0, "slope": 3.0},
+                                      "pump_coef": {"start": 3.65, "slope": -0.02}},
+                     "effects": {"valve.opening_time": {"value": 8.0, "onset": 3}}},
+        }},
+    })
+    cfg = load_config(cfg_path)
+    from twinmon.fabricate import fabricate
+    from twinmon.reduce import reduce
+    from twinmon.simulate import simulate
+    art = {"observations": tmp / "fleet.h5", "truth": tmp / "truth.h5",
+           "simulations": tmp / "simulations.h5", "surrogate": tmp / "surrogate.h5",
+           "posterior": None, "forecast": None, "gap": None}
+    simulate(cfg, art["simulations"])
+    reduce(cfg, art["simulations"], art["surrogate"])
+    fabricate(cfg, art["observations"], art["truth"])
+    if _has("calibrate"):
+        from twinmon.calibrate import calibrate
+        art["posterior"] = tmp / "posterior.h5"
+        calibrate(cfg, art["surrogate"], art["observations"], art["posterior"])
+        if _has("forecast"):
+            from twinmon.forecast import forecast
+            art["forecast"] = tmp / "forecast.h5"
+            forecast(cfg, art["posterior"], art["surrogate"], art["forecast"])
+    if _has("diagnose"):
+        from twinmon.diagnose import diagnose
+        art["gap"] = tmp / "gap.h5"
+        diagnose(cfg, art["observations"], art["gap"], workers=1)
+    return cfg, cfg_path, tmp, art
+
+
+@pytest.fixture(scope="module")
+def full(pipeline):
+    cfg, _, tmp, art = pipeline
+    out = tmp / "report_full"
+    return report(cfg, out, **art), out
+
+
+def _embedded_pngs(text: str) -> list[bytes]:
+    return [base64.b64decode(m) for m in
+            re.findall(r'src="data:image/png;base64,([A-Za-z0-9+/=]+)"', text)]
+
+
+def test_full_report_is_self_contained_with_a_figure_per_section(pipeline, full):
+    cfg, _, tmp, art = pipeline
+    summary, out = full
+    text = (out / "index.html").read_text()
+    assert text.startswith("<!DOCTYPE html>") and text.rstrip().endswith("</html>")
+    assert 'src="http' not in text and "<link" not in text and "<script" not in text
+    pngs = _embedded_pngs(text)
+    assert len(pngs) == len(summary.figures) and all(p.startswith(PNG_MAGIC) for p in pngs)
+    # The embedded images are the PNG files written beside the page.
+    files = {f["name"]: (out / f["file"]).read_bytes() for f in summary.figures}
+    assert sorted(pngs) == sorted(files.values())
+    for unit in ("Park", "Colt", "Monk"):
+        assert unit in text
+    names = set(files)
+    assert {"fig2_last_transients", "fig3_t90_history", "fig5_surrogate"} <= names
+    expected_sections = {"observations", "surrogate"}
+    if art["posterior"]:
+        assert "fig6_estimates" in names
+        expected_sections.add("calibration")
+    if art["forecast"]:
+        assert {"fig7_trends", "fig8_marginals", "fig9_t90_forecast"} <= names
+        expected_sections.add("forecast")
+    if art["gap"]:
+        assert {"diag_residual_map", "diag_candidates"} <= names
+        expected_sections.add("diagnose")
+    assert {s for s, v in summary.sections.items() if v == "rendered"} == expected_sections
+    assert not list(tmp.glob(".report_full*"))                 # no temporary folder left
+
+
+def test_summary_json_is_derived_from_the_artifacts(pipeline, full):
+    cfg, _, _, art = pipeline
+    summary, out = full
+    data = json.loads((out / "summary.json").read_text())
+    assert data == json.loads(json.dumps(summary.as_dict()))
+    keys = {"health", "root_cause", "failure_year", "p_unsafe", "action", "plan",
+            "estimates", "confidence", "diagnose", "last_t90"}
+    assert set(data["units"]) == {"Park", "Colt", "Monk"}
+    for unit in data["units"].values():
+        assert keys <= set(unit)
+    assert data["surrogate"]["n_test"] == 8
+    assert data["surrogate"]["max_rel_error"] >= data["surrogate"]["mean_rel_error"] > 0
+    if art["posterior"]:
+        from twinmon.calibrate import read_posterior
+        post = read_posterior(art["posterior"])
+        for u, p in post.units.items():
+            est = data["units"][u]["estimates"]["pump_coef"]
+            assert est["year"] == int(p.years[-1])
+            assert est["mean"] == pytest.approx(float(p.mean[-1, 1]))
+            assert est["q05"] <= est["mean"] <= est["q95"]
+        assert set(data["calibration"]["units"]) == set(post.units)
+    if art["forecast"]:
+        from twinmon.forecast import read_forecast
+        fc = read_forecast(art["forecast"])
+        for u, f in fc.units.items():
+            s = data["units"][u]
+            assert s["root_cause"] == f.root_cause and s["failure_year"] == f.failure_year
+            assert s["plan"] == f.plan
+            if f.failure_year is not None:
+                k = int(np.flatnonzero(f.years_future == f.failure_year)[0])
+                assert s["p_unsafe"] == pytest.approx(float(f.p_unsafe[k]))
+                assert f"year {f.failure_year - 1}" in s["action"] or "now" in s["action"]
+    if art["gap"]:
+        from twinmon.diagnose import read_gap
+        gap = read_gap(art["gap"])
+        for u, g in gap.units.items():
+            assert data["units"][u]["diagnose"]["verdict"] == g.verdict
+
+
+def test_terminal_summary_has_one_line_per_unit(pipeline, full):
+    _, _, _, art = pipeline
+    summary, _ = full
+    lines = summary.terminal().splitlines()
+    for unit, s in summary.units.items():
+        line = next(x for x in lines if x.startswith(unit))
+        if s.failure_year is not None:
+            assert f"fails in year {s.failure_year}" in line
+        assert s.action in line
+
+
+def test_report_with_observations_only_skips_the_other_sections(pipeline):
+    cfg, _, tmp, art = pipeline
+    out = tmp / "report_obs"
+    s = report(cfg, out, observations=art["observations"])
+    assert [f["name"] for f in s.figures] == ["fig2_last_transients", "fig3_t90_history"]
+    assert s.sections["observations"] == "rendered"
+    text = (out / "index.html").read_text()
+    for sec in ("surrogate", "calibration", "forecast", "diagnose"):
+        assert s.sections[sec].startswith("skipped")
+        assert f'<h2 id="{sec}">' in text
+    assert text.count("Section skipped") == 4
+    assert all(u.health == "unknown" and u.last_t90 > 0 for u in s.units.values())
+    assert len(_embedded_pngs(text)) == 2
+    assert json.loads((out / "summary.json").read_text())["units"].keys() == s.units.keys()
+
+
+def test_wrong_schema_artifact_names_the_file_and_writes_nothing(pipeline):
+    cfg, _, tmp, art = pipeline
+    out = tmp / "report_bad"
+    with pytest.raises(ArtifactError, match=re.escape(str(art["observations"]))):
+        report(cfg, out, observations=art["observations"], forecast=art["observations"])
+    assert not (out / "index.html").exists()
+    assert not list(tmp.glob(".report_bad*"))
+
+
+def test_failed_report_leaves_the_previous_one_intact(pipeline):
+    cfg, _, tmp, art = pipeline
+    out = tmp / "report_keep"
+    report(cfg, out, observations=art["observations"])
+    before = (out / "index.html").read_bytes()
+    with pytest.raises(ArtifactError):
+        report(cfg, out, observations=art["observations"], surrogate=art["truth"])
+    assert (out / "index.html").read_bytes() == before
+
+
+def test_t90_of_a_record_ignores_missing_samples(pipeline):
+    from twinmon.observations import read_observations
+    cfg, _, _, art = pipeline
+    obs = read_observations(art["observations"])
+    flow = obs.units["Park"].m_flow[:1].copy()
+    ref = _t90_rows(obs.time, flow, cfg.safety)[0]
+    flow[0, -3] = np.nan                     # a plateau sample, far after the crossing
+    assert _t90_rows(obs.time, flow, cfg.safety)[0] == ref
+    assert 5 < ref < cfg.safety.max_time
+
+
+def test_cli_report_finds_artifacts_in_workdir(pipeline):
+    from click.testing import CliRunner
+
+    from twinmon.cli import main
+    cfg, cfg_path, tmp, art = pipeline
+    res = CliRunner().invoke(main, ["report", "-c", str(cfg_path), "--workdir", str(tmp),
+                                    "--observations", str(art["observations"]),
+                                    "-o", str(tmp / "cli_report"), "--json"])
+    assert res.exit_code == 0, res.output
+    data = json.loads(res.stdout)
+    assert data["index"] == str(tmp / "cli_report" / "index.html")
+    assert Path(data["index"]).exists()
+    for role in ("simulations", "surrogate", "posterior", "forecast", "gap"):
+        assert (role in data["artifacts"]) == (art[role] is not None)
+    assert "truth" not in data["artifacts"]

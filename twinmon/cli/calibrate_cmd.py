@@ -1,0 +1,75 @@
+"""``twinmon calibrate``: posterior of the degradation inputs per unit and year."""
+from __future__ import annotations
+
+import click
+
+from . import main
+from .common import config_options, emit_json, json_option, load, progress_bar, say
+
+#: The paper's figures (section V), relative errors of the Bayesian estimates.
+PAPER = {"pump_coef": (0.071, 0.034), "motor_damping": (0.099, 0.035)}
+#: Warning lines printed; the rest are counted (all are in the --json summary).
+MAX_WARNINGS = 12
+
+
+@main.command()
+@config_options
+@click.option("--surrogate", default="out/surrogate.h5", show_default=True,
+              type=click.Path(dir_okay=False), help="Surrogate artifact (from reduce).")
+@click.option("--observations", required=True, type=click.Path(dir_okay=False),
+              help="Observations artifact (twinmon.observations/1).")
+@click.option("--truth", type=click.Path(dir_okay=False), default=None,
+              help="Truth file (from fabricate): print errors and interval coverage.")
+@click.option("-o", "--output", default="out/posterior.h5", show_default=True,
+              type=click.Path(dir_okay=False), help="Posterior artifact to write.")
+@json_option
+def calibrate(config_path, overrides, surrogate, observations, truth, output, as_json):
+    """Bayesian calibration (MCMC) of each unit's inputs, year by year."""
+    from ..calibrate import calibrate as run
+    cfg = load(config_path, overrides)
+    n_years = _count_years(observations)
+    with progress_bar(n_years, "calibrate") as update:
+        s = run(cfg, surrogate, observations, output, truth_path=truth, progress=update)
+    # Warnings go to stderr even with --json or -q: they say the numbers may be wrong.
+    for w in s.warnings[:MAX_WARNINGS]:
+        click.echo(f"twinmon: warning: {w}", err=True)
+    if len(s.warnings) > MAX_WARNINGS:
+        click.echo(f"twinmon: warning: ... and {len(s.warnings) - MAX_WARNINGS} more unit-years "
+                   "(all in --json)", err=True)
+    if as_json:
+        emit_json(s.as_dict())
+        return
+    d = s.as_dict()
+    for unit, nz in d["noise"].items():
+        p = s.posterior[unit]
+        say(f"calibrate: {unit}: {len(p.years)} years, noise std {nz['std']:.3g} kg/s "
+            f"({_SOURCE[nz['source']]}), R-hat <= {p.rhat.max():.3f}, ESS >= {p.ess.min():.0f}, "
+            f"acceptance {p.acceptance.min():.2f}-{p.acceptance.max():.2f}")
+        last = {n: p.mean[-1, j] for j, n in enumerate(s.input_names)}
+        say("  last year: " + ", ".join(
+            f"{n} {v:.4g} [{p.q05[-1, j]:.4g}, {p.q95[-1, j]:.4g}]"
+            for j, (n, v) in enumerate(last.items())))
+    if s.truth_check:
+        say("relative error of the posterior mean against the truth (paper's in brackets):")
+        for name, tc in s.truth_check.items():
+            ref = PAPER.get(name)
+            paper = f" (paper {100 * ref[0]:.1f} % / {100 * ref[1]:.1f} %)" if ref else ""
+            say(f"  {name}: max {100 * tc['max_rel_error']:.1f} %, mean "
+                f"{100 * tc['mean_rel_error']:.2f} %{paper}; 90 % interval coverage "
+                f"{100 * tc['coverage_90']:.0f} %")
+    say(f"calibrate: {len(s.warnings)} warning(s) -> {output}")
+
+
+_SOURCE = {"file": "from the observations file", "config": "from the config",
+           "estimated": "estimated from the residuals"}
+
+
+def _count_years(observations) -> int:
+    """Unit-years in the file (for the progress bar); 0 when unreadable (the stage itself
+    then raises the proper error)."""
+    from ..errors import TwinmonError
+    from ..observations import read_observations
+    try:
+        return sum(len(u.years) for u in read_observations(observations).units.values())
+    except TwinmonError:
+        return 0

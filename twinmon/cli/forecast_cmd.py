@@ -1,0 +1,49 @@
+"""The ``forecast`` command: trends, failure probability, root cause and plan per unit."""
+from __future__ import annotations
+
+import click
+
+from . import main
+from .common import config_options, emit_json, json_option, load, say
+
+
+@main.command()
+@config_options
+@click.option("--posterior", default="out/posterior.h5", show_default=True,
+              type=click.Path(dir_okay=False), help="Posterior artifact of calibrate.")
+@click.option("--surrogate", default="out/surrogate.h5", show_default=True,
+              type=click.Path(dir_okay=False), help="Surrogate artifact of reduce.")
+@click.option("-o", "--output", default="out/forecast.h5", show_default=True,
+              type=click.Path(dir_okay=False), help="Forecast artifact to write.")
+@click.option("--truth", "truth", default=None, type=click.Path(dir_okay=False),
+              help="Truth file of fabricate: also give each unit's true failure year.")
+@json_option
+def forecast(config_path, overrides, posterior, surrogate, output, truth, as_json):
+    """Trend of each input, P(unsafe) per future year, failure year, root cause and plan.
+
+    Linear trends of the yearly posterior means with Student-t prediction intervals,
+    propagated by Monte Carlo through the twin (surrogate inside its training box, FMU
+    outside it); root cause from one-sided t tests of the slopes against normal ageing.
+    """
+    from ..forecast import forecast as run
+    cfg = load(config_path, overrides)
+    # A few seconds of work: no progress bar (the FMU share is only known once sampled).
+    s = run(cfg, posterior, surrogate, output, truth_path=truth)
+    if as_json:
+        emit_json(s.as_dict())
+        return
+    limit = cfg.safety.failure_probability
+    for unit, u in s.units.items():
+        tests = ", ".join(f"{n} {t.slope:+.3g}/yr p={t.p_value:.2g}"
+                          for n, t in u.trends.items())
+        fy = u.failure_year if u.failure_year is not None else f"none by {u.years_future[-1]}"
+        true = ""
+        if u.has_truth:
+            tf = u.true_failure_year
+            true = f" (true: {tf if tf is not None else 'none by ' + str(u.years_future[-1])})"
+        say(f"{unit}: {u.root_cause}; failure year (P(unsafe) > {limit:g}) {fy}{true}; "
+            f"{tests}; FMU share {100 * u.fmu_fraction:.1f} %")
+        say(f"  plan: {u.plan}")
+        if u.fmu_failures:
+            say(f"  warning: {u.fmu_failures} FMU run(s) failed and were counted unsafe")
+    say(f"forecast: {len(s.units)} units in {s.wall_time:.1f} s -> {output}")

@@ -1,0 +1,59 @@
+"""The ``report`` command: figures, a self-contained HTML report and ``summary.json``."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from . import main
+from .common import config_options, emit_json, json_option, load, say
+
+#: Artifacts looked up in ``--workdir`` when not given explicitly.
+_WORKDIR_ARTIFACTS = ("simulations", "surrogate", "posterior", "forecast", "gap")
+
+
+def _artifact_option(name: str, help_text: str):
+    return click.option(f"--{name}", name, default=None, type=click.Path(dir_okay=False),
+                        help=help_text)
+
+
+@main.command()
+@config_options
+@click.option("--workdir", default=None, type=click.Path(file_okay=False),
+              help="Folder of the pipeline's artifacts: simulations.h5, surrogate.h5, "
+                   "posterior.h5, forecast.h5 and gap.h5 are used when they exist there.")
+@_artifact_option("observations", "Observations file (e.g. data/fleet.h5).")
+@_artifact_option("simulations", "Simulations artifact (its test runs validate the surrogate).")
+@_artifact_option("surrogate", "Surrogate artifact of reduce.")
+@_artifact_option("posterior", "Posterior artifact of calibrate.")
+@_artifact_option("forecast", "Forecast artifact of forecast.")
+@_artifact_option("gap", "Gap artifact of diagnose.")
+@_artifact_option("truth", "Truth file of fabricate: true values drawn on the figures.")
+@click.option("-o", "--output", default=None, type=click.Path(file_okay=False),
+              help="Report folder to write  [default: <workdir>/report, or out/report].")
+@json_option
+def report(config_path, overrides, workdir, observations, simulations, surrogate, posterior,
+           forecast, gap, truth, output, as_json):
+    """Health report: figures, index.html (self-contained), summary.json.
+
+    Every section is optional: it is drawn when its artifact is given (or found in
+    --workdir) and skipped with a note otherwise, so a report can follow any prefix of the
+    pipeline.
+    """
+    from ..report import report as run
+    cfg = load(config_path, overrides)
+    given = {"simulations": simulations, "surrogate": surrogate, "posterior": posterior,
+             "forecast": forecast, "gap": gap}
+    if workdir is not None:
+        for name in _WORKDIR_ARTIFACTS:
+            candidate = Path(workdir) / f"{name}.h5"
+            if given[name] is None and candidate.exists():
+                given[name] = str(candidate)
+    if output is None:
+        output = str(Path(workdir) / "report") if workdir is not None else "out/report"
+    s = run(cfg, output, observations=observations, truth=truth, **given)
+    if as_json:
+        emit_json(s.as_dict())
+        return
+    say(s.terminal())
+    say(f"report: {len(s.figures)} figures -> {s.index}")

@@ -1,0 +1,793 @@
+"""Stage ``forecast``: trends of the calibrated inputs, failure probability, root cause, plan.
+
+For every unit the yearly posterior means of each degradation input are regressed on the year
+(OpenTURNS ``LinearModelAlgorithm``, ordinary least squares, as in the paper). The fitted lines
+are extended over ``forecast.horizon`` years past the last observation with prediction
+intervals for a *new observation* (Student t with ``n - 2`` degrees of freedom, not normal
+quantiles)::
+
+    yhat(x0) +- t_{n-2, (1+c)/2} * s * sqrt(1 + 1/n + (x0 - xbar)^2 / Sxx)
+
+Monte Carlo samples of the inputs drawn from that predictive distribution (one multivariate
+Student t per year, its correlation the correlation of the inputs' regression residuals) are
+propagated through the twin: points inside the surrogate's training box through the Gaussian
+process surrogate (vectorised), points outside it through the FMU itself, so a Gaussian
+process is never extrapolated. A sample is unsafe when its t90 exceeds ``safety.max_time``,
+when the FMU reports the non-physical mode, or when the FMU run fails. The failure year is the
+first future year whose probability of being unsafe exceeds ``safety.failure_probability``.
+
+Root cause: per input, a one-sided t test of the OLS slope against what normal ageing allows
+(``normal_rate`` +- ``normal_rate_tolerance`` of the input's spec) in the input's degrading
+direction (the sign of the change that raises t90, from a central finite difference of the
+surrogate at the nominal point). The components of the inputs whose test rejects at
+``forecast.alpha`` give the verdict: ``healthy``, ``pump``, ``motor`` or ``both``.
+
+See ``docs/forecast.md`` for the choices (OLS on the estimates, correlated draws) and the
+artifact layout.
+"""
+from __future__ import annotations
+
+import json
+import os
+import time as _time
+import zlib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Optional
+
+import numpy as np
+
+from . import artifacts
+from .config import Config
+from .errors import ArtifactError, CalibrationError
+
+#: Offset added to ``cfg.seed`` for this stage's random streams (other stages use others).
+SEED_OFFSET = 5000
+#: Confidence of the slope interval reported as ``slope_ci90``.
+SLOPE_CI = 0.90
+#: Where a Monte Carlo point was evaluated.
+SOURCE_SURROGATE, SOURCE_FMU, SOURCE_FAILED = 0, 1, 2
+
+
+# ---------------------------------------------------------------------------------------
+# Trends
+# ---------------------------------------------------------------------------------------
+@dataclass
+class Trend:
+    """OLS trend of one input over the years, with its root-cause test.
+
+    Attributes
+    ----------
+    intercept, slope : float
+        ``value = intercept + slope * year`` (input units, input units per year).
+    slope_se : float
+        Standard error of the slope.
+    slope_ci : (float, float)
+        90 % confidence interval of the slope (Student t, n - 2 dof).
+    residual_std : float
+        ``s``, square root of the residual variance SSR / (n - 2).
+    n : int
+        Number of years fitted.
+    x_mean, sxx : float
+        Mean year and sum of squared deviations of the years (for prediction intervals).
+    normal_rate, tolerance : float
+        Yearly drift normal ageing allows, and its tolerance (from the input's spec).
+    direction : int
+        +1 when an increase of the input raises t90 (degrades the unit), -1 otherwise.
+    p_value : float
+        p-value of the one-sided test H0: the slope stays within normal ageing.
+    test : str
+        Name and hypothesis of the test.
+    rejects : bool
+        ``p_value < alpha``: the input drifts faster than normal ageing.
+    component : str
+        Component the input belongs to (``motor``, ``pump``, ...).
+    """
+
+    intercept: float
+    slope: float
+    slope_se: float
+    slope_ci: tuple
+    residual_std: float
+    n: int
+    x_mean: float
+    sxx: float
+    normal_rate: float = 0.0
+    tolerance: float = 0.0
+    direction: int = 1
+    p_value: float = float("nan")
+    test: str = ""
+    rejects: bool = False
+    component: str = ""
+
+    @property
+    def dof(self) -> int:
+        return self.n - 2
+
+    def predict(self, x0, confidence: float = 0.90):
+        """Prediction and interval for a new observation at years ``x0``.
+
+        Returns
+        -------
+        mean, lo, hi, scale : ndarray, each shape of ``x0``
+            ``scale = s * sqrt(1 + 1/n + (x0 - xbar)^2 / Sxx)``, the scale of the Student t
+            predictive distribution; ``lo, hi = mean -+ t_{n-2,(1+c)/2} * scale``.
+        """
+        from scipy import stats
+        x0 = np.asarray(x0, float)
+        mean = self.intercept + self.slope * x0
+        scale = self.residual_std * np.sqrt(1 + 1 / self.n + (x0 - self.x_mean) ** 2 / self.sxx)
+        q = stats.t.ppf(0.5 + confidence / 2, self.dof)
+        return mean, mean - q * scale, mean + q * scale, scale
+
+
+def fit_trend(years: np.ndarray, values: np.ndarray) -> tuple[Trend, np.ndarray]:
+    """Ordinary least squares line through yearly values (OpenTURNS LinearModelAlgorithm).
+
+    Parameters
+    ----------
+    years : ndarray, shape [n]
+        Observation years (n >= 3).
+    values : ndarray, shape [n]
+        Yearly estimates (input units).
+
+    Returns
+    -------
+    trend : Trend
+        Without the root-cause test filled in (see :func:`slope_test`).
+    residuals : ndarray, shape [n]
+    """
+    import openturns as ot
+    from scipy import stats
+    x = np.asarray(years, float)
+    y = np.asarray(values, float)
+    n = x.size
+    algo = ot.LinearModelAlgorithm(ot.Sample(x[:, None]), ot.Sample(y[:, None]))
+    algo.run()
+    res = algo.getResult()
+    b0, b1 = map(float, res.getCoefficients())
+    se = float(res.getCoefficientsStandardErrors()[1])
+    s2 = float(res.getResidualsVariance())
+    q = stats.t.ppf(0.5 + SLOPE_CI / 2, n - 2)
+    resid = np.asarray(res.getSampleResiduals()).ravel()
+    trend = Trend(intercept=b0, slope=b1, slope_se=se, slope_ci=(b1 - q * se, b1 + q * se),
+                  residual_std=float(np.sqrt(max(s2, 0.0))), n=n, x_mean=float(x.mean()),
+                  sxx=float(np.sum((x - x.mean()) ** 2)))
+    return trend, resid
+
+
+def slope_test(trend: Trend, normal_rate: float, tolerance: float, direction: int,
+               alpha: float) -> Trend:
+    """One-sided t test of the slope against normal ageing, in the degrading direction.
+
+    H0: ``direction * slope <= direction * normal_rate + tolerance`` (the input degrades no
+    faster than normal ageing allows); H1: it degrades faster. The statistic
+    ``(direction * slope - bound) / se`` is Student t with n - 2 dof at the boundary of H0.
+
+    Returns
+    -------
+    Trend
+        ``trend`` with ``p_value``, ``test``, ``rejects``, ``normal_rate``, ``tolerance`` and
+        ``direction`` filled in.
+    """
+    from scipy import stats
+    bound = direction * normal_rate + tolerance
+    excess = direction * trend.slope - bound
+    if trend.slope_se > 0:
+        p = float(stats.t.sf(excess / trend.slope_se, trend.dof))
+    else:  # a perfect fit: the slope is known exactly
+        p = 0.0 if excess > 0 else 1.0
+    limit = direction * bound
+    op = "<=" if direction > 0 else ">="
+    test = (f"one-sided t test on the OLS slope (df={trend.dof}), H0: slope {op} "
+            f"{limit:+.4g}/yr (normal ageing {normal_rate:+.4g} +- {tolerance:.4g}/yr)")
+    trend.normal_rate, trend.tolerance, trend.direction = normal_rate, tolerance, int(direction)
+    trend.p_value, trend.test, trend.rejects = p, test, bool(p < alpha)
+    return trend
+
+
+def verdict(trends: dict[str, Trend]) -> str:
+    """``healthy``, one component name, or ``both`` (several components) from the tests."""
+    bad = sorted({t.component or name for name, t in trends.items() if t.rejects})
+    if not bad:
+        return "healthy"
+    return bad[0] if len(bad) == 1 else "both"
+
+
+def degrading_directions(cfg: Config, surrogate) -> dict[str, int]:
+    """+1 where raising the input raises t90 at the nominal point, else -1.
+
+    A central finite difference of the surrogate (5 % of each input's range), so the
+    root-cause tests need no knowledge of which way a given FMU's parameters degrade.
+    """
+    from .safety import time_to_fraction
+    x0 = np.array([s.nominal for s in cfg.model.inputs.values()])
+    rng = cfg.model.bounds[:, 1] - cfg.model.bounds[:, 0]
+    out = {}
+    for i, name in enumerate(cfg.model.input_names):
+        step = np.zeros_like(x0)
+        step[i] = 0.05 * rng[i]
+        up = np.minimum(x0 + step, cfg.model.bounds[:, 1])
+        dn = np.maximum(x0 - step, cfg.model.bounds[:, 0])
+        t = time_to_fraction(surrogate.time, surrogate.predict(np.vstack([dn, up])), cfg.safety)
+        out[name] = 1 if t[1] >= t[0] else -1
+    return out
+
+
+# ---------------------------------------------------------------------------------------
+# Predictive sampling and the twin
+# ---------------------------------------------------------------------------------------
+def residual_correlation(residuals: np.ndarray) -> np.ndarray:
+    """Correlation matrix [d, d] of the inputs' regression residuals [n, d] (identity for a
+    constant column), made positive definite."""
+    d = residuals.shape[1]
+    sd = residuals.std(axis=0)
+    R = np.eye(d)
+    ok = sd > 0
+    if ok.sum() > 1:
+        R[np.ix_(ok, ok)] = np.corrcoef(residuals[:, ok], rowvar=False)
+    w, V = np.linalg.eigh(R)
+    R = (V * np.maximum(w, 1e-9)) @ V.T
+    dg = np.sqrt(np.diag(R))
+    return R / np.outer(dg, dg)
+
+
+def sample_predictive(trends: list[Trend], years: np.ndarray, corr: np.ndarray, size: int,
+                      rng: np.random.Generator) -> np.ndarray:
+    """Joint input samples for new observations in the given years.
+
+    Each input's marginal is the Student t predictive of its trend (n - 2 dof, location the
+    line, scale ``s * sqrt(1 + 1/n + (x0 - xbar)^2 / Sxx)``); the inputs are tied by a
+    multivariate t with correlation ``corr`` (one shared chi-square draw per sample).
+
+    Parameters
+    ----------
+    trends : list of Trend, length d
+    years : ndarray, shape [h]
+    corr : ndarray, shape [d, d]
+    size : int
+        Samples per year, n_s.
+    rng : numpy Generator
+
+    Returns
+    -------
+    ndarray, shape [h, n_s, d]
+        Input values (input units).
+    """
+    h, d = len(years), len(trends)
+    dof = trends[0].dof
+    L = np.linalg.cholesky(corr)
+    z = rng.standard_normal((h, size, d)) @ L.T
+    w = np.sqrt(rng.chisquare(dof, (h, size, 1)) / dof)
+    loc = np.empty((h, d))
+    scale = np.empty((h, d))
+    for i, t in enumerate(trends):
+        loc[:, i], _, _, scale[:, i] = t.predict(years)
+    return loc[:, None, :] + scale[:, None, :] * z / w
+
+
+@dataclass
+class TwinResult:
+    """The twin evaluated at Monte Carlo points.
+
+    Attributes
+    ----------
+    t90 : ndarray, shape [m], s
+        Time to ``fraction`` of nominal flow; ``inf`` if never reached, NaN if the FMU failed.
+    nonphysical : ndarray of bool, shape [m]
+    source : ndarray of int8, shape [m]
+        0 surrogate, 1 FMU, 2 FMU run failed.
+    messages : list of str
+        One message per failed FMU run.
+    """
+
+    t90: np.ndarray
+    nonphysical: np.ndarray
+    source: np.ndarray
+    messages: list = field(default_factory=list)
+
+    def unsafe(self, safety) -> np.ndarray:
+        """Unsafe per point [m]: t90 > max_time, non-physical, or a failed run."""
+        from .safety import is_unsafe
+        failed = self.source == SOURCE_FAILED
+        t = np.where(failed, np.inf, self.t90)
+        return is_unsafe(t, safety, self.nonphysical) | failed
+
+
+def evaluate_twin(cfg: Config, surrogate, X: np.ndarray, executor=None,
+                  fmu_everywhere: bool = False,
+                  progress: Optional[Callable[[int, int], None]] = None) -> TwinResult:
+    """t90 and non-physical flag of input points [m, d]: surrogate in its box, FMU outside.
+
+    The surrogate has no non-physical output: inside its training box the flag is taken as 0
+    (the box is checked to be physical, see :func:`box_is_physical`). ``fmu_everywhere`` sends
+    every point to the FMU.
+    """
+    from .safety import time_to_fraction
+    from .simulate import as_parameters, run_batch, spec_for
+    X = np.asarray(X, float).reshape(-1, len(cfg.model.inputs))
+    m = len(X)
+    t90 = np.full(m, np.nan)
+    nph = np.zeros(m, bool)
+    source = np.full(m, SOURCE_SURROGATE, np.int8)
+    inside = np.zeros(m, bool) if fmu_everywhere else surrogate.in_box(X)
+    if inside.any():
+        # Chunks keep the [chunk, n_t] intermediate arrays small.
+        idx = np.flatnonzero(inside)
+        for lo in range(0, idx.size, 20000):
+            j = idx[lo:lo + 20000]
+            t90[j] = time_to_fraction(surrogate.time, surrogate.predict(X[j]), cfg.safety)
+    messages = []
+    out = np.flatnonzero(~inside)
+    if out.size:
+        spec = spec_for(cfg)
+        batch = run_batch(spec, as_parameters(cfg, X[out]), executor,
+                          (lambda k: progress(k, out.size)) if progress else None)
+        flow = batch.outputs[cfg.model.output.variable]
+        t90[out] = np.where(batch.ok, time_to_fraction(spec.times, flow, cfg.safety), np.nan)
+        if cfg.model.nonphysical:
+            nph[out] = batch.ok & (batch.outputs[cfg.model.nonphysical][:, -1] > 0.5)
+        source[out] = np.where(batch.ok, SOURCE_FMU, SOURCE_FAILED)
+        messages = [batch.messages[k] for k in np.flatnonzero(~batch.ok)]
+    return TwinResult(t90, nph, source, messages)
+
+
+def box_is_physical(cfg: Config) -> bool:
+    """True when the FMU is physical at every corner of the surrogate's box (2^d runs).
+
+    The surrogate cannot say when the twin leaves its physical domain; if a corner of the
+    box is non-physical, the forecast sends every point to the FMU instead."""
+    if not cfg.model.nonphysical or len(cfg.model.inputs) > 10:
+        return True
+    from itertools import product
+    from .simulate import as_parameters, run_batch, spec_for
+    corners = np.array(list(product(*cfg.model.bounds)))
+    batch = run_batch(spec_for(cfg), as_parameters(cfg, corners))
+    flag = batch.outputs[cfg.model.nonphysical][:, -1]
+    return bool(np.all(batch.ok) and np.all(flag[batch.ok] < 0.5))
+
+
+# ---------------------------------------------------------------------------------------
+# Results
+# ---------------------------------------------------------------------------------------
+@dataclass
+class UnitForecast:
+    """The forecast of one unit.
+
+    Attributes
+    ----------
+    years_observed : ndarray of int, shape [n_y]
+    estimates : dict name -> ndarray [n_y]
+        Posterior mean per observed year (the regression's data), input units.
+    years_future : ndarray of int, shape [h]
+    trends : dict name -> Trend
+    pred_mean, pred_lo, pred_hi : dict name -> ndarray [h]
+        Trend line and prediction interval for a new observation (``confidence``).
+    samples : ndarray, shape [h, n_s, d]
+        Monte Carlo input samples per future year.
+    t90 : ndarray, shape [h, n_s], s
+    nonphysical : ndarray of bool, shape [h, n_s]
+    source : ndarray of int8, shape [h, n_s]
+        0 surrogate, 1 FMU, 2 failed FMU run.
+    p_unsafe : ndarray, shape [h]
+    t90_observed : ndarray, shape [n_y, n_o], s
+        t90 of the posterior samples of each observed year.
+    p_unsafe_observed : ndarray, shape [n_y]
+    failure_year : int or None
+    root_cause : str
+    plan : str
+    fmu_failures : int
+    true_failure_year : int or None
+    true_t90 : ndarray [h] or None
+        t90 of the extended true trajectories (with ``--truth``), s.
+    true_inputs : dict name -> ndarray [h], or None
+    true_unsafe : ndarray of bool [h] or None
+    """
+
+    years_observed: np.ndarray
+    estimates: dict
+    years_future: np.ndarray
+    trends: dict
+    pred_mean: dict
+    pred_lo: dict
+    pred_hi: dict
+    samples: np.ndarray
+    t90: np.ndarray
+    nonphysical: np.ndarray
+    source: np.ndarray
+    p_unsafe: np.ndarray
+    t90_observed: np.ndarray
+    p_unsafe_observed: np.ndarray
+    failure_year: Optional[int]
+    root_cause: str
+    plan: str = ""
+    fmu_failures: int = 0
+    true_failure_year: Optional[int] = None
+    true_t90: Optional[np.ndarray] = None
+    true_inputs: Optional[dict] = None
+    true_unsafe: Optional[np.ndarray] = None
+    has_truth: bool = False
+
+    @property
+    def fmu_fraction(self) -> float:
+        """Share of the future Monte Carlo points that went through the FMU (outside the box)."""
+        return float(np.mean(self.source != SOURCE_SURROGATE))
+
+    def t90_quantiles(self, q) -> np.ndarray:
+        """Quantiles of t90 per future year, shape [len(q), h] (inf-aware)."""
+        # The empirical (inverted-CDF) quantile never interpolates between two infinities.
+        return np.quantile(np.where(np.isnan(self.t90), np.inf, self.t90), q, axis=1,
+                           method="inverted_cdf")
+
+    def as_dict(self) -> dict:
+        q05, med, q95 = self.t90_quantiles([0.05, 0.5, 0.95])
+        d = {
+            "root_cause": self.root_cause,
+            "failure_year": self.failure_year,
+            "years": [int(y) for y in self.years_future],
+            "p_unsafe": [round(float(p), 4) for p in self.p_unsafe],
+            "trends": {name: {"slope": t.slope, "slope_ci90": [t.slope_ci[0], t.slope_ci[1]],
+                              "intercept": t.intercept, "p_value": t.p_value, "test": t.test,
+                              "normal_rate": t.normal_rate}
+                       for name, t in self.trends.items()},
+            "t90": {"median": _finite(med), "q05": _finite(q05), "q95": _finite(q95)},
+            "plan": self.plan,
+            "fmu_fraction": round(self.fmu_fraction, 4),
+            "fmu_failures": self.fmu_failures,
+        }
+        if self.has_truth:
+            d["true_failure_year"] = self.true_failure_year
+        return d
+
+
+def _finite(a) -> list:
+    """JSON-able list: non-finite values (t90 never reached) become None."""
+    return [round(float(v), 3) if np.isfinite(v) else None for v in a]
+
+
+@dataclass
+class ForecastSummary:
+    """What :func:`forecast` did: per-unit results, the output path and the wall time (s)."""
+
+    units: dict
+    output: str
+    wall_time: float
+    box_physical: bool = True
+
+    def as_dict(self) -> dict:
+        return {"units": {u: f.as_dict() for u, f in self.units.items()},
+                "output": self.output, "wall_time": round(self.wall_time, 3)}
+
+
+# ---------------------------------------------------------------------------------------
+# The stage
+# ---------------------------------------------------------------------------------------
+def _unit_rng(cfg: Config, unit: str, stream: int) -> np.random.Generator:
+    # Keyed by the unit's name, so a unit's forecast does not depend on the other units.
+    return np.random.default_rng([cfg.seed + SEED_OFFSET, zlib.crc32(unit.encode()), stream])
+
+
+def maintenance_plan(trends: dict, years_future: np.ndarray,
+                     p_unsafe: np.ndarray, failure_year: Optional[int], last_year: int,
+                     p_unsafe_now: float, safety) -> str:
+    """A concrete maintenance recommendation: component, deadline year, evidence."""
+    comps = {}
+    for name, t in trends.items():
+        comps.setdefault(t.component or name, []).append((name, t))
+    faulty = sorted(c for c, ts in comps.items() if any(t.rejects for _, t in ts))
+    sound = sorted(c for c in comps if c not in faulty)
+    evidence = "; ".join(
+        f"{name} slope {t.slope:+.3g}/yr vs normal {t.normal_rate:+.3g} +- {t.tolerance:.3g} "
+        f"(p = {t.p_value:.2g})" for c in faulty for name, t in comps[c] if t.rejects)
+    sound_txt = (f"; {' and '.join(sound)} within normal ageing" if sound else "")
+    limit = safety.failure_probability
+    if failure_year is not None:
+        k = int(np.flatnonzero(years_future == failure_year)[0])
+        when = ("now (already unsafe: P(unsafe) "
+                f"{p_unsafe_now:.2f} in year {last_year})" if p_unsafe_now > limit
+                else "now" if failure_year <= last_year + 1
+                else f"before year {failure_year - 1} ends")
+        what = (f"Inspect/replace the {' and the '.join(faulty)}" if faulty
+                else "Overhaul the unit (normal ageing alone reaches the limit)")
+        return (f"{what} {when}: P(unsafe) {p_unsafe[k]:.2f} in year {failure_year} "
+                f"(limit {limit:.2f})" + (f" [{evidence}]" if evidence else "") + sound_txt + ".")
+    pmax = float(np.max(p_unsafe)) if p_unsafe.size else 0.0
+    horizon_end = int(years_future[-1]) if years_future.size else last_year
+    if faulty:
+        return (f"Inspect the {' and the '.join(faulty)} at the next planned stop: "
+                f"degrading faster than normal ageing [{evidence}], though P(unsafe) stays "
+                f"<= {limit:.2f} through year {horizon_end} (max {pmax:.2f}){sound_txt}.")
+    return (f"No action: all components within normal ageing; P(unsafe) stays <= {limit:.2f} "
+            f"through year {horizon_end} (max {pmax:.2f}). Re-check at next year's start-up.")
+
+
+def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str | os.PathLike,
+             output: str | os.PathLike, truth_path: str | os.PathLike | None = None,
+             executor=None,
+             progress: Optional[Callable[[int, int], None]] = None) -> ForecastSummary:
+    """Forecast every unit of a posterior and write ``forecast.h5``.
+
+    Parameters
+    ----------
+    cfg : Config
+    posterior_path : path-like
+        Posterior artifact of ``calibrate`` (per unit and year: samples and mean).
+    surrogate_path : path-like
+        Surrogate artifact of ``reduce``.
+    output : path-like
+        The forecast artifact to write.
+    truth_path : path-like, optional
+        Truth file of ``fabricate``: adds each unit's true failure year.
+    executor : Executor, optional
+        For the FMU runs; defaults to ``cfg.simulate.executor`` with ``cfg.simulate.workers``.
+    progress : callable, optional
+        ``progress(done, total)`` over the FMU runs.
+
+    Raises
+    ------
+    ArtifactError
+        An input artifact is missing, of the wrong kind, or made for other inputs.
+    CalibrationError
+        A unit has fewer than 3 years (no prediction interval is possible).
+    """
+    import openturns as ot
+    from .calibrate import read_posterior
+    from .executors import make_executor
+    from .reduce import read_surrogate
+    from .safety import failure_year as first_failure
+
+    start = _time.perf_counter()
+    posterior_path, surrogate_path = Path(posterior_path), Path(surrogate_path)
+    fc = cfg.forecast
+    names = cfg.model.input_names
+    post = read_posterior(posterior_path)
+    if list(post.input_names) != names:
+        raise ArtifactError(f"{posterior_path}: posterior inputs {list(post.input_names)} "
+                            f"differ from the config's inputs {names}")
+    sur = read_surrogate(surrogate_path)
+    if list(sur.input_names) != names:
+        raise ArtifactError(f"{surrogate_path}: surrogate inputs {list(sur.input_names)} "
+                            f"differ from the config's inputs {names}")
+    times = cfg.model.output.times.times
+    if sur.time.shape != times.shape or not np.allclose(sur.time, times):
+        raise ArtifactError(f"{surrogate_path}: surrogate time grid ({sur.time.size} samples) "
+                            f"differs from the config's output times ({times.size} samples)")
+    if not post.units:
+        raise ArtifactError(f"{posterior_path}: no units in the posterior")
+    ot.RandomGenerator.SetSeed(cfg.seed + SEED_OFFSET)
+    directions = degrading_directions(cfg, sur)
+    box_ok = box_is_physical(cfg)
+    d = len(names)
+
+    # 1. Trends, tests and Monte Carlo points of every unit; the twin is then evaluated on
+    #    all points at once (one FMU pool for the whole fleet).
+    plans, points = {}, []
+    for unit, up in post.units.items():
+        years = np.asarray(up.years, int)
+        mean = np.asarray(up.mean, float)
+        if years.size < 3:
+            raise CalibrationError(f"{posterior_path}: unit {unit} has {years.size} year(s); a "
+                                   "trend with prediction intervals needs at least 3")
+        if mean.shape != (years.size, d) or not np.all(np.isfinite(mean)):
+            raise ArtifactError(f"{posterior_path}: /units/{unit}/mean must be finite with "
+                                f"shape ({years.size}, {d}), got shape {mean.shape}")
+        trends, resid = {}, np.empty((years.size, d))
+        for i, name in enumerate(names):
+            spec = cfg.model.inputs[name]
+            t, resid[:, i] = fit_trend(years, mean[:, i])
+            t.component = spec.component
+            trends[name] = slope_test(t, spec.normal_rate, spec.normal_rate_tolerance,
+                                      directions[name], fc.alpha)
+        corr = residual_correlation(resid) if fc.correlate else np.eye(d)
+        fut = years[-1] + np.arange(1, fc.horizon + 1)
+        X = sample_predictive([trends[n] for n in names], fut, corr, fc.samples,
+                              _unit_rng(cfg, unit, 0))
+        samples_post = np.asarray(up.samples, float)
+        n_o = min(fc.observed_samples, samples_post.shape[1])
+        pick = np.sort(_unit_rng(cfg, unit, 1).choice(samples_post.shape[1], n_o, replace=False))
+        Xo = samples_post[:, pick, :]
+        plans[unit] = dict(years=years, mean=mean, trends=trends, fut=fut, X=X, Xo=Xo,
+                           corr=corr)
+        points += [X.reshape(-1, d), Xo.reshape(-1, d)]
+
+    if executor is None:
+        executor = make_executor(cfg.simulate.executor, cfg.simulate.workers)
+    twin = evaluate_twin(cfg, sur, np.concatenate(points), executor,
+                         fmu_everywhere=not box_ok, progress=progress)
+    unsafe_all = twin.unsafe(cfg.safety)
+
+    truth = None
+    if truth_path is not None:
+        from .fabricate import read_truth
+        truth = read_truth(truth_path)
+
+    # 2. Per unit: probabilities, failure year, verdict, plan, truth.
+    units, offset = {}, 0
+    for unit, p in plans.items():
+        h, n_s = p["X"].shape[:2]
+        n_y, n_o = p["Xo"].shape[:2]
+        sl = slice(offset, offset + h * n_s)
+        so = slice(sl.stop, sl.stop + n_y * n_o)
+        offset = so.stop
+        t90 = twin.t90[sl].reshape(h, n_s)
+        p_unsafe = unsafe_all[sl].reshape(h, n_s).mean(axis=1)
+        p_obs = unsafe_all[so].reshape(n_y, n_o).mean(axis=1)
+        fyear = first_failure(p["fut"], p_unsafe, cfg.safety)
+        trends = p["trends"]
+        cause = verdict(trends)
+        pm, plo, phi = {}, {}, {}
+        for name, t in trends.items():
+            pm[name], plo[name], phi[name], _ = t.predict(p["fut"], fc.confidence)
+        uf = UnitForecast(
+            years_observed=p["years"], estimates={n: p["mean"][:, i] for i, n in enumerate(names)},
+            years_future=p["fut"], trends=trends, pred_mean=pm, pred_lo=plo, pred_hi=phi,
+            samples=p["X"], t90=t90, nonphysical=twin.nonphysical[sl].reshape(h, n_s),
+            source=twin.source[sl].reshape(h, n_s), p_unsafe=p_unsafe,
+            t90_observed=twin.t90[so].reshape(n_y, n_o), p_unsafe_observed=p_obs,
+            failure_year=fyear, root_cause=cause,
+            fmu_failures=int(np.sum(twin.source[sl] == SOURCE_FAILED)))
+        uf.plan = maintenance_plan(trends, p["fut"], p_unsafe, fyear,
+                                   int(p["years"][-1]), float(p_obs[-1]), cfg.safety)
+        if truth is not None:
+            _add_truth(cfg, uf, unit, truth, truth_path)
+        units[unit] = uf
+
+    _write(output, cfg, units, names, directions, box_ok, seed=cfg.seed + SEED_OFFSET,
+           inputs=[posterior_path, surrogate_path] + ([truth_path] if truth_path else []))
+    return ForecastSummary(units, str(output), _time.perf_counter() - start, box_ok)
+
+
+def _add_truth(cfg: Config, uf: UnitForecast, unit: str, truth, truth_path) -> None:
+    """True failure year: each true trajectory's fitted line extended, run through the FMU."""
+    from .safety import is_unsafe, time_to_fraction
+    from .simulate import as_parameters, run_batch, spec_for
+    if unit not in truth.inputs:
+        raise ArtifactError(f"{truth_path}: unit {unit} is missing from the truth file")
+    ty = np.asarray(truth.years[unit], float)
+    Xt = np.empty((uf.years_future.size, len(cfg.model.inputs)))
+    for i, name in enumerate(cfg.model.input_names):
+        if name not in truth.inputs[unit]:
+            raise ArtifactError(f"{truth_path}: /units/{unit}/inputs/{name} is missing")
+        slope, icpt = np.polyfit(ty, np.asarray(truth.inputs[unit][name], float), 1)
+        Xt[:, i] = icpt + slope * uf.years_future
+    spec = spec_for(cfg)
+    batch = run_batch(spec, as_parameters(cfg, Xt))  # a handful of runs: no pool
+    t90 = np.where(batch.ok, time_to_fraction(spec.times, batch.outputs[cfg.model.output.variable],
+                                              cfg.safety), np.inf)
+    nph = (batch.outputs[cfg.model.nonphysical][:, -1] > 0.5) if cfg.model.nonphysical else None
+    bad = is_unsafe(t90, cfg.safety, nph) | ~batch.ok
+    uf.has_truth = True
+    uf.true_t90 = t90
+    uf.true_unsafe = bad
+    uf.true_inputs = {n: Xt[:, i] for i, n in enumerate(cfg.model.input_names)}
+    uf.true_failure_year = int(uf.years_future[np.argmax(bad)]) if bad.any() else None
+
+
+# ---------------------------------------------------------------------------------------
+# The artifact
+# ---------------------------------------------------------------------------------------
+def _write(path, cfg: Config, units: dict, names: list, directions: dict, box_ok: bool, *,
+           seed: int, inputs: list) -> None:
+    put = artifacts.put
+    section = cfg.section_yaml("model", "forecast", "safety", "seed")
+    with artifacts.write_artifact(path, "forecast", config=section, inputs=inputs,
+                                  seed=seed) as f:
+        f.attrs["input_names"] = artifacts.json_attr(names)
+        f.attrs["input_units"] = artifacts.json_attr([cfg.model.inputs[n].units for n in names])
+        f.attrs["directions"] = artifacts.json_attr(directions)
+        f.attrs["confidence"] = cfg.forecast.confidence
+        f.attrs["alpha"] = cfg.forecast.alpha
+        f.attrs["max_time"] = cfg.safety.max_time
+        f.attrs["failure_probability"] = cfg.safety.failure_probability
+        f.attrs["box_physical"] = box_ok
+        for unit, u in units.items():
+            g = f.create_group(f"units/{unit}")
+            g.attrs["root_cause"] = u.root_cause
+            g.attrs["failure_year"] = -1 if u.failure_year is None else u.failure_year
+            g.attrs["plan"] = u.plan
+            g.attrs["fmu_fraction"] = u.fmu_fraction
+            g.attrs["fmu_failures"] = u.fmu_failures
+            put(g, "years_observed", u.years_observed.astype(np.int64), "year",
+                "observed years (1 = first year of service)")
+            put(g, "years_future", u.years_future.astype(np.int64), "year", "forecast years")
+            for i, name in enumerate(names):
+                t, un = u.trends[name], cfg.model.inputs[name].units
+                tg = g.create_group(f"trends/{name}")
+                for key in ("intercept", "slope", "slope_se", "residual_std", "x_mean", "sxx",
+                            "normal_rate", "tolerance", "p_value"):
+                    tg.attrs[key] = float(getattr(t, key))
+                tg.attrs["n"], tg.attrs["direction"] = t.n, t.direction
+                tg.attrs["slope_ci90"] = np.array(t.slope_ci, float)
+                tg.attrs["test"], tg.attrs["rejects"] = t.test, t.rejects
+                tg.attrs["component"] = t.component
+                put(tg, "estimate", u.estimates[name], un,
+                    f"posterior mean of {name} per observed year (regression data)")
+                put(tg, "pred_mean", u.pred_mean[name], un, f"trend line of {name}, future years")
+                c = f"{100 * cfg.forecast.confidence:g} %"
+                put(tg, "pred_lo", u.pred_lo[name], un,
+                    f"lower {c} prediction bound (Student t, new observation)")
+                put(tg, "pred_hi", u.pred_hi[name], un,
+                    f"upper {c} prediction bound (Student t, new observation)")
+            put(g, "samples", u.samples, "input units",
+                "Monte Carlo input samples [future year, sample, input]", compression="gzip")
+            put(g, "t90", u.t90, "s", "t90 per future year and sample; inf = never reached, "
+                "NaN = FMU run failed", compression="gzip")
+            put(g, "nonphysical", u.nonphysical.astype(np.int8), "1",
+                "1 where the FMU reported the non-physical mode", compression="gzip")
+            put(g, "source", u.source, "1", "0 surrogate, 1 FMU (outside the box), "
+                "2 FMU run failed (counted unsafe)", compression="gzip")
+            put(g, "p_unsafe", u.p_unsafe, "1", "probability of being unsafe per future year")
+            put(g, "t90_observed", u.t90_observed, "s",
+                "t90 of posterior samples per observed year [year, sample]", compression="gzip")
+            put(g, "p_unsafe_observed", u.p_unsafe_observed, "1",
+                "probability of being unsafe per observed year (posterior samples)")
+            if u.has_truth:
+                g.attrs["true_failure_year"] = (-1 if u.true_failure_year is None
+                                                else u.true_failure_year)
+                put(g, "truth/t90", u.true_t90, "s",
+                    "t90 of the true trajectories' fitted lines, future years (FMU)")
+                put(g, "truth/unsafe", u.true_unsafe.astype(np.int8), "1",
+                    "1 where the true unit is unsafe, future years")
+                for name in names:
+                    put(g, f"truth/inputs/{name}", u.true_inputs[name],
+                        cfg.model.inputs[name].units,
+                        f"true {name} extended linearly over the future years")
+
+
+@dataclass
+class Forecast:
+    """A loaded ``forecast.h5``: ``units`` maps unit -> :class:`UnitForecast`."""
+
+    path: Path
+    input_names: list
+    confidence: float
+    units: dict
+    directions: dict = field(default_factory=dict)
+
+
+def read_forecast(path: str | os.PathLike) -> Forecast:
+    """Load a forecast artifact (schema checked)."""
+    path = Path(path)
+    with artifacts.open_artifact(path, "forecast") as f:
+        names = json.loads(f.attrs["input_names"])
+        if "units" not in f:
+            raise ArtifactError(f"{path}: group /units is missing")
+        get = lambda g, n: artifacts.get(g, n, path)  # noqa: E731
+        units = {}
+        for unit, g in f["units"].items():
+            trends, est, pm, plo, phi = {}, {}, {}, {}, {}
+            for name in names:
+                if f"trends/{name}" not in g:
+                    raise ArtifactError(f"{path}: group /units/{unit}/trends/{name} is missing")
+                tg = g[f"trends/{name}"]
+                a = tg.attrs
+                trends[name] = Trend(
+                    intercept=float(a["intercept"]), slope=float(a["slope"]),
+                    slope_se=float(a["slope_se"]), slope_ci=tuple(map(float, a["slope_ci90"])),
+                    residual_std=float(a["residual_std"]), n=int(a["n"]),
+                    x_mean=float(a["x_mean"]), sxx=float(a["sxx"]),
+                    normal_rate=float(a["normal_rate"]), tolerance=float(a["tolerance"]),
+                    direction=int(a["direction"]), p_value=float(a["p_value"]),
+                    test=str(a["test"]), rejects=bool(a["rejects"]),
+                    component=str(a["component"]))
+                est[name], pm[name] = get(tg, "estimate"), get(tg, "pred_mean")
+                plo[name], phi[name] = get(tg, "pred_lo"), get(tg, "pred_hi")
+            fy = int(g.attrs["failure_year"])
+            has_truth = "true_failure_year" in g.attrs
+            tfy = int(g.attrs["true_failure_year"]) if has_truth else -1
+            units[unit] = UnitForecast(
+                years_observed=get(g, "years_observed"), estimates=est,
+                years_future=get(g, "years_future"), trends=trends, pred_mean=pm,
+                pred_lo=plo, pred_hi=phi, samples=get(g, "samples"), t90=get(g, "t90"),
+                nonphysical=get(g, "nonphysical").astype(bool), source=get(g, "source"),
+                p_unsafe=get(g, "p_unsafe"), t90_observed=get(g, "t90_observed"),
+                p_unsafe_observed=get(g, "p_unsafe_observed"),
+                failure_year=None if fy < 0 else fy, root_cause=str(g.attrs["root_cause"]),
+                plan=str(g.attrs["plan"]), fmu_failures=int(g.attrs["fmu_failures"]),
+                has_truth=has_truth, true_failure_year=None if tfy < 0 else tfy,
+                true_t90=get(g, "truth/t90") if has_truth else None,
+                true_unsafe=get(g, "truth/unsafe").astype(bool) if has_truth else None,
+                true_inputs={n: get(g, f"truth/inputs/{n}") for n in names} if has_truth
+                else None)
+        return Forecast(path, names, float(f.attrs["confidence"]), units,
+                        json.loads(f.attrs["directions"]))
