@@ -10,6 +10,8 @@ STAMP   := $(VENV)/.twinmon-installed
 OUT     ?= out
 CONFIG  ?= configs/pump.yaml
 OBS     ?= data/fleet.h5
+TRUTH   ?= data/fleet_truth.h5
+GAP_OBS ?= data/fleet_gap.h5
 FMU_SRC := $(wildcard fmus/PumpCircuit/modelDescription.xml fmus/PumpCircuit/sources/*)
 PKG_SRC := $(shell find twinmon -name '*.py')
 
@@ -20,7 +22,7 @@ help:
 	@echo "make run    set up, build the FMU, run the whole pipeline on $(OBS), print the report path"
 	@echo "make test   set up, then the whole test suite"
 	@echo "make bench  benchmarks (figures printed)"
-	@echo "make data   regenerate the shipped fleet data from configs/fleet*.yaml"
+	@echo "make data   regenerate the shipped fleet data from configs/fleet.yaml and fleet_gap.yaml"
 	@echo "make $(OUT)/report/index.html   stage by stage, only what changed"
 
 # --- set-up: a virtualenv with the package installed (editable) ------------------------
@@ -48,12 +50,16 @@ $(OUT)/posterior.h5: $(OUT)/surrogate.h5 $(OBS) $(CONFIG)
 $(OUT)/forecast.h5: $(OUT)/posterior.h5 $(OUT)/surrogate.h5 $(CONFIG)
 	$(TWINMON) forecast -c $(CONFIG) --posterior $< --surrogate $(OUT)/surrogate.h5 -o $@
 
-$(OUT)/report/index.html: $(OUT)/forecast.h5 $(OUT)/posterior.h5 $(OUT)/surrogate.h5 $(OUT)/simulations.h5 $(OBS)
-	$(TWINMON) report -c $(CONFIG) --workdir $(OUT) --observations $(OBS) -o $(OUT)/report
+$(OUT)/gap.h5: $(GAP_OBS) $(CONFIG) $(FMU_SRC) | $(STAMP)
+	$(TWINMON) diagnose -c $(CONFIG) --observations $(GAP_OBS) -o $@
+
+$(OUT)/report/index.html: $(OUT)/forecast.h5 $(OUT)/posterior.h5 $(OUT)/surrogate.h5 $(OUT)/simulations.h5 $(OUT)/gap.h5 $(OBS)
+	$(TWINMON) report -c $(CONFIG) --workdir $(OUT) --observations $(OBS) --truth $(TRUTH) -o $(OUT)/report
 
 # --- the two commands of the README ----------------------------------------------------
 run: setup
-	$(TWINMON) run -c $(CONFIG) --observations $(OBS) --workdir $(OUT)
+	$(TWINMON) run -c $(CONFIG) --observations $(OBS) --truth $(TRUTH) \
+	    --gap-observations $(GAP_OBS) --workdir $(OUT)
 
 test: setup
 	$(PY) -m pytest -q tests
@@ -63,6 +69,7 @@ bench: setup
 
 data: setup
 	$(TWINMON) fabricate -c configs/fleet.yaml -o data/fleet.h5 --truth data/fleet_truth.h5
+	$(TWINMON) fabricate -c configs/fleet_gap.yaml -o data/fleet_gap.h5 --truth data/fleet_gap_truth.h5
 
 clean:
 	rm -rf $(OUT) fmus/*/.build

@@ -44,6 +44,9 @@ from .config import Config
 from .errors import ArtifactError, ConfigError, InputDataError, SimulationError
 from .observations import FLOW, read_observations
 
+#: Config sections recorded in the artifact (and compared by ``twinmon run``).
+SECTIONS = ("model", "diagnose", "safety")
+
 VERDICTS = ("none", "effect", "unexplained")
 #: Forward-difference step of the Jacobians, in units of each parameter's fitting range.
 #: The FMU integrates with rtol 1e-10, so this is far above its numerical noise.
@@ -1161,7 +1164,7 @@ def write_gap(path, results: dict, cfg: Config, time: np.ndarray, inputs) -> Non
                          effect_onsets ({name: onset year})
     """
     wins = cfg.diagnose.windows
-    with artifacts.write_artifact(path, "gap", config=cfg.section_yaml("model", "diagnose", "safety"),
+    with artifacts.write_artifact(path, "gap", config=cfg.section_yaml(*SECTIONS),
                                   inputs=inputs, seed=cfg.seed) as f:
         artifacts.put(f, "time", np.asarray(time), "s", "sample times")
         artifacts.put(f, "windows/names", list(wins), "", "time windows of the transient")

@@ -41,6 +41,9 @@ from . import artifacts
 from .config import Config
 from .errors import ArtifactError, CalibrationError
 
+#: Config sections recorded in the artifact (and compared by ``twinmon run``).
+SECTIONS = ("model", "forecast", "safety", "seed")
+
 #: Offset added to ``cfg.seed`` for this stage's random streams (other stages use others).
 SEED_OFFSET = 5000
 #: Confidence of the slope interval reported as ``slope_ci90``.
@@ -669,7 +672,7 @@ def _add_truth(cfg: Config, uf: UnitForecast, unit: str, truth, truth_path) -> N
 def _write(path, cfg: Config, units: dict, names: list, directions: dict, box_ok: bool, *,
            seed: int, inputs: list) -> None:
     put = artifacts.put
-    section = cfg.section_yaml("model", "forecast", "safety", "seed")
+    section = cfg.section_yaml(*SECTIONS)
     with artifacts.write_artifact(path, "forecast", config=section, inputs=inputs,
                                   seed=seed) as f:
         f.attrs["input_names"] = artifacts.json_attr(names)

@@ -26,6 +26,9 @@ from .config import Config, ReduceConfig
 from .errors import ArtifactError, CalibrationError
 from .simulate import read_simulations
 
+#: Config sections recorded in the artifact (and compared by ``twinmon run``).
+SECTIONS = ("model", "reduce")
+
 
 # ---------------------------------------------------------------------------------------
 # OpenTURNS building blocks
@@ -314,7 +317,7 @@ def reduce(cfg: Config, simulations: str | os.PathLike, output: str | os.PathLik
 
 
 def write_surrogate(path, s: Surrogate, val: Validation, cfg: Config, inputs) -> None:
-    with artifacts.write_artifact(path, "surrogate", config=cfg.section_yaml("model", "reduce"),
+    with artifacts.write_artifact(path, "surrogate", config=cfg.section_yaml(*SECTIONS),
                                   inputs=inputs) as f:
         f.attrs["input_names"] = json.dumps(s.input_names)
         f.attrs["kernel"] = s.kernel

@@ -283,6 +283,9 @@ class _Inputs:
     gap: Any = None
     truth: Any = None
     paths: dict = field(default_factory=dict)
+    #: The observations file the gap artifact diagnosed, when it is not ``obs``: its units are
+    #: then other machines (or other records) and must not be merged into the unit summaries.
+    gap_other_source: Optional[str] = None
 
     def unit_names(self) -> list[str]:
         """Units in order of first appearance: observations, posterior, forecast, gap."""
@@ -290,7 +293,7 @@ class _Inputs:
         for src in (self.obs, self.posterior, self.forecast):
             if src is not None:
                 names += [u for u in src.units if u not in names]
-        if self.gap is not None:
+        if self.gap is not None and self.gap_other_source is None:
             names += [u for u in _gap_units(self.gap) if u not in names]
         return names
 
@@ -320,6 +323,11 @@ def _load(cfg: Config, paths: dict) -> _Inputs:
         inp.forecast = read_forecast(paths["forecast"])
     if paths.get("gap") is not None:
         inp.gap = _read_gap(paths["gap"])
+        diagnosed = artifacts.read_provenance(paths["gap"]).get("inputs", [])
+        if diagnosed and paths.get("observations") is not None:
+            same = diagnosed[0]["sha256"] == artifacts.file_sha256(paths["observations"])
+            if not same:
+                inp.gap_other_source = diagnosed[0]["path"]
     if paths.get("truth") is not None:
         from .fabricate import read_truth
         inp.truth = read_truth(paths["truth"])
@@ -931,7 +939,8 @@ def _unit_summary(unit: str, inp: _Inputs, observed_t90: dict) -> UnitSummary:
                    "units": cfg.model.inputs[name].units if name in cfg.model.inputs else ""}
             for j, name in enumerate(inp.posterior.input_names)}
     uf = inp.forecast.units.get(unit) if inp.forecast is not None else None
-    gap = inp.gap.units.get(unit) if inp.gap is not None else None
+    gap = (inp.gap.units.get(unit) if inp.gap is not None and inp.gap_other_source is None
+           else None)
     why: list[str] = []
 
     if uf is not None:
@@ -1301,6 +1310,14 @@ def _render(cfg: Config, inp: _Inputs, tmp: Path, out: Path, provenance: dict) -
         sections["forecast"] = f"skipped: {_SKIP_HINTS['forecast']}"
 
     if inp.gap is not None:
+        if inp.gap_other_source is not None:
+            lines = [f"{u}: {_gap_title(g)}" + (f" ({', '.join(g.effects)}, "
+                                                 f"{g.closed_percent:.0f} % of the gap closed)"
+                                                 if g.verdict == "effect" else "")
+                     for u, g in inp.gap.units.items()]
+            extra["diagnose"] = [_e_p(
+                f"This section diagnoses {inp.gap_other_source}, not the observations above; "
+                "its units are not merged into the unit summaries. " + "; ".join(lines) + ".")]
         fig_residual_map(figs, inp, colours)
         fig_candidates(figs, inp, colours)
         if not fig_overlay(figs, inp, colours):

@@ -23,6 +23,8 @@ from .errors import ArtifactError, SimulationError
 from .executors import Executor, SimulationSpec, make_executor
 
 SPLITS = ("train", "test")
+#: Config sections recorded in the artifact (and compared by ``twinmon run``).
+SECTIONS = ("model", "simulate", "seed")
 STATUS_PENDING, STATUS_OK, STATUS_FAILED = -1, 0, 1
 
 
@@ -169,7 +171,7 @@ def simulate(cfg: Config, output: str | os.PathLike, *, workers: int | None = No
     output = Path(output)
     output.parent.mkdir(parents=True, exist_ok=True)
     spec = spec_for(cfg)
-    section = cfg.section_yaml("model", "simulate", "seed")
+    section = cfg.section_yaml(*SECTIONS)
     designs = {"train": draw_design(cfg, cfg.simulate.train_size, cfg.seed),
                "test": draw_design(cfg, cfg.simulate.test_size, cfg.seed + 1)}
     partial = output.with_name(output.name + ".partial")

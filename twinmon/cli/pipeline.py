@@ -29,3 +29,29 @@ def reduce(config_path, overrides, simulations, output, as_json):
             f"{100 * v.max_rel_error:.3f} %, mean {100 * v.mean_rel_error:.4f} % "
             f"(paper: 1.5 % / 0.2 %), Q2 per mode {', '.join(f'{q:.5f}' for q in v.q2)}, "
             f"90 % band coverage {100 * v.coverage_90:.1f} % -> {output}")
+
+
+@main.command()
+@config_options
+@click.option("--observations", required=True, type=click.Path(dir_okay=False),
+              help="Plant observations to calibrate and forecast.")
+@click.option("--gap-observations", type=click.Path(dir_okay=False), default=None,
+              help="Observations to diagnose for a sim-to-real gap [default: --observations].")
+@click.option("--truth", type=click.Path(dir_okay=False), default=None,
+              help="Truth file of fabricated data: adds errors against the truth.")
+@click.option("--workdir", default="out", show_default=True, type=click.Path(file_okay=False),
+              help="Folder of the artifacts and of report/.")
+@click.option("--force", is_flag=True, help="Re-run every stage, even those up to date.")
+@json_option
+def run(config_path, overrides, observations, gap_observations, truth, workdir, force, as_json):
+    """Every stage in order, skipping those whose output is up to date."""
+    from ..pipeline import run_pipeline
+    cfg = load(config_path, overrides)
+    summary = run_pipeline(cfg, observations, workdir, gap_observations=gap_observations,
+                           truth=truth, force=force, log=say)
+    if as_json:
+        emit_json(summary.as_dict())
+    else:
+        say(summary.terminal)
+        total = sum(s.seconds for s in summary.stages)
+        say(f"run: {total:.1f} s; report: {summary.report}")
