@@ -5,18 +5,20 @@ inference, as in the paper (section V):
 
 * prior: year 1 uniform on the design box; year k > 1 Gaussian (independent per input,
   truncated to the box) centred on year k-1's posterior mean, standard deviation
-  ``prior_width * (high - low)`` per input (see docs/calibration.md for the default);
+  ``sqrt((prior_width * (high - low))^2 + previous posterior variance)`` per input (the
+  second term with ``prior_carry_variance``, the default; see docs/calibration.md);
 * likelihood: Gaussian, independent per time step, variance = measurement noise variance +
   surrogate predictive variance; missing (NaN) samples are left out;
 * sampling: OpenTURNS' random-walk Metropolis-Hastings, several chains started around the
   maximum a posteriori (MAP) point with a proposal shaped on the Laplace (Gauss-Newton)
-  covariance there; OpenTURNS returns the burn-in with the chain, so it is cut here;
+  covariance there; OpenTURNS returns the burn-in with the chain, so it is cut here; the
+  chains of all units' same year run in parallel processes;
 * diagnostics: rank-normalised split R-hat and bulk effective sample size (Vehtari et al.
   2021) and the acceptance rate per chain, with warnings when they are poor.
 
 The result is ``posterior.h5`` (``twinmon.posterior/1``)::
 
-    attrs input_names (JSON list)
+    attrs input_names (JSON list), input_units (JSON list)
     /units/<U>/years        int64   [n_y]             year of service
     /units/<U>/samples      float64 [n_y, n_s, d]     pooled post-burn-in draws (input units)
     /units/<U>/mean, median, q05, q95  float64 [n_y, d]
