@@ -43,3 +43,30 @@ def small_fleet_config(tmp_path, fmu_path) -> Path:
         "extends": str(CONFIGS / "fleet.yaml"),
         "fabricate": {"years": 4},
     })
+
+
+@pytest.fixture(scope="session")
+def calibrated_fleet(tmp_path_factory, fmu_path):
+    """The shipped fleet through the real stages once per session: simulate, reduce,
+    fabricate (configs/fleet.yaml) and calibrate with the truth check.
+
+    Returns (cfg, folder, calibrate summary); the folder holds sims.h5, sur.h5, fleet.h5,
+    truth.h5 and post.h5.
+    """
+    import time
+
+    from twinmon.calibrate import calibrate
+    from twinmon.config import load_config
+    from twinmon.fabricate import fabricate
+    from twinmon.reduce import reduce
+    from twinmon.simulate import simulate
+    tmp = tmp_path_factory.mktemp("calibrated_fleet")
+    cfg = load_config(CONFIGS / "fleet.yaml")
+    simulate(cfg, tmp / "sims.h5")
+    reduce(cfg, tmp / "sims.h5", tmp / "sur.h5")
+    fabricate(cfg, tmp / "fleet.h5", tmp / "truth.h5")
+    start = time.perf_counter()
+    summary = calibrate(cfg, tmp / "sur.h5", tmp / "fleet.h5", tmp / "post.h5",
+                        truth_path=tmp / "truth.h5")
+    print(f"\ncalibrate wall time {time.perf_counter() - start:.2f} s")
+    return cfg, tmp, summary

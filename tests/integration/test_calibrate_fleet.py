@@ -7,31 +7,16 @@ that converged (R-hat, ESS, acceptance within the warning thresholds).
 """
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 
-from twinmon.calibrate import calibrate, read_posterior
-from twinmon.config import load_config
-from twinmon.fabricate import fabricate, read_truth
-from twinmon.reduce import reduce
-from twinmon.simulate import simulate
-
-from ..conftest import CONFIGS
+from twinmon.calibrate import read_posterior
+from twinmon.fabricate import read_truth
 
 
 @pytest.fixture(scope="module")
-def fleet(tmp_path_factory, fmu_path):
-    tmp = tmp_path_factory.mktemp("calibrate_fleet")
-    cfg = load_config(CONFIGS / "fleet.yaml")
-    simulate(cfg, tmp / "sims.h5")
-    reduce(cfg, tmp / "sims.h5", tmp / "sur.h5")
-    fabricate(cfg, tmp / "fleet.h5", tmp / "truth.h5")
-    start = time.perf_counter()
-    summary = calibrate(cfg, tmp / "sur.h5", tmp / "fleet.h5", tmp / "post.h5",
-                        truth_path=tmp / "truth.h5")
-    print(f"\ncalibrate wall time {time.perf_counter() - start:.2f} s")
+def fleet(calibrated_fleet):
+    cfg, tmp, summary = calibrated_fleet
     for name, tc in summary.truth_check.items():
         print(name, {k: round(v, 4) for k, v in tc.items()})
     return cfg, tmp, summary

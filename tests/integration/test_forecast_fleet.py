@@ -11,24 +11,13 @@ import time
 import numpy as np
 import pytest
 
-from twinmon.calibrate import calibrate
-from twinmon.config import load_config
-from twinmon.fabricate import fabricate
 from twinmon.forecast import forecast, read_forecast
-from twinmon.reduce import reduce
-from twinmon.simulate import simulate
 
-from ..conftest import CONFIGS
 
 
 @pytest.fixture(scope="module")
-def fleet(tmp_path_factory, fmu_path):
-    tmp = tmp_path_factory.mktemp("forecast_fleet")
-    cfg = load_config(CONFIGS / "fleet.yaml")
-    simulate(cfg, tmp / "sims.h5")
-    reduce(cfg, tmp / "sims.h5", tmp / "sur.h5")
-    fabricate(cfg, tmp / "fleet.h5", tmp / "truth.h5")
-    calibrate(cfg, tmp / "sur.h5", tmp / "fleet.h5", tmp / "post.h5")
+def fleet(calibrated_fleet):
+    cfg, tmp, _ = calibrated_fleet
     start = time.perf_counter()
     summary = forecast(cfg, tmp / "post.h5", tmp / "sur.h5", tmp / "fc.h5",
                        truth_path=tmp / "truth.h5")
