@@ -421,7 +421,7 @@ class Config:
     fabricate: Optional[FabricateConfig] = None
     #: Where this config came from (not a YAML key).
     source: Path = field(default=Path("<memory>"), compare=False)
-    #: The raw merged mapping after overrides (not a YAML key), for provenance.
+    #: The merged mapping after overrides (not a YAML key): a base for derived configs.
     raw: Mapping[str, Any] = field(default_factory=dict, compare=False, repr=False)
 
     def section_yaml(self, *names: str) -> str:
@@ -463,9 +463,9 @@ def load_config(path: str | os.PathLike, overrides: typing.Sequence[str] = ()) -
 def config_from_mapping(raw: Mapping[str, Any], source: Path = Path("<memory>")) -> Config:
     """Validate an already-merged mapping into a :class:`Config` (paths relative to
     ``source``'s folder)."""
-    raw = copy.deepcopy(dict(raw))
-    if not isinstance(raw, dict):
+    if not isinstance(raw, Mapping):
         raise ConfigError(f"{source}: top level must be a mapping, got {type(raw).__name__}")
+    raw = copy.deepcopy(dict(raw))
     cfg = _build(Config, raw, (), source)
     return dataclasses.replace(cfg, source=source, raw=raw)
 

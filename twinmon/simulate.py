@@ -258,22 +258,14 @@ def _open_partial(partial: Path, section: str, spec: SimulationSpec, cfg: Config
 
 def _store_chunk(g: h5py.Group, idx: np.ndarray, batch: BatchResult, spec: SimulationSpec,
                  cfg: Config) -> None:
-    out = cfg.model.output.variable
-    Y = g["Y"][()]
-    Y[idx] = batch.outputs[out]
-    g["Y"][...] = Y
+    # Write only this chunk's rows (idx is increasing, as h5py's point selection needs).
+    rows = idx.tolist()
+    g["Y"][rows] = batch.outputs[cfg.model.output.variable]
     if cfg.model.nonphysical:
         flag = batch.outputs[cfg.model.nonphysical][:, -1]
-        nph = g["nonphysical"][()]
-        nph[idx] = np.where(batch.ok, flag > 0.5, 0).astype(np.int8)
-        g["nonphysical"][...] = nph
-    status = g["status"][()]
-    status[idx] = np.where(batch.ok, STATUS_OK, STATUS_FAILED)
-    g["status"][...] = status
-    msg = g["message"][()].astype(object)
-    for k, i in enumerate(idx):
-        msg[i] = batch.messages[k]
-    g["message"][...] = msg.astype(h5py.string_dtype())
+        g["nonphysical"][rows] = np.where(batch.ok, flag > 0.5, 0).astype(np.int8)
+    g["status"][rows] = np.where(batch.ok, STATUS_OK, STATUS_FAILED).astype(np.int8)
+    g["message"][rows] = np.array(batch.messages, dtype=h5py.string_dtype())
 
 
 @dataclass
