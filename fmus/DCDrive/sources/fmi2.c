@@ -1,9 +1,10 @@
 /*
  * DCDrive -- FMI 2.0 glue: Model Exchange and Co-Simulation in one binary.
  *
- * Co-Simulation integrates the equations of model.c with an adaptive Dormand-Prince 5(4)
- * scheme (FSAL, rtol 1e-10) that lands exactly on communication points and on the model's
- * breakpoints (supply switched on at supply.delay, stall check one second later).
+ * Co-Simulation integrates the equations of model.c with the adaptive Dormand-Prince 5(4)
+ * scheme of cs.c (rtol 1e-10), which lands exactly on communication points and on the
+ * model's breakpoints (supply switched on at supply.delay, stall check one second later).
+ * Model Exchange announces the same breakpoints as time events.
  */
 #include <math.h>
 #include <stdarg.h>
@@ -12,12 +13,7 @@
 #include <string.h>
 
 #include "fmi2Functions.h"
-#include "model.h"
-
-#define CS_RTOL       1e-10
-#define CS_ATOL_REL   1e-10          /* atol_i = CS_ATOL_REL * nominal_i */
-#define CS_MAX_STEPS  200000L        /* internal steps (accepted + rejected) per doStep */
-#define CS_H_INIT     1e-4
+#include "cs.h"
 
 typedef enum { M_INSTANTIATED, M_INIT, M_EVENT, M_CONT, M_STEP, M_TERMINATED, M_ERROR } mode_t_;
 
@@ -28,13 +24,7 @@ typedef struct {
     fmi2Type type;
     int logging_on;
     mode_t_ mode;
-    double p[DCD_NP];
-    double x[DCD_NX];
-    double t;
-    int on;            /* supply switched on */
-    int checked;       /* the stall check has been made */
-    double stalled;    /* latched stall flag (0 or 1) */
-    double h;          /* CS: proposed internal step size, 0 = not yet known */
+    dcd_sim_t s;       /* parameters, states, time, discrete state */
 } inst_t;
 
 static void logmsg(inst_t *m, fmi2Status st, const char *cat, const char *fmt, ...)
@@ -50,132 +40,10 @@ static void logmsg(inst_t *m, fmi2Status st, const char *cat, const char *fmt, .
     m->logger(m->env, m->name, st, cat, buf);
 }
 
-static void reset_values(inst_t *m)
-{
-    memcpy(m->p, dcd_param_default, sizeof m->p);
-    memset(m->x, 0, sizeof m->x);
-    m->t = 0.0;
-    m->on = 0;
-    m->checked = 0;
-    m->stalled = 0.0;
-    m->h = 0.0;
-}
-
-/* discrete updates at time m->t: supply switch and the one-off stall check */
-static void update_discrete(inst_t *m)
-{
-    m->on = dcd_supply_on(m->p, m->t);
-    if (!m->checked && m->t >= dcd_stall_check_time(m->p)) {
-        m->checked = 1;
-        if (dcd_stalled_now(m->x)) m->stalled = 1.0;
-    }
-}
-
 static int all_finite(const double *x, int n)
 {
     for (int i = 0; i < n; ++i) if (!isfinite(x[i])) return 0;
     return 1;
-}
-
-/* ------------------------------------------------------------------------------------ */
-/* Co-Simulation integrator                                                               */
-
-static const double
-    c2 = 1.0 / 5, c3 = 3.0 / 10, c4 = 4.0 / 5, c5 = 8.0 / 9,
-    a21 = 1.0 / 5,
-    a31 = 3.0 / 40, a32 = 9.0 / 40,
-    a41 = 44.0 / 45, a42 = -56.0 / 15, a43 = 32.0 / 9,
-    a51 = 19372.0 / 6561, a52 = -25360.0 / 2187, a53 = 64448.0 / 6561, a54 = -212.0 / 729,
-    a61 = 9017.0 / 3168, a62 = -355.0 / 33, a63 = 46732.0 / 5247, a64 = 49.0 / 176,
-    a65 = -5103.0 / 18656,
-    a71 = 35.0 / 384, a73 = 500.0 / 1113, a74 = 125.0 / 192, a75 = -2187.0 / 6784,
-    a76 = 11.0 / 84,
-    e1 = 71.0 / 57600, e3 = -71.0 / 16695, e4 = 71.0 / 1920, e5 = -17253.0 / 339200,
-    e6 = 22.0 / 525, e7 = -1.0 / 40;
-
-/* integrate from m->t to tb (> m->t) with constant discrete state; lands exactly on tb */
-static fmi2Status integrate_segment(inst_t *m, double tb, long *nsteps)
-{
-    const int n = DCD_NX;
-    double k1[DCD_NX], k2[DCD_NX], k3[DCD_NX], k4[DCD_NX], k5[DCD_NX], k6[DCD_NX], k7[DCD_NX];
-    double xs[DCD_NX], xn[DCD_NX];
-    const double *p = m->p;
-    const int on = m->on;
-
-    dcd_rhs(p, m->t, m->x, on, k1, NULL);
-    if (m->h <= 0.0) m->h = CS_H_INIT;
-
-    while (m->t < tb) {
-        if (++*nsteps > CS_MAX_STEPS) {
-            logmsg(m, fmi2Error, "logStatusError",
-                   "DCDrive: more than %ld internal steps in one doStep at t=%g (h=%g)",
-                   CS_MAX_STEPS, m->t, m->h);
-            return fmi2Error;
-        }
-        const double t = m->t, dist = tb - t;
-        double h = m->h;
-        int last = 0;
-        if (t + 1.1 * h >= tb) { h = dist; last = 1; }
-        if (h < 1e-14 * (fabs(t) + 1.0) && !last) {
-            logmsg(m, fmi2Error, "logStatusError",
-                   "DCDrive: step size underflow (h=%g) at t=%g", h, t);
-            return fmi2Error;
-        }
-        int i;
-        for (i = 0; i < n; ++i) xs[i] = m->x[i] + h * a21 * k1[i];
-        dcd_rhs(p, t + c2 * h, xs, on, k2, NULL);
-        for (i = 0; i < n; ++i) xs[i] = m->x[i] + h * (a31 * k1[i] + a32 * k2[i]);
-        dcd_rhs(p, t + c3 * h, xs, on, k3, NULL);
-        for (i = 0; i < n; ++i) xs[i] = m->x[i] + h * (a41 * k1[i] + a42 * k2[i] + a43 * k3[i]);
-        dcd_rhs(p, t + c4 * h, xs, on, k4, NULL);
-        for (i = 0; i < n; ++i)
-            xs[i] = m->x[i] + h * (a51 * k1[i] + a52 * k2[i] + a53 * k3[i] + a54 * k4[i]);
-        dcd_rhs(p, t + c5 * h, xs, on, k5, NULL);
-        for (i = 0; i < n; ++i)
-            xs[i] = m->x[i] + h * (a61 * k1[i] + a62 * k2[i] + a63 * k3[i] + a64 * k4[i]
-                                   + a65 * k5[i]);
-        const double tn = last ? tb : t + h;
-        dcd_rhs(p, tn, xs, on, k6, NULL);
-        for (i = 0; i < n; ++i)
-            xn[i] = m->x[i] + h * (a71 * k1[i] + a73 * k3[i] + a74 * k4[i] + a75 * k5[i]
-                                   + a76 * k6[i]);
-        dcd_rhs(p, tn, xn, on, k7, NULL);
-
-        double err = 0.0;
-        for (i = 0; i < n; ++i) {
-            const double e = h * (e1 * k1[i] + e3 * k3[i] + e4 * k4[i] + e5 * k5[i]
-                                  + e6 * k6[i] + e7 * k7[i]);
-            const double xa = fabs(m->x[i]), xb = fabs(xn[i]);
-            const double sc = CS_ATOL_REL * dcd_x_nominal[i] + CS_RTOL * (xa > xb ? xa : xb);
-            err += (e / sc) * (e / sc);
-        }
-        err = sqrt(err / n);
-
-        if (err <= 1.0) {
-            double fac = err > 0.0 ? 0.9 * pow(err, -0.2) : 5.0;
-            if (fac > 5.0) fac = 5.0;
-            if (fac < 0.2) fac = 0.2;
-            const double hnew = h * fac;
-            /* a step shortened to land on tb says little about the step size the
-               solution tolerates: keep the proposal unless it must shrink */
-            if (!last || h >= m->h || hnew < m->h) m->h = hnew;
-            m->t = tn;
-            memcpy(m->x, xn, sizeof xn);
-            memcpy(k1, k7, sizeof k7);
-            if (!all_finite(m->x, n)) {
-                logmsg(m, fmi2Error, "logStatusError",
-                       "DCDrive: non-finite state at t=%g (i=%g w=%g)",
-                       m->t, m->x[X_I], m->x[X_W]);
-                return fmi2Error;
-            }
-        } else {
-            double fac = isfinite(err) ? 0.9 * pow(err, -0.2) : 0.2;
-            if (fac < 0.2) fac = 0.2;
-            if (fac > 0.9) fac = 0.9;
-            m->h = h * fac;
-        }
-    }
-    return fmi2OK;
 }
 
 /* ------------------------------------------------------------------------------------ */
@@ -205,7 +73,7 @@ fmi2Component fmi2Instantiate(fmi2String instanceName, fmi2Type fmuType, fmi2Str
     snprintf(m->name, sizeof m->name, "%s", instanceName ? instanceName : "DCDrive");
     m->type = fmuType;
     m->logging_on = loggingOn ? 1 : 0;
-    reset_values(m);
+    dcd_sim_reset(&m->s);
     m->mode = M_INSTANTIATED;
     return m;
 }
@@ -219,7 +87,7 @@ fmi2Status fmi2SetupExperiment(fmi2Component c, fmi2Boolean toleranceDefined,
     (void)toleranceDefined; (void)tolerance; (void)stopTimeDefined; (void)stopTime;
     inst_t *m = (inst_t *)c;
     if (!m || m->mode != M_INSTANTIATED) return fmi2Error;
-    m->t = startTime;
+    m->s.t = startTime;
     return fmi2OK;
 }
 
@@ -235,8 +103,8 @@ fmi2Status fmi2ExitInitializationMode(fmi2Component c)
 {
     inst_t *m = (inst_t *)c;
     if (!m || m->mode != M_INIT) return fmi2Error;
-    update_discrete(m);
-    m->h = 0.0;
+    dcd_sim_update_discrete(&m->s);
+    m->s.h = 0.0;
     m->mode = m->type == fmi2CoSimulation ? M_STEP : M_EVENT;
     return fmi2OK;
 }
@@ -253,7 +121,7 @@ fmi2Status fmi2Reset(fmi2Component c)
 {
     inst_t *m = (inst_t *)c;
     if (!m) return fmi2Error;
-    reset_values(m);
+    dcd_sim_reset(&m->s);
     m->mode = M_INSTANTIATED;
     return fmi2OK;
 }
@@ -272,16 +140,16 @@ fmi2Status fmi2GetReal(fmi2Component c, const fmi2ValueReference vr[], size_t nv
     int have = 0;
     for (size_t k = 0; k < nvr; ++k) {
         const fmi2ValueReference v = vr[k];
-        if (is_param(v)) { value[k] = m->p[v]; continue; }
-        if (v >= VR_X0 && v < VR_X0 + DCD_NX) { value[k] = m->x[v - VR_X0]; continue; }
+        if (is_param(v)) { value[k] = m->s.p[v]; continue; }
+        if (v >= VR_X0 && v < VR_X0 + DCD_NX) { value[k] = m->s.x[v - VR_X0]; continue; }
         switch (v) {
-        case VR_TACHO_W: value[k] = dcd_tacho(m->p, m->x); continue;
-        case VR_SHAFT_W: value[k] = m->x[X_W]; continue;
-        case VR_ARMATURE_I: value[k] = m->x[X_I]; continue;
-        case VR_STALLED: value[k] = m->stalled; continue;
+        case VR_TACHO_W: value[k] = dcd_tacho(m->s.p, m->s.x); continue;
+        case VR_SHAFT_W: value[k] = m->s.x[X_W]; continue;
+        case VR_ARMATURE_I: value[k] = m->s.x[X_I]; continue;
+        case VR_STALLED: value[k] = (double)m->s.stalled; continue;
         default: break;
         }
-        if (!have) { dcd_rhs(m->p, m->t, m->x, m->on, dx, &a); have = 1; }
+        if (!have) { dcd_rhs(m->s.p, m->s.t, m->s.x, m->s.on, dx, &a); have = 1; }
         switch (v) {
         case VR_SHAFT_TORQUE: value[k] = a.torque; break;
         case VR_SUPPLY_V: value[k] = a.v; break;
@@ -313,7 +181,7 @@ fmi2Status fmi2SetReal(fmi2Component c, const fmi2ValueReference vr[], size_t nv
                        "DCDrive: non-finite value for value reference %u", (unsigned)v);
                 return fmi2Error;
             }
-            if (is_param(v)) m->p[v] = value[k]; else m->x[v - VR_X0] = value[k];
+            if (is_param(v)) m->s.p[v] = value[k]; else m->s.x[v - VR_X0] = value[k];
             continue;
         }
         logmsg(m, fmi2Error, "logStatusError",
@@ -364,9 +232,9 @@ fmi2Status fmi2NewDiscreteStates(fmi2Component c, fmi2EventInfo *ei)
 {
     inst_t *m = (inst_t *)c;
     if (!m || m->mode != M_EVENT || !ei) return fmi2Error;
-    update_discrete(m);
+    dcd_sim_update_discrete(&m->s);
     double bp[2];
-    const int nb = dcd_breakpoints(m->p, bp);
+    const int nb = dcd_breakpoints(m->s.p, bp);
     ei->newDiscreteStatesNeeded = fmi2False;
     ei->terminateSimulation = fmi2False;
     ei->nominalsOfContinuousStatesChanged = fmi2False;
@@ -374,7 +242,7 @@ fmi2Status fmi2NewDiscreteStates(fmi2Component c, fmi2EventInfo *ei)
     ei->nextEventTimeDefined = fmi2False;
     ei->nextEventTime = 0.0;
     for (int i = 0; i < nb; ++i) {
-        if (bp[i] > m->t) {
+        if (bp[i] > m->s.t) {
             ei->nextEventTimeDefined = fmi2True;
             ei->nextEventTime = bp[i];
             break;
@@ -405,7 +273,7 @@ fmi2Status fmi2SetTime(fmi2Component c, fmi2Real time)
 {
     inst_t *m = (inst_t *)c;
     if (!m) return fmi2Error;
-    m->t = time;
+    m->s.t = time;
     return fmi2OK;
 }
 
@@ -413,7 +281,7 @@ fmi2Status fmi2SetContinuousStates(fmi2Component c, const fmi2Real x[], size_t n
 {
     inst_t *m = (inst_t *)c;
     if (!m || nx != DCD_NX || !x) return fmi2Error;
-    memcpy(m->x, x, sizeof m->x);
+    memcpy(m->s.x, x, sizeof m->s.x);
     return fmi2OK;
 }
 
@@ -421,9 +289,9 @@ fmi2Status fmi2GetDerivatives(fmi2Component c, fmi2Real derivatives[], size_t nx
 {
     inst_t *m = (inst_t *)c;
     if (!m || nx != DCD_NX || !derivatives) return fmi2Error;
-    dcd_rhs(m->p, m->t, m->x, m->on, derivatives, NULL);
+    dcd_rhs(m->s.p, m->s.t, m->s.x, m->s.on, derivatives, NULL);
     if (!all_finite(derivatives, DCD_NX)) {
-        logmsg(m, fmi2Error, "logStatusError", "DCDrive: non-finite derivative at t=%g", m->t);
+        logmsg(m, fmi2Error, "logStatusError", "DCDrive: non-finite derivative at t=%g", m->s.t);
         return fmi2Error;
     }
     return fmi2OK;
@@ -436,7 +304,7 @@ fmi2Status fmi2GetContinuousStates(fmi2Component c, fmi2Real x[], size_t nx)
 {
     inst_t *m = (inst_t *)c;
     if (!m || nx != DCD_NX || !x) return fmi2Error;
-    memcpy(x, m->x, sizeof m->x);
+    memcpy(x, m->s.x, sizeof m->s.x);
     return fmi2OK;
 }
 
@@ -468,29 +336,20 @@ fmi2Status fmi2DoStep(fmi2Component c, fmi2Real currentCommunicationPoint,
                communicationStepSize);
         return fmi2Error;
     }
-    if (fabs(currentCommunicationPoint - m->t) > 1e-9 * (1.0 + fabs(m->t))) {
+    if (fabs(currentCommunicationPoint - m->s.t) > 1e-9 * (1.0 + fabs(m->s.t))) {
         logmsg(m, fmi2Error, "logStatusError",
                "DCDrive: communication point %g does not match the FMU time %g",
-               currentCommunicationPoint, m->t);
+               currentCommunicationPoint, m->s.t);
         return fmi2Error;
     }
-    m->t = currentCommunicationPoint;
-    const double tend = currentCommunicationPoint + communicationStepSize;
-    double bp[2];
-    const int nb = dcd_breakpoints(m->p, bp);
-    long nsteps = 0;
-    while (m->t < tend) {
-        double tb = tend;
-        for (int i = 0; i < nb; ++i)
-            if (bp[i] > m->t && bp[i] < tb) { tb = bp[i]; break; }
-        update_discrete(m);
-        if (integrate_segment(m, tb, &nsteps) != fmi2OK) {
-            m->mode = M_ERROR;
-            return fmi2Error;
-        }
+    m->s.t = currentCommunicationPoint;
+    char msg[256];
+    if (dcd_sim_advance(&m->s, currentCommunicationPoint + communicationStepSize,
+                        msg, sizeof msg) != 0) {
+        logmsg(m, fmi2Error, "logStatusError", "%s", msg);
+        m->mode = M_ERROR;
+        return fmi2Error;
     }
-    m->t = tend;
-    update_discrete(m);
     return fmi2OK;
 }
 
@@ -503,7 +362,7 @@ fmi2Status fmi2GetRealStatus(fmi2Component c, const fmi2StatusKind s, fmi2Real *
 {
     inst_t *m = (inst_t *)c;
     if (!m || !value) return fmi2Error;
-    if (s == fmi2LastSuccessfulTime) { *value = m->t; return fmi2OK; }
+    if (s == fmi2LastSuccessfulTime) { *value = m->s.t; return fmi2OK; }
     return fmi2Discard;
 }
 
