@@ -1,0 +1,1 @@
+../../DCDrive/sources/cs.h
