@@ -24,7 +24,7 @@ The result is ``posterior.h5`` (``twinmon.posterior/1``)::
     /units/<U>/mean, median, q05, q95  float64 [n_y, d]
     /units/<U>/rhat, ess    float64 [n_y, d]
     /units/<U>/acceptance   float64 [n_y, chains]
-    /units/<U>/noise_std    float64 [n_y]             kg/s (flow noise used in the likelihood)
+    /units/<U>/noise_std    float64 [n_y]             output units (noise used in the likelihood)
     /units/<U>/surrogate_var_ratio float64 [n_y]      mean surrogate variance / noise variance
     /units/<U>.attrs noise_source  "file" | "config" | "estimated"
 """
@@ -43,7 +43,7 @@ import numpy as np
 from . import artifacts
 from .config import Config
 from .errors import ArtifactError, CalibrationError, InputDataError
-from .observations import FLOW, read_observations
+from .observations import read_observations
 
 #: Config sections recorded as the posterior's provenance (and compared by ``twinmon run``).
 SECTIONS = ("model", "calibrate", "seed")
@@ -123,9 +123,9 @@ class LogDensity:
     surrogate : Surrogate
         Maps inputs [n, d] to transients [n, n_t].
     obs_row : ndarray, shape [n_t]
-        Measured flow (kg/s); NaN = missing sample, left out of the likelihood.
+        Measured output (its units); NaN = missing sample, left out of the likelihood.
     noise_var : ndarray, shape [n_t] or float
-        Total variance per time step (kg/s)^2.
+        Total variance per time step (output units)^2.
     prior : Prior
     """
 
@@ -479,7 +479,7 @@ class UnitPosterior:
         Rank-normalised split R-hat and bulk effective sample size per input.
     acceptance : ndarray, shape [n_y, chains]
     noise_std : ndarray, shape [n_y]
-        Flow noise standard deviation used in the likelihood (kg/s).
+        Output noise standard deviation used in the likelihood (output units).
     noise_source : str
         ``"file"``, ``"config"`` or ``"estimated"``.
     surrogate_var_ratio : ndarray, shape [n_y]
@@ -618,9 +618,9 @@ def calibrate_unit(surrogate, cfg: Config, years, flows, noise_std, rng_seed: in
         Uses ``model`` (box) and ``calibrate`` (chains, samples, burn-in, prior width).
     years : array of int, shape [n_y]
     flows : ndarray, shape [n_y, n_t]
-        Measured flow (kg/s) on the surrogate's time grid; NaN = missing.
+        Measured output (its units) on the surrogate's time grid; NaN = missing.
     noise_std : float or ndarray, shape [n_y]
-        Flow noise standard deviation (kg/s).
+        Output noise standard deviation (output units).
     rng_seed : int
         Seed of this unit's draws (year ``k`` uses ``rng_seed + 97 * k``, as
         :func:`sample_posterior` would).
@@ -634,7 +634,7 @@ def calibrate_unit(surrogate, cfg: Config, years, flows, noise_std, rng_seed: in
 
 
 def estimate_noise(surrogate, cfg: Config, flows: np.ndarray) -> float:
-    """Flow noise standard deviation (kg/s) of one unit from its own data.
+    """Output noise standard deviation (output units) of one unit from its own data.
 
     Each year is fitted by least squares (no prior) over the box; the residuals of all the
     unit's years are pooled, with ``d`` degrees of freedom taken per year:
@@ -697,8 +697,8 @@ def _unit_seed(cfg: Config, unit: str) -> int:
 
 
 def _noise_for(cfg: Config, u) -> tuple[Optional[float], str]:
-    if FLOW in u.noise_std:
-        return float(u.noise_std[FLOW]), "file"
+    if cfg.model.output.name in u.noise_std:
+        return float(u.noise_std[cfg.model.output.name]), "file"
     if cfg.calibrate.noise_std is not None:
         return float(cfg.calibrate.noise_std), "config"
     return None, "estimated"
@@ -765,7 +765,7 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
     """
     from .reduce import read_surrogate
     surrogate = read_surrogate(surrogate_path)
-    obs = read_observations(observations_path)
+    obs = read_observations(observations_path, cfg.model.output.name)
     _check_inputs(cfg, surrogate, surrogate_path, obs)
     truth = None
     if truth_path is not None:
@@ -778,10 +778,10 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
     runs = {}
     for unit, u in obs.units.items():
         noise, source = _noise_for(cfg, u)
+        y = obs.output_of(unit)
         if noise is None:
-            noise = estimate_noise(surrogate, cfg, u.m_flow)
-        runs[unit] = _UnitRun(surrogate, cfg, u.years, u.m_flow, noise, _unit_seed(cfg, unit),
-                              source)
+            noise = estimate_noise(surrogate, cfg, y)
+        runs[unit] = _UnitRun(surrogate, cfg, u.years, y, noise, _unit_seed(cfg, unit), source)
     total = sum(len(r.years) for r in runs.values())
     n_tasks = len(runs) * cfg.calibrate.chains
     workers = min(cfg.calibrate.workers or len(os.sched_getaffinity(0)), n_tasks)
@@ -901,7 +901,8 @@ _DATASETS = {
     "rhat": ("1", "rank-normalised split R-hat [year, input]"),
     "ess": ("1", "bulk effective sample size [year, input]"),
     "acceptance": ("1", "Metropolis-Hastings acceptance rate after burn-in [year, chain]"),
-    "noise_std": ("kg/s", "flow noise standard deviation used in the likelihood [year]"),
+    "noise_std": ("output units", "output noise standard deviation used in the likelihood "
+                  "[year]"),
     "surrogate_var_ratio": ("1", "mean surrogate predictive variance / noise variance [year]"),
 }
 
@@ -916,6 +917,7 @@ def write_posterior(path, posterior: dict[str, UnitPosterior], input_names: list
         for unit, p in posterior.items():
             g = f.create_group(f"units/{unit}")
             for name, (units, desc) in _DATASETS.items():
+                units = cfg.model.output.units if units == "output units" else units
                 artifacts.put(g, name, np.asarray(getattr(p, name)), units, desc)
             g.attrs["noise_source"] = p.noise_source
 

@@ -14,6 +14,7 @@ import copy
 import dataclasses
 import math
 import os
+import re
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -46,6 +47,9 @@ class InputSpec:
     component: str = ""
     normal_rate: float = 0.0
     normal_rate_tolerance: float = 0.0
+    #: Which way the input moves as the unit degrades (raises the risk of the health
+    #: indicator): ``up`` or ``down``; None: inferred from the twin by ``forecast``.
+    degrading: Optional[Literal["up", "down"]] = None
 
     def _check(self):
         if not self.low < self.high:
@@ -69,8 +73,9 @@ class TimeGrid:
             yield "step", "must be > 0", self.step
         if self.start <= 0:
             yield "start", "must be > 0 (the model starts from rest at t = 0)", self.start
-        if self.stop < self.start:
-            yield "stop", f"must be >= start ({self.start})", self.stop
+        if self.stop < self.start + self.step:
+            yield "stop", f"must be at least start + step ({self.start + self.step:g}): a " \
+                "transient needs two samples or more", self.stop
 
     @property
     def times(self) -> np.ndarray:
@@ -81,11 +86,36 @@ class TimeGrid:
 
 @dataclass(frozen=True)
 class OutputSpec:
-    """The observed model output (the flowmeter) and its sample grid."""
+    """The observed model output and its sample grid.
 
-    variable: str = "sensor.m_flow"
-    units: str = "kg/s"
+    ``variable`` is the FMU variable; ``name`` is the channel's name in observation files
+    (default: the variable itself, so a file written for one FMU names what it measured);
+    ``label`` is the words the report uses (default: the name)."""
+
+    variable: str
+    name: str = ""
+    label: str = ""
+    units: str = "1"
     times: TimeGrid = TimeGrid()
+
+    def __post_init__(self):
+        # Derived defaults, resolved once so every reader sees the same words.
+        if not self.name:
+            object.__setattr__(self, "name", self.variable)
+        if not self.label:
+            object.__setattr__(self, "label", self.name)
+
+    def _check(self):
+        if not self.variable:
+            yield "variable", "must name an FMU variable", self.variable
+
+
+@dataclass(frozen=True)
+class ChannelSpec:
+    """A further FMU variable recorded as an observation channel (speed, pressure, ...)."""
+
+    units: str = ""
+    label: str = ""
 
 
 @dataclass(frozen=True)
@@ -98,6 +128,9 @@ class EffectSpec:
     high: float
     units: str = "1"
     description: str = ""
+    #: The effect alters only what the sensors read, not the machine (a sensor lag or gain):
+    #: it is left out when the twin judges the unit's safety.
+    measurement_only: bool = False
 
     def _check(self):
         if not self.low < self.high:
@@ -112,12 +145,13 @@ class ModelConfig:
 
     fmu: Path
     inputs: dict[str, InputSpec]
-    output: OutputSpec = OutputSpec()
+    output: OutputSpec
     fmi_type: Literal["CoSimulation", "ModelExchange"] = "CoSimulation"
-    #: Further FMU outputs recorded as extra channels (speed, pump pressure, current).
-    channels: tuple[str, ...] = ("motor.w", "pump.dp", "motor.I")
+    #: Further FMU variables recorded as extra channels, keyed by FMU variable name (a plain
+    #: YAML list of names is accepted too).
+    channels: dict[str, ChannelSpec] = field(default_factory=dict)
     #: FMU output that is 1 when the twin left its physical domain; "" if the FMU has none.
-    nonphysical: str = "nonphysical"
+    nonphysical: str = ""
     #: FMU parameters held at a value other than the FMU's default.
     fixed: dict[str, float] = field(default_factory=dict)
     #: Candidate unmodelled effects, screened by ``diagnose``.
@@ -126,6 +160,22 @@ class ModelConfig:
     def _check(self):
         if len(self.inputs) == 0:
             yield "inputs", "at least one input is needed", {}
+        if self.output.name in self.channels:
+            yield "channels", f"{self.output.name!r} is the output's own channel name", \
+                self.output.name
+
+    @property
+    def channel_units(self) -> dict[str, str]:
+        """Units per observation channel name: the output's, then each further channel's."""
+        return {self.output.name: self.output.units,
+                **{k: c.units for k, c in self.channels.items()}}
+
+    def channel_label(self, channel: str) -> str:
+        """Words for an observation channel (the output's label, or a channel's)."""
+        if channel == self.output.name:
+            return self.output.label
+        spec = self.channels.get(channel)
+        return (spec.label if spec is not None and spec.label else channel)
 
     @property
     def input_names(self) -> list[str]:
@@ -137,21 +187,82 @@ class ModelConfig:
         return np.array([[s.low, s.high] for s in self.inputs.values()])
 
 
+INDICATOR_KINDS = ("time_to_reach", "value_at", "max", "min", "mean", "final")
+
+
+@dataclass(frozen=True)
+class IndicatorSpec:
+    """The health indicator: one number computed from one recorded transient.
+
+    Kinds (``variable`` is an FMU variable recorded at the output times):
+
+    - ``time_to_reach``: time (s) at which the variable first crosses ``level``, upwards
+      (``direction: up``) or downwards; ``inf`` when it never does within the record.
+      ``initial`` is the variable's value at t = 0 (a start from rest), so a crossing
+      before the first sample is interpolated too; without it that crossing is reported at
+      the first sample time.
+    - ``value_at``: the variable at time ``at`` (linear interpolation).
+    - ``max`` / ``min`` / ``mean``: over ``window`` [start, stop] s (default: the record).
+    - ``final``: the last sample.
+    """
+
+    kind: Literal["time_to_reach", "value_at", "max", "min", "mean", "final"]
+    #: FMU variable; "" means the model's output variable.
+    variable: str = ""
+    level: Optional[float] = None
+    direction: Literal["up", "down"] = "up"
+    initial: Optional[float] = None
+    at: Optional[float] = None
+    window: Optional[tuple[float, ...]] = None
+    #: Short name (table headers, JSON); "" gives one from the kind.
+    name: str = ""
+    #: Words for the report; "" gives one from the kind and variable.
+    label: str = ""
+    #: Units of the indicator; "" gives "s" for time_to_reach, else the variable's units.
+    units: str = ""
+
+    def _check(self):
+        if self.kind == "time_to_reach" and self.level is None:
+            yield "level", "is required for kind time_to_reach", self.level
+        if self.kind == "value_at" and self.at is None:
+            yield "at", "is required for kind value_at", self.at
+        if self.window is not None:
+            if len(self.window) != 2 or not self.window[0] < self.window[1]:
+                yield "window", "must be [start, stop] with start < stop", list(self.window)
+
+
+@dataclass(frozen=True)
+class UnsafeIf:
+    """The indicator's limit: unsafe ``above`` or ``below`` a value (exactly one)."""
+
+    above: Optional[float] = None
+    below: Optional[float] = None
+
+    def _check(self):
+        if (self.above is None) == (self.below is None):
+            yield "above", "give exactly one of above or below", \
+                {"above": self.above, "below": self.below}
+
+    @property
+    def limit(self) -> float:
+        return self.above if self.above is not None else self.below
+
+    @property
+    def sense(self) -> int:
+        """+1 when high values are unsafe (``above``), -1 when low values are."""
+        return 1 if self.above is not None else -1
+
+
 @dataclass(frozen=True)
 class SafetyConfig:
-    """A unit is unsafe when it does not reach ``fraction`` of ``nominal_flow`` within
-    ``max_time`` seconds of start, or its twin is non-physical."""
+    """A unit is unsafe when its health indicator passes ``unsafe_if``, or its twin is
+    non-physical; it fails in the first year with P(unsafe) > ``failure_probability``."""
 
-    nominal_flow: float = 400.0
-    fraction: float = 0.9
-    max_time: float = 30.0
+    indicator: IndicatorSpec
+    unsafe_if: UnsafeIf
     failure_probability: float = 0.05
 
     def _check(self):
-        if self.nominal_flow <= 0:
-            yield "nominal_flow", "must be > 0", self.nominal_flow
-        if not 0 < self.fraction <= 1:
-            yield "fraction", "must lie in (0, 1]", self.fraction
         if not 0 < self.failure_probability < 1:
             yield "failure_probability", "must lie in (0, 1)", self.failure_probability
 
@@ -200,7 +311,8 @@ class InjectedEffect:
 
 @dataclass(frozen=True)
 class Disturbance:
-    """An additive disturbance outside the candidate list (e.g. a pulsation), kg/s."""
+    """An additive disturbance outside the candidate list (e.g. a pulsation), in the
+    output's units."""
 
     amplitude: float
     period: float = 7.0
@@ -222,30 +334,41 @@ class FabricateConfig:
 
     units: dict[str, UnitSpec]
     years: int = 10
-    #: Flow noise standard deviation as a fraction of the nominal flow.
+    #: Output noise standard deviation, in the output's units; None: ``noise_fraction``.
+    noise_std: Optional[float] = None
+    #: Output noise standard deviation as a fraction of the range of the healthy unit's
+    #: output over the record (used when ``noise_std`` is not given).
     noise_fraction: float = 0.01
-    #: Noise of the extra channels, as a fraction of each channel's healthy plateau.
+    #: Noise of the extra channels, as a fraction of each channel's range over the healthy
+    #: unit's record.
     channel_noise_fraction: float = 0.01
-    #: Record the extra channels (speed, pump pressure, current) in the observations.
+    #: Also simulate and record (noise-free) in the truth file these FMU variables.
+    truth_variables: tuple[str, ...] = ()
+    #: Record the extra channels (``model.channels``) in the observations.
     record_channels: bool = False
     #: Write ``noise_std`` into the observations (False: the user must estimate it).
     record_noise: bool = True
     seed: int = 2024
 
     def _check(self):
+        if not 0 <= self.seed < 2 ** 32:
+            yield "seed", "must lie in [0, 2**32 - 1]", self.seed
         if self.years < 1:
             yield "years", "must be >= 1", self.years
         if self.noise_fraction < 0:
             yield "noise_fraction", "must be >= 0", self.noise_fraction
+        if self.noise_std is not None and self.noise_std < 0:
+            yield "noise_std", "must be >= 0", self.noise_std
 
 
 @dataclass(frozen=True)
 class ReduceConfig:
     #: Keep the fewest Karhunen-Loeve modes whose variance ratio reaches this.
     variance_threshold: float = 0.99999
-    #: "log": reduce log(flow), so the error is relative at every time step (the early,
-    #: small samples of a start-up are otherwise learnt to absolute, not relative, accuracy).
-    transform: Literal["log", "none"] = "log"
+    #: "log": reduce log(output), so the error is relative at every time step (the early,
+    #: small samples of a start-up are otherwise learnt to absolute, not relative, accuracy);
+    #: only for an output that stays > 0. "auto": log when every training value is > 0.
+    transform: Literal["auto", "log", "none"] = "auto"
     max_modes: int = 8
     kernel: Literal["squared_exponential", "matern52", "matern32", "exponential"] = "matern52"
     trend: Literal["constant", "linear", "quadratic"] = "linear"
@@ -270,7 +393,7 @@ class CalibrateConfig:
     #: Width (std) of the Gaussian prior of year n+1 around year n's estimate, as a
     #: fraction of each input's design range. See docs/calibration.md for the default.
     prior_width: float = 0.05
-    #: Flow noise standard deviation (kg/s), used for units whose observations file does not
+    #: Output noise standard deviation (output units), for units whose observations file does not
     #: record one; None: estimated from the residuals of a least-squares fit of each year.
     noise_std: Optional[float] = None
     #: Add the previous year's posterior variance to the year-to-year prior variance (the
@@ -336,10 +459,9 @@ class WindowSpec:
 class DiagnoseConfig:
     """Settings of ``diagnose`` (the sim-to-real gap); docs/diagnose.md explains each."""
 
-    #: Time windows of the transient (seconds), for locating the gap.
-    windows: dict[str, WindowSpec] = field(default_factory=lambda: {
-        "start-up": WindowSpec(0.0, 8.0), "rise": WindowSpec(8.0, 24.0),
-        "plateau": WindowSpec(24.0, 1e9)})
+    #: Named time windows of the record (seconds), for locating the gap; empty: the record
+    #: split into thirds named early, middle and late (see :func:`diagnose_windows`).
+    windows: dict[str, WindowSpec] = field(default_factory=dict)
     #: Significance level of the gap tests (family-wise: Bonferroni over years and tests).
     alpha: float = 0.01
     #: Minimum BIC gain to accept an effect (or a further one).
@@ -375,8 +497,6 @@ class DiagnoseConfig:
         for name, w in self.windows.items():
             if not w.start < w.stop:
                 yield f"windows.{name}.stop", f"must be greater than start ({w.start})", w.stop
-        if len(self.windows) == 0:
-            yield "windows", "at least one window is needed", {}
         if not 0 < self.alpha < 1:
             yield "alpha", "must lie in (0, 1)", self.alpha
         if self.bic_gain < 0:
@@ -411,8 +531,9 @@ class Config:
     """A whole resolved twinmon configuration."""
 
     model: ModelConfig
+    #: The safety criterion (health indicator and its limit).
+    safety: SafetyConfig
     seed: int = 0
-    safety: SafetyConfig = SafetyConfig()
     simulate: SimulateConfig = SimulateConfig()
     reduce: ReduceConfig = ReduceConfig()
     calibrate: CalibrateConfig = CalibrateConfig()
@@ -423,6 +544,26 @@ class Config:
     source: Path = field(default=Path("<memory>"), compare=False)
     #: The merged mapping after overrides (not a YAML key): a base for derived configs.
     raw: Mapping[str, Any] = field(default_factory=dict, compare=False, repr=False)
+
+    @property
+    def indicator_variable(self) -> str:
+        """The FMU variable the health indicator is computed from."""
+        return self.safety.indicator.variable or self.model.output.variable
+
+    def diagnose_windows(self) -> dict[str, "WindowSpec"]:
+        """The named windows of ``diagnose``: the config's, or the record in thirds."""
+        if self.diagnose.windows:
+            return dict(self.diagnose.windows)
+        t = self.model.output.times.times
+        # Cut half-way between samples so every sample falls in exactly one window.
+        edges = np.quantile(np.concatenate([[0.0], t]), [1 / 3, 2 / 3])
+        return {"early": WindowSpec(0.0, float(edges[0])),
+                "middle": WindowSpec(float(edges[0]), float(edges[1])),
+                "late": WindowSpec(float(edges[1]), float(t[-1]) + 1.0)}
+
+    def _check(self):
+        if not 0 <= self.seed < 2 ** 32:
+            yield "seed", "must lie in [0, 2**32 - 1] (OpenTURNS and numpy seeds)", self.seed
 
     def section_yaml(self, *names: str) -> str:
         """The resolved YAML of the named sections, recorded in artifacts as provenance."""
@@ -466,6 +607,14 @@ def config_from_mapping(raw: Mapping[str, Any], source: Path = Path("<memory>"))
     if not isinstance(raw, Mapping):
         raise ConfigError(f"{source}: top level must be a mapping, got {type(raw).__name__}")
     raw = copy.deepcopy(dict(raw))
+    model = raw.get("model")
+    if isinstance(model, dict) and isinstance(model.get("channels"), (list, tuple)):
+        # A plain list of channel names is the short form of {name: {}}.
+        chans = model["channels"]
+        if not all(isinstance(c, str) for c in chans):
+            bad = next(c for c in chans if not isinstance(c, str))
+            raise ConfigError(f"{source}: model.channels: expected FMU variable names, got {bad!r}")
+        model["channels"] = {c: {} for c in chans}
     cfg = _build(Config, raw, (), source)
     return dataclasses.replace(cfg, source=source, raw=raw)
 
@@ -474,13 +623,21 @@ def _load_yaml_tree(path: Path, seen: tuple) -> dict:
     if path.resolve() in seen:
         raise ConfigError(f"{path}: 'extends' forms a cycle")
     try:
-        text = path.read_text()
+        text = path.read_bytes().decode("utf-8-sig")
     except FileNotFoundError:
         raise ConfigError(f"{path}: config file not found") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{path}: is a folder, expected a YAML file") from None
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read config: {exc.strerror}") from None
+    except UnicodeDecodeError as exc:
+        line = exc.object[:exc.start].count(b"\n") + 1
+        raise ConfigError(f"{path}: line {line}: not UTF-8 text (byte 0x{exc.object[exc.start]:02x}); "
+                          "save the config as UTF-8") from None
     try:
-        data = yaml.safe_load(text)
+        data = yaml.load(text, Loader=StrictLoader)
+    except DuplicateKeyError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
@@ -510,6 +667,37 @@ def _absolutise_paths(data: dict, folder: Path) -> dict:
     return data
 
 
+class DuplicateKeyError(yaml.YAMLError):
+    """A mapping names the same key twice (PyYAML would silently keep the last)."""
+
+
+class StrictLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, stricter and kinder: duplicate keys are an error, and numbers
+    such as ``1e6`` or ``4e2`` (YAML 1.1 wants ``1.0e+6``) are read as floats."""
+
+    def construct_mapping(self, node, deep=False):
+        seen = {}
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            try:
+                first = seen.get(key)
+            except TypeError:
+                continue  # an unhashable key: PyYAML reports it itself
+            if first is not None:
+                raise DuplicateKeyError(
+                    f"line {key_node.start_mark.line + 1}: key {key!r} appears twice in one "
+                    f"mapping (first on line {first}); remove one")
+            seen[key] = key_node.start_mark.line + 1
+        return super().construct_mapping(node, deep=deep)
+
+
+# YAML 1.1's float rule needs a dot and a signed exponent; accept what people write too.
+StrictLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"""^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$""", re.X),
+    list("-+0123456789"))
+
+
 def _merge(base: dict, top: dict) -> dict:
     out = dict(base)
     for key, value in top.items():
@@ -528,7 +716,7 @@ def _apply_override(raw: dict, item: str, source: Path) -> None:
     if not parts:
         raise ConfigError(f"--set {item!r}: empty key")
     try:
-        value = yaml.safe_load(text)
+        value = yaml.load(text, Loader=StrictLoader)
     except yaml.YAMLError:
         raise ConfigError(f"--set {item!r}: value {text!r} is not valid YAML") from None
     node = raw

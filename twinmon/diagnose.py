@@ -42,7 +42,7 @@ from scipy.optimize import least_squares
 from . import artifacts
 from .config import Config
 from .errors import ArtifactError, ConfigError, InputDataError, SimulationError
-from .observations import FLOW, read_observations
+from .observations import read_observations
 
 #: Config sections recorded in the artifact (and compared by ``twinmon run``).
 SECTIONS = ("model", "diagnose", "safety")
@@ -72,8 +72,8 @@ class Twin:
     fmu_path : path-like
         The ``.fmu`` file (already built).
     channels : sequence of str
-        Observed channels (``"m_flow"`` is the config's output variable; others are FMU
-        output names such as ``"motor.w"``).
+        Observed channels: ``model.output.name`` (the config's output variable) and further
+        channels named by their FMU variable.
     time : ndarray, shape [n_t]
         Sample times (s).
     sigma : dict of str to float
@@ -87,8 +87,9 @@ class Twin:
         from .fmu import FMUModel
         self.cfg = cfg
         self.channels = list(channels)
-        self.var = {c: (cfg.model.output.variable if c == FLOW else c) for c in self.channels}
-        extra = [cfg.model.output.variable, "pump.m_flow"] + list(cfg.model.channels)
+        out = cfg.model.output
+        self.var = {c: (out.variable if c == out.name else c) for c in self.channels}
+        extra = [out.variable, cfg.indicator_variable] + list(cfg.model.channels)
         if cfg.model.nonphysical:
             extra.append(cfg.model.nonphysical)
         outputs = list(dict.fromkeys(list(self.var.values()) + extra))
@@ -316,7 +317,7 @@ def pooled_onset_pvalues(chi2: np.ndarray, dof: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------------------------------
 @dataclass
 class UnitGap:
-    """Diagnosis of one unit. Arrays are per year [n_y] and per time step [n_t] of the flow.
+    """Diagnosis of one unit. Arrays are per year [n_y] and per time step [n_t] of the output.
 
     Attributes
     ----------
@@ -328,11 +329,11 @@ class UnitGap:
     group : list of str
         The first effect's group (candidates within ``group_bic`` of the best).
     residual_before, residual_after : ndarray, shape [n_y, n_t]
-        Standardised flow residuals of the base and the final twin.
+        Standardised output residuals of the base and the final twin.
     window_rms_before, window_rms_after : ndarray, shape [n_y, n_w]
-        RMS of the standardised flow residual per year and window.
+        RMS of the standardised output residual per year and window.
     predicted_before, predicted_after, observed : ndarray, shape [n_y, n_t]
-        Flow (kg/s).
+        Output (its units).
     inputs_before, inputs_after, inputs_sd_before, inputs_sd_after : ndarray, shape [n_y, d]
         Degradation input estimates and their linearised standard deviations.
     candidates : list of str
@@ -470,10 +471,10 @@ class _UnitDiagnosis:
         self.n_obs = int(np.isfinite(Y).sum())
         self.ln_n = math.log(max(self.n_obs, 2))
         self.posterior = posterior
-        names = list(self.dc.windows)
-        self.win_names = names
+        windows = cfg.diagnose_windows()
+        self.win_names = list(windows)
         t = twin.time
-        self.win_masks = [(t >= w.start) & (t < w.stop) for w in self.dc.windows.values()]
+        self.win_masks = [(t >= w.start) & (t < w.stop) for w in windows.values()]
 
     # -- step 1: the base twin ---------------------------------------------------------
     def fit_base(self):
@@ -503,12 +504,12 @@ class _UnitDiagnosis:
         chi2 = np.array([float(r @ r) for r in rows])
         dof = np.maximum(np.array([r.size for r in rows]) - n_par, 1)
         p_chi2 = stats.chi2.sf(chi2, dof)
-        p_lb = np.array([ljung_box(self._flow_part(r / np.sqrt(1 + h), k), self.dc.ljung_box_lags)
+        p_lb = np.array([ljung_box(self._output_part(r / np.sqrt(1 + h), k), self.dc.ljung_box_lags)
                          for k, (r, h) in enumerate(zip(rows, lev))])
         return chi2, dof, p_chi2, p_lb
 
-    def _flow_part(self, r_masked: np.ndarray, k: int) -> np.ndarray:
-        """The flow channel of a masked residual row, back on the time grid [n_t] (NaN gaps)."""
+    def _output_part(self, r_masked: np.ndarray, k: int) -> np.ndarray:
+        """The output channel of a masked residual row, back on the time grid [n_t] (NaN gaps)."""
         full = np.full(self.m, np.nan)
         full[np.isfinite(self.Y[k])] = r_masked
         return full[:self.n_t]
@@ -757,10 +758,10 @@ class _UnitDiagnosis:
                     where_w.append(name)
 
         # Predictions, inputs and their standard deviations.
-        pred_b = np.array([self._flow_pred(self.base_u[k], {}) for k in range(self.n_y)])
+        pred_b = np.array([self._output_pred(self.base_u[k], {}) for k in range(self.n_y)])
         eff_year = [{n: v for (n, on), v in zip(model_effects, model_values) if self.years[k] >= on}
                     if verdict == "effect" else {} for k in range(self.n_y)]
-        pred_a = np.array([self._flow_pred(after_u[k], eff_year[k]) for k in range(self.n_y)])
+        pred_a = np.array([self._output_pred(after_u[k], eff_year[k]) for k in range(self.n_y)])
         width = self.twin.in_hi - self.twin.in_lo
         sd_b = np.array([np.sqrt(np.clip(np.diag(np.linalg.pinv(J.T @ J)), 0, None)) * width
                          for J in self.base_J])
@@ -882,13 +883,13 @@ class _UnitDiagnosis:
         return (float(value), float(max(e.low, value - z * sd)), float(min(e.high, value + z * sd)))
 
     def _zmap(self, rows, lev) -> np.ndarray:
-        """Standardised flow residuals [n_y, n_t]: whitened residual over
+        """Standardised output residuals [n_y, n_t]: whitened residual over
         sqrt(1 + h) (noise plus the twin's posterior variance J Sigma J^T, linearised)."""
-        return np.array([self._flow_part(r / np.sqrt(1.0 + h), k)
+        return np.array([self._output_part(r / np.sqrt(1.0 + h), k)
                          for k, (r, h) in enumerate(zip(rows, lev))])
 
     def _posterior_zmap(self) -> np.ndarray:
-        """Standardised flow residuals against the calibrated posterior predictive:
+        """Standardised output residuals against the calibrated posterior predictive:
         (y - f(posterior mean)) / sqrt(noise^2 + diag(J Sigma_post J^T)), J the FMU's
         sensitivities at the base fit, Sigma_post the covariance of the posterior draws."""
         mean, cov = self.posterior
@@ -915,18 +916,23 @@ class _UnitDiagnosis:
                     out[:, j] = np.sqrt(np.nanmean(z[:, w] ** 2, axis=1))
         return out
 
-    def _flow_pred(self, u: np.ndarray, effects: dict) -> np.ndarray:
+    def _output_pred(self, u: np.ndarray, effects: dict) -> np.ndarray:
         return self.twin.run(self.twin.theta_of(u), effects)[self.cfg.model.output.variable]
 
     def _separation(self, group: list, confirmed: dict) -> tuple:
         """The unobserved FMU channel on which the group's fitted twins differ most,
-        relative to its noise (``channel_noise_fraction`` of its healthy plateau)."""
+        relative to its noise (``channel_noise_fraction`` of its healthy plateau, or of its
+        range for a channel that ends near 0)."""
         chans = [c for c in self.cfg.model.channels if c not in self.twin.channels]
         if not chans:
             return "", {}
         healthy = self.twin.run(np.array([s.nominal for s in self.cfg.model.inputs.values()]))
-        noise = {c: self.dc.channel_noise_fraction * max(abs(float(healthy[c][-1])), 1e-12)
-                 for c in chans}
+
+        def scale(x: np.ndarray) -> float:
+            final, span = abs(float(x[-1])), float(x.max() - x.min())
+            return max(final if final > 0.1 * span else span, 1e-12)
+
+        noise = {c: self.dc.channel_noise_fraction * scale(healthy[c]) for c in chans}
         sims = []
         for n in group:
             chi2, fit, k0, on = confirmed[n]
@@ -945,9 +951,14 @@ class _UnitDiagnosis:
 
     def _failure_year(self, thetas: np.ndarray, effects: dict) -> Optional[int]:
         """First year (observed or projected over ``forecast.horizon`` years by a straight
-        line through the yearly estimates) in which the twin's delivered flow misses the
-        safety criterion; None if none within the horizon."""
-        from .safety import is_unsafe, time_to_fraction
+        line through the yearly estimates) in which the twin fails the safety criterion;
+        None if none within the horizon. Effects that alter only the measurement
+        (``measurement_only``) are left out: a lagging sensor does not make the machine
+        unsafe."""
+        from .safety import Indicator
+        ind = Indicator.from_config(self.cfg)
+        effects = {k: v for k, v in (effects or {}).items()
+                   if not self.cfg.model.effects[k].measurement_only}
         yrs = self.years.astype(float)
         if len(yrs) >= 2:
             coef = np.polyfit(yrs, thetas, 1)                   # [2, d]
@@ -955,7 +966,6 @@ class _UnitDiagnosis:
             coef = np.vstack([np.zeros(self.d), thetas[0]])
         future = np.arange(self.years[-1] + 1, self.years[-1] + 1 + self.cfg.forecast.horizon)
         cand = np.concatenate([self.years, future])
-        safety = self.cfg.safety
         np_var = self.cfg.model.nonphysical
         for i, yr in enumerate(cand):
             theta = thetas[i] if i < self.n_y else coef[0] * yr + coef[1]
@@ -964,9 +974,9 @@ class _UnitDiagnosis:
                 out = self.twin.run(theta, effects)
             except SimulationError:
                 return int(yr)
-            t90 = time_to_fraction(self.twin.time, out["pump.m_flow"], safety)
+            value = ind(self.twin.time, out[ind.variable])
             nonphys = bool(out[np_var].max() > 0.5) if np_var else None
-            if bool(is_unsafe(np.array(t90), safety, nonphys)):
+            if bool(ind.unsafe(np.array(value), nonphys)):
                 return int(yr)
         return None
 
@@ -985,11 +995,12 @@ def candidate_names(cfg: Config) -> list:
 
 
 def _unit_sigma(cfg: Config, uo, time: np.ndarray) -> dict:
-    plateau = list(cfg.diagnose.windows.values())[-1].start
+    # Noise not recorded: estimated where the transient is calmest, the last window.
+    plateau = list(cfg.diagnose_windows().values())[-1].start
     sig = {}
     for ch, arr in uo.channels.items():
         s = uo.noise_std.get(ch)
-        if s is None and ch == FLOW and cfg.calibrate.noise_std is not None:
+        if s is None and ch == cfg.model.output.name and cfg.calibrate.noise_std is not None:
             s = cfg.calibrate.noise_std
         sig[ch] = float(s) if s is not None else estimate_noise(arr, time, plateau)
     return sig
@@ -1010,7 +1021,8 @@ def diagnose_unit(cfg: Config, fmu_path, unit: str, time: np.ndarray, years: np.
         Sample times (s).
     years : ndarray of int, shape [n_y]
     channels : dict of str to ndarray, each [n_y, n_t]
-        ``"m_flow"`` (kg/s) and any further observed FMU channel; NaN = missing.
+        The output (under ``model.output.name``) and any further observed FMU channel, each
+        in its units; NaN = missing.
     noise_std : dict of str to float
         Noise standard deviation per channel (channel units).
     twin : Twin, optional
@@ -1020,7 +1032,8 @@ def diagnose_unit(cfg: Config, fmu_path, unit: str, time: np.ndarray, years: np.
         given, the standardised residual map is taken against this posterior predictive
         instead of the maximum-likelihood twin (the tests and fits are unchanged).
     """
-    chans = [FLOW] + sorted(c for c in channels if c != FLOW and c in cfg.model.channels)
+    out = cfg.model.output.name
+    chans = [out] + sorted(c for c in channels if c != out and c in cfg.model.channels)
     names = candidate_names(cfg)
     own = twin is None
     if own:
@@ -1077,7 +1090,9 @@ def diagnose(cfg: Config, observations: str | os.PathLike, output: str | os.Path
     from .fmu import resolve_fmu
 
     t0 = _time.perf_counter()
-    obs = read_observations(observations)
+    from .simulate import check_model
+    check_model(cfg)
+    obs = read_observations(observations, cfg.model.output.name)
     candidate_names(cfg)
     expected = cfg.model.output.times.times
     if obs.time.shape != expected.shape or not np.allclose(obs.time, expected):
@@ -1116,20 +1131,21 @@ def diagnose(cfg: Config, observations: str | os.PathLike, output: str | os.Path
 _ARRAYS = {
     # name: (units, description)
     "years": ("year", "year of service"),
-    "residual_before": ("1", "standardised flow residual of the base twin [year, time]"),
-    "residual_after": ("1", "standardised flow residual of the twin with the effect(s) [year, time]"),
+    "residual_before": ("1", "standardised output residual of the base twin [year, time]"),
+    "residual_after": ("1", "standardised output residual of the twin with the effect(s) "
+                       "[year, time]"),
     "chi2_before": ("1", "chi-square of the whitened residual, base twin [year]"),
     "chi2_after": ("1", "chi-square of the whitened residual, final twin [year]"),
     "dof": ("1", "degrees of freedom of the per-year chi-square [year]"),
     "p_chi2_before": ("1", "p-value of the per-year chi-square, base twin [year]"),
-    "p_ljung_box_before": ("1", "Ljung-Box p-value of the flow residual, base twin [year]"),
+    "p_ljung_box_before": ("1", "Ljung-Box p-value of the output residual, base twin [year]"),
     "p_chi2_after": ("1", "p-value of the per-year chi-square, final twin [year]"),
     "significant_years": ("1", "1 where the year's gap is significant (Bonferroni) [year]"),
-    "window_rms_before": ("1", "RMS of the standardised flow residual [year, window], base"),
-    "window_rms_after": ("1", "RMS of the standardised flow residual [year, window], final"),
-    "observed": ("kg/s", "observed flow [year, time]"),
-    "predicted_before": ("kg/s", "flow of the base twin [year, time]"),
-    "predicted_after": ("kg/s", "flow of the final twin [year, time]"),
+    "window_rms_before": ("1", "RMS of the standardised output residual [year, window], base"),
+    "window_rms_after": ("1", "RMS of the standardised output residual [year, window], final"),
+    "observed": ("output units", "observed output [year, time]"),
+    "predicted_before": ("output units", "output of the base twin [year, time]"),
+    "predicted_after": ("output units", "output of the final twin [year, time]"),
     "inputs_before": ("input units", "degradation inputs, base twin [year, input]"),
     "inputs_after": ("input units", "degradation inputs, final twin [year, input]"),
     "inputs_sd_before": ("input units", "linearised standard deviation [year, input], base"),
@@ -1163,7 +1179,7 @@ def write_gap(path, results: dict, cfg: Config, time: np.ndarray, inputs) -> Non
                          ({name: [mean, q05, q95]}), separation_scores, candidates,
                          effect_onsets ({name: onset year})
     """
-    wins = cfg.diagnose.windows
+    wins = cfg.diagnose_windows()
     with artifacts.write_artifact(path, "gap", config=cfg.section_yaml(*SECTIONS),
                                   inputs=inputs, seed=cfg.seed) as f:
         artifacts.put(f, "time", np.asarray(time), "s", "sample times")
@@ -1174,6 +1190,7 @@ def write_gap(path, results: dict, cfg: Config, time: np.ndarray, inputs) -> Non
         for unit, g in results.items():
             grp = f.create_group(f"units/{unit}")
             for name, (units, desc) in _ARRAYS.items():
+                units = cfg.model.output.units if units == "output units" else units
                 data = np.asarray(getattr(g, name))
                 if data.dtype == bool:
                     data = data.astype(np.int8)

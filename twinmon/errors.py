@@ -63,6 +63,13 @@ class CalibrationError(TwinmonError):
     family = "calibration error"
 
 
+class Interrupted(TwinmonError):
+    """The user interrupted a command (Ctrl-C); the message says what is kept."""
+
+    exit_code = 130
+    family = "interrupted"
+
+
 EXIT_CODES = {cls.family: cls.exit_code for cls in
               (TwinmonError, ConfigError, InputDataError, ArtifactError,
-               SimulationError, CalibrationError)}
+               SimulationError, CalibrationError, Interrupted)}

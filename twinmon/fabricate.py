@@ -18,7 +18,7 @@ import numpy as np
 from . import artifacts
 from .config import Config, Disturbance
 from .errors import ConfigError, SimulationError
-from .observations import FLOW, Observations, UnitObservations, write_observations
+from .observations import Observations, UnitObservations, write_observations
 from .simulate import run_batch, spec_for
 
 
@@ -64,7 +64,7 @@ def true_inputs(cfg: Config, rng: np.random.Generator) -> dict[str, dict[str, np
 
 
 def disturbance_signal(d: Disturbance, time: np.ndarray) -> np.ndarray:
-    """Additive flow disturbance (kg/s) at the sample times, shape [n_t]."""
+    """Additive output disturbance (output units) at the sample times, shape [n_t]."""
     if d.shape == "sine":
         return d.amplitude * np.sin(2 * np.pi * time / d.period)
     return d.amplitude * np.exp(-((time - d.period) / 4.0) ** 2)
@@ -86,9 +86,11 @@ def fabricate(cfg: Config, observations: str | os.PathLike, truth: str | os.Path
         raise ConfigError(f"{cfg.source}: fabricate: section is missing")
     rng = np.random.default_rng(fab.seed)
     inputs = true_inputs(cfg, rng)
+    from .simulate import check_model
+    check_model(cfg)
     channels = list(cfg.model.channels) if fab.record_channels else []
-    outputs = [cfg.model.output.variable, "pump.m_flow"] + channels
-    outputs = list(dict.fromkeys(outputs))
+    out_var, out_name = cfg.model.output.variable, cfg.model.output.name
+    outputs = list(dict.fromkeys([out_var, *fab.truth_variables, *channels]))
     spec = spec_for(cfg, outputs=outputs)
     time = spec.times
     years = np.arange(1, fab.years + 1)
@@ -110,47 +112,58 @@ def fabricate(cfg: Config, observations: str | os.PathLike, truth: str | os.Path
         raise SimulationError(f"{cfg.source}: fabricate.units.{unit}: year {years[k]} failed "
                               f"to simulate: {batch.messages[i]}")
 
-    # Noise levels: flow relative to the nominal flow, other channels relative to their
-    # healthy plateau (so 1 % means the same thing on every channel).
+    # Noise levels: the output's in its units (noise_std) or relative to the range the
+    # healthy unit's output spans over the record; other channels relative to their own
+    # healthy range (so 1 % means the same thing on every channel).
     healthy = run_batch(spec, [{s.variable: s.nominal for s in cfg.model.inputs.values()}])
-    flow_std = fab.noise_fraction * cfg.safety.nominal_flow
-    ch_std = {c: fab.channel_noise_fraction * abs(float(healthy.outputs[c][0, -1]))
-              for c in channels}
+    if not healthy.ok.all():
+        raise SimulationError(f"{cfg.source}: the healthy unit (every input at its nominal "
+                              f"value) failed to simulate: {healthy.messages[0]}")
+
+    def healthy_range(var: str) -> float:
+        x = healthy.outputs[var][0]
+        return float(x.max() - x.min()) or float(abs(x).max())
+
+    out_std = (fab.noise_std if fab.noise_std is not None
+                else fab.noise_fraction * healthy_range(out_var))
+    ch_std = {c: fab.channel_noise_fraction * healthy_range(c) for c in channels}
 
     obs_units, truth_rows = {}, {}
     for unit, spec_u in fab.units.items():
         rows = [i for i, key in enumerate(keys) if key[0] == unit]
-        clean = batch.outputs[cfg.model.output.variable][rows]
+        clean = batch.outputs[out_var][rows]
         if spec_u.disturbance is not None:
             d = spec_u.disturbance
             clean = clean + np.where(years[:, None] >= d.onset,
                                      disturbance_signal(d, time)[None, :], 0.0)
-        chans = {FLOW: clean + flow_std * rng.standard_normal(clean.shape)}
+        chans = {out_name: clean + out_std * rng.standard_normal(clean.shape)}
         for c in channels:
             x = batch.outputs[c][rows]
             chans[c] = x + ch_std[c] * rng.standard_normal(x.shape)
         # Noise-free data (noise_fraction 0) record no level: zero is not a usable std.
-        noise = ({k: v for k, v in {FLOW: flow_std, **ch_std}.items() if v > 0}
+        noise = ({k: v for k, v in {out_name: out_std, **ch_std}.items() if v > 0}
                  if fab.record_noise else {})
         obs_units[unit] = UnitObservations(years.copy(), chans, noise)
         truth_rows[unit] = (rows, clean)
 
-    section = cfg.section_yaml("model", "fabricate", "safety")
+    section = cfg.section_yaml("model", "fabricate")
     fmu_inputs = [spec.fmu]
-    write_observations(observations, Observations(time, obs_units, Path(observations)),
-                       config=section, inputs=fmu_inputs, seed=fab.seed)
-    _write_truth(truth, cfg, inputs, truth_rows, batch, spec, time, years, flow_std,
+    write_observations(observations,
+                       Observations(time, obs_units, Path(observations), out_name),
+                       config=section, inputs=fmu_inputs, seed=fab.seed,
+                       units=cfg.model.channel_units)
+    _write_truth(truth, cfg, inputs, truth_rows, batch, spec, time, years, out_std,
                  section, fmu_inputs)
     return FabricateSummary(len(fab.units), fab.years, str(observations), str(truth))
 
 
-def _write_truth(path, cfg, inputs, truth_rows, batch, spec, time, years, flow_std, section,
+def _write_truth(path, cfg, inputs, truth_rows, batch, spec, time, years, out_std, section,
                  fmu_inputs) -> None:
     fab = cfg.fabricate
     with artifacts.write_artifact(path, "truth", config=section, inputs=fmu_inputs,
                                   seed=fab.seed) as f:
         artifacts.put(f, "time", time, "s", "sample times")
-        f.attrs["noise_std"] = flow_std
+        f.attrs["noise_std"] = out_std
         for unit, spec_u in fab.units.items():
             g = f.create_group(f"units/{unit}")
             artifacts.put(g, "years", years, "year", "year of service")
@@ -168,10 +181,12 @@ def _write_truth(path, cfg, inputs, truth_rows, batch, spec, time, years, flow_s
                     {"amplitude": d.amplitude, "period": d.period, "onset": d.onset,
                      "shape": d.shape})
             rows, clean = truth_rows[unit]
-            artifacts.put(g, "m_flow_clean", clean, cfg.model.output.units,
-                          "noise-free measured flow (with effects and disturbance)")
-            artifacts.put(g, "pump_m_flow", batch.outputs["pump.m_flow"][rows], "kg/s",
-                          "true delivered flow (pump.m_flow)")
+            out = cfg.model.output
+            artifacts.put(g, f"{out.name}_clean", clean, out.units,
+                          f"noise-free {out.label} (with effects and disturbance)")
+            for var in fab.truth_variables:
+                artifacts.put(g, f"clean/{var}", batch.outputs[var][rows],
+                              cfg.model.channel_units.get(var, ""), f"noise-free {var}")
 
 
 @dataclass

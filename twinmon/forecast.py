@@ -12,15 +12,17 @@ Monte Carlo samples of the inputs drawn from that predictive distribution (one m
 Student t per year, its correlation the correlation of the inputs' regression residuals) are
 propagated through the twin: points inside the surrogate's training box through the Gaussian
 process surrogate (vectorised), points outside it through the FMU itself, so a Gaussian
-process is never extrapolated. A sample is unsafe when its t90 exceeds ``safety.max_time``,
-when the FMU reports the non-physical mode, or when the FMU run fails. The failure year is the
-first future year whose probability of being unsafe exceeds ``safety.failure_probability``.
+process is never extrapolated. A sample is unsafe when its health indicator passes
+``safety.unsafe_if``, when the FMU reports the non-physical mode, or when the FMU run fails.
+The failure year is the first future year whose probability of being unsafe exceeds
+``safety.failure_probability``.
 
 Root cause: per input, a one-sided t test of the OLS slope against what normal ageing allows
 (``normal_rate`` +- ``normal_rate_tolerance`` of the input's spec) in the input's degrading
-direction (the sign of the change that raises t90, from a central finite difference of the
-surrogate at the nominal point). The components of the inputs whose test rejects at
-``forecast.alpha`` give the verdict: ``healthy``, ``pump``, ``motor`` or ``both``.
+direction (``degrading`` in the input's spec, or the sign of the change that moves the
+indicator towards unsafe, from a finite difference of the surrogate checked against its own
+error; two-sided where that sign cannot be told). The components of the inputs whose test
+rejects at ``forecast.alpha`` give the verdict: ``healthy``, one component, or ``both``.
 
 See ``docs/forecast.md`` for the choices (OLS on the estimates, correlated draws) and the
 artifact layout.
@@ -76,7 +78,8 @@ class Trend:
     normal_rate, tolerance : float
         Yearly drift normal ageing allows, and its tolerance (from the input's spec).
     direction : int
-        +1 when an increase of the input raises t90 (degrades the unit), -1 otherwise.
+        +1 when an increase of the input degrades the unit (moves the health indicator
+        towards unsafe), -1 when a decrease does, 0 when unknown (two-sided test).
     p_value : float
         p-value of the one-sided test H0: the slope stays within normal ageing.
     test : str
@@ -161,11 +164,13 @@ def fit_trend(years: np.ndarray, values: np.ndarray) -> tuple[Trend, np.ndarray]
 
 def slope_test(trend: Trend, normal_rate: float, tolerance: float, direction: int,
                alpha: float) -> Trend:
-    """One-sided t test of the slope against normal ageing, in the degrading direction.
+    """t test of the slope against normal ageing, in the degrading direction.
 
-    H0: ``direction * slope <= direction * normal_rate + tolerance`` (the input degrades no
-    faster than normal ageing allows); H1: it degrades faster. The statistic
+    With ``direction`` +-1, one-sided: H0 ``direction * slope <= direction * normal_rate +
+    tolerance`` (the input degrades no faster than normal ageing allows); the statistic
     ``(direction * slope - bound) / se`` is Student t with n - 2 dof at the boundary of H0.
+    With ``direction`` 0 (which way degrades is not known), two-sided: H0 ``|slope -
+    normal_rate| <= tolerance``, p = twice the smaller one-sided p-value.
 
     Returns
     -------
@@ -174,16 +179,23 @@ def slope_test(trend: Trend, normal_rate: float, tolerance: float, direction: in
         ``direction`` filled in.
     """
     from scipy import stats
-    bound = direction * normal_rate + tolerance
-    excess = direction * trend.slope - bound
-    if trend.slope_se > 0:
-        p = float(stats.t.sf(excess / trend.slope_se, trend.dof))
-    else:  # a perfect fit: the slope is known exactly
-        p = 0.0 if excess > 0 else 1.0
-    limit = direction * bound
-    op = "<=" if direction > 0 else ">="
-    test = (f"one-sided t test on the OLS slope (df={trend.dof}), H0: slope {op} "
-            f"{limit:+.4g}/yr (normal ageing {normal_rate:+.4g} +- {tolerance:.4g}/yr)")
+
+    def one_sided(d: int) -> float:
+        excess = d * trend.slope - (d * normal_rate + tolerance)
+        if trend.slope_se > 0:
+            return float(stats.t.sf(excess / trend.slope_se, trend.dof))
+        return 0.0 if excess > 0 else 1.0     # a perfect fit: the slope is known exactly
+
+    if direction:
+        p = one_sided(direction)
+        limit = direction * (direction * normal_rate + tolerance)
+        op = "<=" if direction > 0 else ">="
+        test = (f"one-sided t test on the OLS slope (df={trend.dof}), H0: slope {op} "
+                f"{limit:+.4g}/yr (normal ageing {normal_rate:+.4g} +- {tolerance:.4g}/yr)")
+    else:
+        p = min(1.0, 2 * min(one_sided(1), one_sided(-1)))
+        test = (f"two-sided t test on the OLS slope (df={trend.dof}; degrading direction "
+                f"unknown), H0: |slope - {normal_rate:+.4g}| <= {tolerance:.4g}/yr")
     trend.normal_rate, trend.tolerance, trend.direction = normal_rate, tolerance, int(direction)
     trend.p_value, trend.test, trend.rejects = p, test, bool(p < alpha)
     return trend
@@ -197,24 +209,89 @@ def verdict(trends: dict[str, Trend]) -> str:
     return bad[0] if len(bad) == 1 else "both"
 
 
-def degrading_directions(cfg: Config, surrogate) -> dict[str, int]:
-    """+1 where raising the input raises t90 at the nominal point, else -1.
+@dataclass
+class Direction:
+    """Which way an input degrades the unit, and how that was decided.
 
-    A central finite difference of the surrogate (5 % of each input's range), so the
-    root-cause tests need no knowledge of which way a given FMU's parameters degrade.
+    ``sign`` +1 (raising the input moves the indicator towards unsafe), -1, or 0 (unknown);
+    ``source`` ``config`` or ``inferred``; ``effect`` the indicator change over the probe
+    (indicator units) and ``noise`` the surrogate's own indicator error (same units)."""
+
+    sign: int
+    source: str
+    effect: float = float("nan")
+    noise: float = float("nan")
+    note: str = ""
+
+
+#: An inferred direction must exceed the surrogate's own indicator error this many times.
+DIRECTION_MARGIN = 3.0
+#: Half-width of the probe around the nominal point, as a fraction of each input's range.
+DIRECTION_STEP = 0.25
+
+
+def degrading_directions(cfg: Config, surrogate) -> dict[str, Direction]:
+    """Degrading direction of every input: from the config, else inferred from the twin.
+
+    Inference: the indicator at the nominal point +- 25 % of the input's range (clipped to
+    the box), through the twin (:func:`evaluate_twin`: the surrogate, or the FMU for an
+    indicator on another variable). The sign of the change that moves the indicator towards
+    unsafe is kept only when the change exceeds ``DIRECTION_MARGIN`` times the surrogate's
+    own indicator error on held-out FMU runs (:func:`indicator_noise`; 0 for the FMU).
+    Otherwise the direction is 0 and the input is tested two-sided, with a note that says so.
     """
-    from .safety import time_to_fraction
+    from .safety import Indicator
+    ind = Indicator.from_config(cfg)
     x0 = np.array([s.nominal for s in cfg.model.inputs.values()])
     rng = cfg.model.bounds[:, 1] - cfg.model.bounds[:, 0]
-    out = {}
-    for i, name in enumerate(cfg.model.input_names):
+    out, probe = {}, {}
+    for i, (name, spec) in enumerate(cfg.model.inputs.items()):
+        if spec.degrading is not None:
+            out[name] = Direction(1 if spec.degrading == "up" else -1, "config")
+            continue
         step = np.zeros_like(x0)
-        step[i] = 0.05 * rng[i]
-        up = np.minimum(x0 + step, cfg.model.bounds[:, 1])
-        dn = np.maximum(x0 - step, cfg.model.bounds[:, 0])
-        t = time_to_fraction(surrogate.time, surrogate.predict(np.vstack([dn, up])), cfg.safety)
-        out[name] = 1 if t[1] >= t[0] else -1
+        step[i] = DIRECTION_STEP * rng[i]
+        probe[name] = (np.maximum(x0 - step, cfg.model.bounds[:, 0]),
+                       np.minimum(x0 + step, cfg.model.bounds[:, 1]))
+    if not probe:
+        return out
+    twin = evaluate_twin(cfg, surrogate, np.array([p for pair in probe.values() for p in pair]))
+    noise = (indicator_noise(cfg, surrogate, surrogate.X_test, surrogate.Y_test)
+             if np.any(twin.source == SOURCE_SURROGATE) else 0.0)
+    for k, name in enumerate(probe):
+        v_dn, v_up = twin.value[2 * k], twin.value[2 * k + 1]
+        if not (np.isfinite(v_dn) and np.isfinite(v_up)):
+            # A level never reached (inf) at one end: the direction is plain, the size not.
+            same = (v_dn == v_up) or np.isnan(v_dn) or np.isnan(v_up)
+            d = 0 if same else (1 if (v_up > v_dn) == (ind.sense > 0) else -1)
+            out[name] = Direction(d, "inferred", float(v_up - v_dn) if not same else 0.0, noise,
+                                  note="" if d else f"{name}: the twin gives no usable "
+                                  f"{ind.name} at the probe; degrading direction unknown, "
+                                  f"tested two-sided; set model.inputs.{name}.degrading")
+            continue
+        delta = float(v_up - v_dn)
+        if delta != 0 and abs(delta) > DIRECTION_MARGIN * noise:
+            out[name] = Direction(int(np.sign(delta)) * ind.sense, "inferred", delta, noise)
+        else:
+            out[name] = Direction(0, "inferred", delta, noise, note=(
+                f"{name}: its effect on {ind.name} over the probe ({delta:+.3g} {ind.units}) "
+                f"is not above {DIRECTION_MARGIN:g}x the surrogate's own error "
+                f"({noise:.3g} {ind.units}): degrading direction unknown, tested two-sided; "
+                f"set model.inputs.{name}.degrading to up or down"))
     return out
+
+
+def indicator_noise(cfg: Config, surrogate, X_test: np.ndarray, Y_test: np.ndarray) -> float:
+    """RMS error of the health indicator computed from the surrogate vs the FMU's test runs
+    (indicator units); 0 when there is no usable test run."""
+    from .safety import Indicator
+    if len(X_test) == 0 or np.size(Y_test) == 0:
+        return 0.0
+    ind = Indicator.from_config(cfg)
+    a = ind(surrogate.time, surrogate.predict(X_test))
+    b = ind(surrogate.time, Y_test)
+    ok = np.isfinite(a) & np.isfinite(b)
+    return float(np.sqrt(np.mean((a[ok] - b[ok]) ** 2))) if ok.any() else 0.0
 
 
 # ---------------------------------------------------------------------------------------
@@ -275,8 +352,9 @@ class TwinResult:
 
     Attributes
     ----------
-    t90 : ndarray, shape [m], s
-        Time to ``fraction`` of nominal flow; ``inf`` if never reached, NaN if the FMU failed.
+    value : ndarray, shape [m]
+        The health indicator (its units); ``inf`` for a level never reached, NaN if the FMU
+        failed.
     nonphysical : ndarray of bool, shape [m]
     source : ndarray of int8, shape [m]
         0 surrogate, 1 FMU, 2 FMU run failed.
@@ -284,55 +362,58 @@ class TwinResult:
         One message per failed FMU run.
     """
 
-    t90: np.ndarray
+    value: np.ndarray
     nonphysical: np.ndarray
     source: np.ndarray
     messages: list = field(default_factory=list)
 
     def unsafe(self, safety) -> np.ndarray:
-        """Unsafe per point [m]: t90 > max_time, non-physical, or a failed run."""
+        """Unsafe per point [m]: the indicator passes its limit, non-physical, or a failed
+        run."""
         from .safety import is_unsafe
         failed = self.source == SOURCE_FAILED
-        t = np.where(failed, np.inf, self.t90)
-        return is_unsafe(t, safety, self.nonphysical) | failed
+        return is_unsafe(self.value, safety, self.nonphysical) | failed
 
 
 def evaluate_twin(cfg: Config, surrogate, X: np.ndarray, executor=None,
                   fmu_everywhere: bool = False,
                   progress: Optional[Callable[[int, int], None]] = None) -> TwinResult:
-    """t90 and non-physical flag of input points [m, d]: surrogate in its box, FMU outside.
+    """Health indicator and non-physical flag of input points [m, d]: surrogate in its box,
+    FMU outside.
 
     The surrogate has no non-physical output: inside its training box the flag is taken as 0
     (the box is checked to be physical, see :func:`box_is_physical`). ``fmu_everywhere`` sends
-    every point to the FMU.
+    every point to the FMU; so does an indicator computed from another variable than the
+    output the surrogate learnt.
     """
-    from .safety import time_to_fraction
+    from .safety import Indicator
     from .simulate import as_parameters, run_batch, spec_for
+    ind = Indicator.from_config(cfg)
     X = np.asarray(X, float).reshape(-1, len(cfg.model.inputs))
     m = len(X)
-    t90 = np.full(m, np.nan)
+    value = np.full(m, np.nan)
     nph = np.zeros(m, bool)
     source = np.full(m, SOURCE_SURROGATE, np.int8)
-    inside = np.zeros(m, bool) if fmu_everywhere else surrogate.in_box(X)
+    on_surrogate = not fmu_everywhere and ind.variable == cfg.model.output.variable
+    inside = surrogate.in_box(X) if on_surrogate else np.zeros(m, bool)
     if inside.any():
         # Chunks keep the [chunk, n_t] intermediate arrays small.
         idx = np.flatnonzero(inside)
         for lo in range(0, idx.size, 20000):
             j = idx[lo:lo + 20000]
-            t90[j] = time_to_fraction(surrogate.time, surrogate.predict(X[j]), cfg.safety)
+            value[j] = ind(surrogate.time, surrogate.predict(X[j]))
     messages = []
     out = np.flatnonzero(~inside)
     if out.size:
         spec = spec_for(cfg)
         batch = run_batch(spec, as_parameters(cfg, X[out]), executor,
                           (lambda k: progress(k, out.size)) if progress else None)
-        flow = batch.outputs[cfg.model.output.variable]
-        t90[out] = np.where(batch.ok, time_to_fraction(spec.times, flow, cfg.safety), np.nan)
+        value[out] = np.where(batch.ok, ind(spec.times, batch.outputs[ind.variable]), np.nan)
         if cfg.model.nonphysical:
             nph[out] = batch.ok & (batch.outputs[cfg.model.nonphysical][:, -1] > 0.5)
         source[out] = np.where(batch.ok, SOURCE_FMU, SOURCE_FAILED)
         messages = [batch.messages[k] for k in np.flatnonzero(~batch.ok)]
-    return TwinResult(t90, nph, source, messages)
+    return TwinResult(value, nph, source, messages)
 
 
 def box_is_physical(cfg: Config) -> bool:
@@ -368,21 +449,22 @@ class UnitForecast:
         Trend line and prediction interval for a new observation (``confidence``).
     samples : ndarray, shape [h, n_s, d]
         Monte Carlo input samples per future year.
-    t90 : ndarray, shape [h, n_s], s
+    indicator : ndarray, shape [h, n_s]
+        Health indicator per future year and sample (its units).
     nonphysical : ndarray of bool, shape [h, n_s]
     source : ndarray of int8, shape [h, n_s]
         0 surrogate, 1 FMU, 2 failed FMU run.
     p_unsafe : ndarray, shape [h]
-    t90_observed : ndarray, shape [n_y, n_o], s
-        t90 of the posterior samples of each observed year.
+    indicator_observed : ndarray, shape [n_y, n_o]
+        Health indicator of the posterior samples of each observed year.
     p_unsafe_observed : ndarray, shape [n_y]
     failure_year : int or None
     root_cause : str
     plan : str
     fmu_failures : int
     true_failure_year : int or None
-    true_t90 : ndarray [h] or None
-        t90 of the extended true trajectories (with ``--truth``), s.
+    true_indicator : ndarray [h] or None
+        Health indicator of the extended true trajectories (with ``--truth``).
     true_inputs : dict name -> ndarray [h], or None
     true_unsafe : ndarray of bool [h] or None
     """
@@ -395,18 +477,18 @@ class UnitForecast:
     pred_lo: dict
     pred_hi: dict
     samples: np.ndarray
-    t90: np.ndarray
+    indicator: np.ndarray
     nonphysical: np.ndarray
     source: np.ndarray
     p_unsafe: np.ndarray
-    t90_observed: np.ndarray
+    indicator_observed: np.ndarray
     p_unsafe_observed: np.ndarray
     failure_year: Optional[int]
     root_cause: str
     plan: str = ""
     fmu_failures: int = 0
     true_failure_year: Optional[int] = None
-    true_t90: Optional[np.ndarray] = None
+    true_indicator: Optional[np.ndarray] = None
     true_inputs: Optional[dict] = None
     true_unsafe: Optional[np.ndarray] = None
     has_truth: bool = False
@@ -416,14 +498,15 @@ class UnitForecast:
         """Share of the future Monte Carlo points that went through the FMU (outside the box)."""
         return float(np.mean(self.source != SOURCE_SURROGATE))
 
-    def t90_quantiles(self, q) -> np.ndarray:
-        """Quantiles of t90 per future year, shape [len(q), h] (inf-aware)."""
+    def indicator_quantiles(self, q) -> np.ndarray:
+        """Quantiles of the indicator per future year, shape [len(q), h] (inf-aware; a failed
+        run counts as an unreached level)."""
         # The empirical (inverted-CDF) quantile never interpolates between two infinities.
-        return np.quantile(np.where(np.isnan(self.t90), np.inf, self.t90), q, axis=1,
+        return np.quantile(np.where(np.isnan(self.indicator), np.inf, self.indicator), q, axis=1,
                            method="inverted_cdf")
 
     def as_dict(self) -> dict:
-        q05, med, q95 = self.t90_quantiles([0.05, 0.5, 0.95])
+        q05, med, q95 = self.indicator_quantiles([0.05, 0.5, 0.95])
         d = {
             "root_cause": self.root_cause,
             "failure_year": self.failure_year,
@@ -433,7 +516,7 @@ class UnitForecast:
                               "intercept": t.intercept, "p_value": t.p_value, "test": t.test,
                               "normal_rate": t.normal_rate}
                        for name, t in self.trends.items()},
-            "t90": {"median": _finite(med), "q05": _finite(q05), "q95": _finite(q95)},
+            "indicator": {"median": _finite(med), "q05": _finite(q05), "q95": _finite(q95)},
             "plan": self.plan,
             "fmu_fraction": round(self.fmu_fraction, 4),
             "fmu_failures": self.fmu_failures,
@@ -444,7 +527,7 @@ class UnitForecast:
 
 
 def _finite(a) -> list:
-    """JSON-able list: non-finite values (t90 never reached) become None."""
+    """JSON-able list: non-finite values (a level never reached) become None."""
     return [round(float(v), 3) if np.isfinite(v) else None for v in a]
 
 
@@ -456,10 +539,13 @@ class ForecastSummary:
     output: str
     wall_time: float
     box_physical: bool = True
+    #: Plain-words warnings (an input whose degrading direction could not be told).
+    warnings: list = field(default_factory=list)
 
     def as_dict(self) -> dict:
         return {"units": {u: f.as_dict() for u, f in self.units.items()},
-                "output": self.output, "wall_time": round(self.wall_time, 3)}
+                "output": self.output, "wall_time": round(self.wall_time, 3),
+                "warnings": list(self.warnings)}
 
 
 # ---------------------------------------------------------------------------------------
@@ -580,7 +666,7 @@ def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
             t, resid[:, i] = fit_trend(years, mean[:, i])
             t.component = spec.component
             trends[name] = slope_test(t, spec.normal_rate, spec.normal_rate_tolerance,
-                                      directions[name], fc.alpha)
+                                      directions[name].sign, fc.alpha)
         corr = residual_correlation(resid) if fc.correlate else np.eye(d)
         fut = years[-1] + np.arange(1, fc.horizon + 1)
         X = sample_predictive([trends[n] for n in names], fut, corr, fc.samples,
@@ -612,7 +698,7 @@ def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
         sl = slice(offset, offset + h * n_s)
         so = slice(sl.stop, sl.stop + n_y * n_o)
         offset = so.stop
-        t90 = twin.t90[sl].reshape(h, n_s)
+        value = twin.value[sl].reshape(h, n_s)
         p_unsafe = unsafe_all[sl].reshape(h, n_s).mean(axis=1)
         p_obs = unsafe_all[so].reshape(n_y, n_o).mean(axis=1)
         fyear = first_failure(p["fut"], p_unsafe, cfg.safety)
@@ -624,9 +710,9 @@ def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
         uf = UnitForecast(
             years_observed=p["years"], estimates={n: p["mean"][:, i] for i, n in enumerate(names)},
             years_future=p["fut"], trends=trends, pred_mean=pm, pred_lo=plo, pred_hi=phi,
-            samples=p["X"], t90=t90, nonphysical=twin.nonphysical[sl].reshape(h, n_s),
+            samples=p["X"], indicator=value, nonphysical=twin.nonphysical[sl].reshape(h, n_s),
             source=twin.source[sl].reshape(h, n_s), p_unsafe=p_unsafe,
-            t90_observed=twin.t90[so].reshape(n_y, n_o), p_unsafe_observed=p_obs,
+            indicator_observed=twin.value[so].reshape(n_y, n_o), p_unsafe_observed=p_obs,
             failure_year=fyear, root_cause=cause,
             fmu_failures=int(np.sum(twin.source[sl] == SOURCE_FAILED)))
         uf.plan = maintenance_plan(trends, p["fut"], p_unsafe, fyear,
@@ -637,12 +723,13 @@ def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
 
     _write(output, cfg, units, names, directions, box_ok, seed=cfg.seed + SEED_OFFSET,
            inputs=[posterior_path, surrogate_path] + ([truth_path] if truth_path else []))
-    return ForecastSummary(units, str(output), _time.perf_counter() - start, box_ok)
+    return ForecastSummary(units, str(output), _time.perf_counter() - start, box_ok,
+                           [d.note for d in directions.values() if d.note])
 
 
 def _add_truth(cfg: Config, uf: UnitForecast, unit: str, truth, truth_path) -> None:
     """True failure year: each true trajectory's fitted line extended, run through the FMU."""
-    from .safety import is_unsafe, time_to_fraction
+    from .safety import Indicator, is_unsafe
     from .simulate import as_parameters, run_batch, spec_for
     if unit not in truth.inputs:
         raise ArtifactError(f"{truth_path}: unit {unit} is missing from the truth file")
@@ -655,12 +742,12 @@ def _add_truth(cfg: Config, uf: UnitForecast, unit: str, truth, truth_path) -> N
         Xt[:, i] = icpt + slope * uf.years_future
     spec = spec_for(cfg)
     batch = run_batch(spec, as_parameters(cfg, Xt))  # a handful of runs: no pool
-    t90 = np.where(batch.ok, time_to_fraction(spec.times, batch.outputs[cfg.model.output.variable],
-                                              cfg.safety), np.inf)
+    ind = Indicator.from_config(cfg)
+    value = np.where(batch.ok, ind(spec.times, batch.outputs[ind.variable]), np.nan)
     nph = (batch.outputs[cfg.model.nonphysical][:, -1] > 0.5) if cfg.model.nonphysical else None
-    bad = is_unsafe(t90, cfg.safety, nph) | ~batch.ok
+    bad = is_unsafe(value, cfg.safety, nph) | ~batch.ok
     uf.has_truth = True
-    uf.true_t90 = t90
+    uf.true_indicator = value
     uf.true_unsafe = bad
     uf.true_inputs = {n: Xt[:, i] for i, n in enumerate(cfg.model.input_names)}
     uf.true_failure_year = int(uf.years_future[np.argmax(bad)]) if bad.any() else None
@@ -671,16 +758,23 @@ def _add_truth(cfg: Config, uf: UnitForecast, unit: str, truth, truth_path) -> N
 # ---------------------------------------------------------------------------------------
 def _write(path, cfg: Config, units: dict, names: list, directions: dict, box_ok: bool, *,
            seed: int, inputs: list) -> None:
+    from .safety import Indicator
     put = artifacts.put
+    ind = Indicator.from_config(cfg)
     section = cfg.section_yaml(*SECTIONS)
     with artifacts.write_artifact(path, "forecast", config=section, inputs=inputs,
                                   seed=seed) as f:
         f.attrs["input_names"] = artifacts.json_attr(names)
         f.attrs["input_units"] = artifacts.json_attr([cfg.model.inputs[n].units for n in names])
-        f.attrs["directions"] = artifacts.json_attr(directions)
+        f.attrs["directions"] = artifacts.json_attr({n: d.sign for n, d in directions.items()})
+        f.attrs["direction_sources"] = artifacts.json_attr(
+            {n: {"source": d.source, "effect": d.effect, "noise": d.noise, "note": d.note}
+             for n, d in directions.items()})
         f.attrs["confidence"] = cfg.forecast.confidence
         f.attrs["alpha"] = cfg.forecast.alpha
-        f.attrs["max_time"] = cfg.safety.max_time
+        f.attrs["indicator"] = artifacts.json_attr(
+            {"name": ind.name, "label": ind.label, "units": ind.units, "limit": ind.limit,
+             "sense": ind.sense, "variable": ind.variable, "kind": ind.spec.kind})
         f.attrs["failure_probability"] = cfg.safety.failure_probability
         f.attrs["box_physical"] = box_ok
         for unit, u in units.items():
@@ -713,22 +807,23 @@ def _write(path, cfg: Config, units: dict, names: list, directions: dict, box_ok
                     f"upper {c} prediction bound (Student t, new observation)")
             put(g, "samples", u.samples, "input units",
                 "Monte Carlo input samples [future year, sample, input]", compression="gzip")
-            put(g, "t90", u.t90, "s", "t90 per future year and sample; inf = never reached, "
-                "NaN = FMU run failed", compression="gzip")
+            put(g, "indicator", u.indicator, ind.units, f"{ind.name} per future year and "
+                "sample; inf = level never reached, NaN = FMU run failed", compression="gzip")
             put(g, "nonphysical", u.nonphysical.astype(np.int8), "1",
                 "1 where the FMU reported the non-physical mode", compression="gzip")
             put(g, "source", u.source, "1", "0 surrogate, 1 FMU (outside the box), "
                 "2 FMU run failed (counted unsafe)", compression="gzip")
             put(g, "p_unsafe", u.p_unsafe, "1", "probability of being unsafe per future year")
-            put(g, "t90_observed", u.t90_observed, "s",
-                "t90 of posterior samples per observed year [year, sample]", compression="gzip")
+            put(g, "indicator_observed", u.indicator_observed, ind.units,
+                f"{ind.name} of posterior samples per observed year [year, sample]",
+                compression="gzip")
             put(g, "p_unsafe_observed", u.p_unsafe_observed, "1",
                 "probability of being unsafe per observed year (posterior samples)")
             if u.has_truth:
                 g.attrs["true_failure_year"] = (-1 if u.true_failure_year is None
                                                 else u.true_failure_year)
-                put(g, "truth/t90", u.true_t90, "s",
-                    "t90 of the true trajectories' fitted lines, future years (FMU)")
+                put(g, "truth/indicator", u.true_indicator, ind.units,
+                    f"{ind.name} of the true trajectories' fitted lines, future years (FMU)")
                 put(g, "truth/unsafe", u.true_unsafe.astype(np.int8), "1",
                     "1 where the true unit is unsafe, future years")
                 for name in names:
@@ -781,14 +876,14 @@ def read_forecast(path: str | os.PathLike) -> Forecast:
             units[unit] = UnitForecast(
                 years_observed=get(g, "years_observed"), estimates=est,
                 years_future=get(g, "years_future"), trends=trends, pred_mean=pm,
-                pred_lo=plo, pred_hi=phi, samples=get(g, "samples"), t90=get(g, "t90"),
+                pred_lo=plo, pred_hi=phi, samples=get(g, "samples"), indicator=get(g, "indicator"),
                 nonphysical=get(g, "nonphysical").astype(bool), source=get(g, "source"),
-                p_unsafe=get(g, "p_unsafe"), t90_observed=get(g, "t90_observed"),
+                p_unsafe=get(g, "p_unsafe"), indicator_observed=get(g, "indicator_observed"),
                 p_unsafe_observed=get(g, "p_unsafe_observed"),
                 failure_year=None if fy < 0 else fy, root_cause=str(g.attrs["root_cause"]),
                 plan=str(g.attrs["plan"]), fmu_failures=int(g.attrs["fmu_failures"]),
                 has_truth=has_truth, true_failure_year=None if tfy < 0 else tfy,
-                true_t90=get(g, "truth/t90") if has_truth else None,
+                true_indicator=get(g, "truth/indicator") if has_truth else None,
                 true_unsafe=get(g, "truth/unsafe").astype(bool) if has_truth else None,
                 true_inputs={n: get(g, f"truth/inputs/{n}") for n in names} if has_truth
                 else None)

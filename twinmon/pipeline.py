@@ -77,10 +77,19 @@ def run_pipeline(cfg: Config, observations: str | os.PathLike, workdir: str | os
     """
     from . import calibrate, diagnose, forecast, reduce, report, simulate
 
-    wd = Path(workdir)
-    wd.mkdir(parents=True, exist_ok=True)
+    from .errors import InputDataError
+
     obs = Path(observations)
     gap_obs = Path(gap_observations) if gap_observations else obs
+    # Every input is checked before the first stage runs: a typo in the last argument must
+    # not cost the user the first stages' time.
+    for what, path in (("--observations", obs), ("--gap-observations", gap_obs),
+                       ("--truth", Path(truth) if truth else None)):
+        if path is not None and not path.is_file():
+            raise InputDataError(f"{path}: {what} file not found")
+    simulate.check_model(cfg)
+    wd = Path(workdir)
+    wd.mkdir(parents=True, exist_ok=True)
     p = {k: wd / f"{k}.h5" for k in ("simulations", "surrogate", "posterior", "forecast", "gap")}
     extra = [truth] if truth else []
     stages = []

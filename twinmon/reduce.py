@@ -115,7 +115,12 @@ class Surrogate:
     amplitudes: np.ndarray
     trend_coefs: list[np.ndarray]
     transform: str = "log"
-    units: str = "kg/s"
+    units: str = "1"
+    #: Held-out FMU runs the surrogate was validated on: inputs [m, d] (input units) and
+    #: transients [m, n_t] (output units); kept so later stages can measure the surrogate's
+    #: error on what they compute from it (the health indicator).
+    X_test: np.ndarray = field(default_factory=lambda: np.empty((0, 0)))
+    Y_test: np.ndarray = field(default_factory=lambda: np.empty((0, 0)))
     _results: list = field(default_factory=list, repr=False)
     _meta = None
     _covs: list = field(default_factory=list, repr=False)
@@ -178,8 +183,20 @@ class Surrogate:
         return self.predict_with_var(X)[1]
 
 
+def resolve_transform(Y: np.ndarray, transform: str) -> str:
+    """``log`` or ``none`` for ``auto``: log when every value is > 0 and the values span
+    less than four decades (a transient resting near 0 would be learnt in log scale where
+    its noise, not its shape, dominates)."""
+    if transform != "auto":
+        return transform
+    Y = np.asarray(Y, float)
+    if Y.size and np.all(Y > 0) and Y.max() / Y.min() <= 1e4:
+        return "log"
+    return "none"
+
+
 def fit_surrogate(X: np.ndarray, Y: np.ndarray, time: np.ndarray, bounds: np.ndarray,
-                  input_names: list[str], rc: ReduceConfig, units: str = "kg/s") -> Surrogate:
+                  input_names: list[str], rc: ReduceConfig, units: str = "1") -> Surrogate:
     """Fit the Karhunen-Loeve + Gaussian-process surrogate.
 
     Parameters
@@ -195,7 +212,11 @@ def fit_surrogate(X: np.ndarray, Y: np.ndarray, time: np.ndarray, bounds: np.nda
     """
     import openturns as ot
     n, n_t = Y.shape
-    if rc.transform == "log":
+    if n_t < 2:
+        raise CalibrationError(f"the output has {n_t} sample per run; a transient needs at "
+                               "least 2 (model.output.times)")
+    transform = resolve_transform(Y, rc.transform)
+    if transform == "log":
         if np.any(Y <= 0):
             i, j = np.argwhere(Y <= 0)[0]
             raise CalibrationError(f"run {i} has output {Y[i, j]:g} <= 0 at t = {time[j]:g} s: "
@@ -244,42 +265,57 @@ def fit_surrogate(X: np.ndarray, Y: np.ndarray, time: np.ndarray, bounds: np.nda
                      time=np.asarray(time, float), mean=mean, basis=basis, eigenvalues=eig,
                      truncation_var=truncation_var, X_train=Xu, xi_train=xi_all[:, :K],
                      kernel=rc.kernel, trend=rc.trend, scales=scales, amplitudes=amps,
-                     trend_coefs=coefs, transform=rc.transform, units=units)
+                     trend_coefs=coefs, transform=transform, units=units)
 
 
 @dataclass
 class Validation:
     """Surrogate against held-out FMU runs.
 
-    ``max_rel_error``/``mean_rel_error``: |pred - fmu| / |fmu| over all test runs and steps
-    (ratios); ``q2``: per mode, 1 - SSE/SST of the coefficients; ``coverage_90``: fraction of
-    test values inside the surrogate's 90 % predictive band.
+    ``max_range_error``/``mean_range_error``: |pred - fmu| over all test runs and steps, as a
+    fraction of the output's range over the test runs (the output's own scale; meaningful for
+    any output). ``max_rel_error``/``mean_rel_error``: |pred - fmu| / |fmu|, only where the
+    output stays away from 0 (every |fmu| above 1 % of that range), else NaN. ``q2``: per
+    mode, 1 - SSE/SST of the coefficients; ``coverage_90``: fraction of test values inside
+    the surrogate's 90 % predictive band.
     """
 
+    max_range_error: float
+    mean_range_error: float
     max_rel_error: float
     mean_rel_error: float
     q2: list[float]
     coverage_90: float
     n_test: int
+    output_range: float = float("nan")
 
     def as_dict(self) -> dict:
-        return {"max_rel_error": self.max_rel_error, "mean_rel_error": self.mean_rel_error,
+        return {"max_range_error": self.max_range_error,
+                "mean_range_error": self.mean_range_error,
+                "max_rel_error": self.max_rel_error, "mean_rel_error": self.mean_rel_error,
+                "output_range": self.output_range,
                 "q2": self.q2, "coverage_90": self.coverage_90, "n_test": self.n_test}
 
 
 def validate_surrogate(s: Surrogate, X: np.ndarray, Y: np.ndarray) -> Validation:
     """Relative error per time step, Q2 per mode and band coverage on test runs."""
+    nan = float("nan")
     if len(X) == 0:
-        return Validation(float("nan"), float("nan"), [], float("nan"), 0)
+        return Validation(nan, nan, nan, nan, [], nan, 0)
     pred, var = s.predict_with_var(X)
-    rel = np.abs(pred - Y) / np.abs(Y)
+    err = np.abs(pred - Y)
+    span = float(Y.max() - Y.min())
+    scale = span if span > 0 else float(np.abs(Y).max()) or 1.0
+    away = bool(np.all(np.abs(Y) > 0.01 * scale))
+    rel = err / np.abs(Y) if away else np.full_like(err, np.nan)
     Z = np.log(Y) if s.transform == "log" else Y
     xi_true = (Z - s.mean) @ np.linalg.pinv(s.basis)
     xi_pred = s.coefficients(X)
     q2 = [float(1 - np.sum((xi_pred[:, k] - xi_true[:, k]) ** 2)
                 / np.sum((xi_true[:, k] - xi_true[:, k].mean()) ** 2)) for k in range(s.n_modes)]
     cover = float(np.mean(np.abs(pred - Y) <= 1.6449 * np.sqrt(var)))
-    return Validation(float(rel.max()), float(rel.mean()), q2, cover, len(X))
+    return Validation(float(err.max() / scale), float(err.mean() / scale), float(rel.max()),
+                      float(rel.mean()), q2, cover, len(X), span)
 
 
 # ---------------------------------------------------------------------------------------
@@ -302,18 +338,38 @@ class ReduceSummary:
 def reduce(cfg: Config, simulations: str | os.PathLike, output: str | os.PathLike) -> ReduceSummary:
     """Fit the surrogate on the training runs, validate it on the test runs, write it."""
     sims = read_simulations(simulations)
-    if sims.input_names != cfg.model.input_names:
-        raise ArtifactError(f"{simulations}: inputs are {sims.input_names}, the config's are "
-                            f"{cfg.model.input_names}")
+    check_simulations_match(cfg, sims)
     ok = sims.ok["train"]
     if ok.sum() < 2 * len(sims.input_names) + 2:
         raise CalibrationError(f"{simulations}: only {int(ok.sum())} successful training runs")
     s = fit_surrogate(sims.X["train"][ok], sims.Y["train"][ok], sims.time, sims.bounds,
                       sims.input_names, cfg.reduce, cfg.model.output.units)
     okt = sims.ok["test"]
-    val = validate_surrogate(s, sims.X["test"][okt], sims.Y["test"][okt])
+    s.X_test, s.Y_test = sims.X["test"][okt], sims.Y["test"][okt]
+    val = validate_surrogate(s, s.X_test, s.Y_test)
     write_surrogate(output, s, val, cfg, [simulations])
     return ReduceSummary(s.n_modes, s.variance_ratio, val, int(ok.sum()), str(output))
+
+
+def check_simulations_match(cfg: Config, sims) -> None:
+    """The simulations must come from this config's inputs, box and time grid.
+
+    Raises
+    ------
+    ArtifactError
+        Naming what differs and that ``simulate`` must be re-run."""
+    where = sims.path
+    if sims.input_names != cfg.model.input_names:
+        raise ArtifactError(f"{where}: inputs are {sims.input_names}, the config's are "
+                            f"{cfg.model.input_names}; re-run 'twinmon simulate'")
+    times = cfg.model.output.times.times
+    if sims.time.shape != times.shape or not np.allclose(sims.time, times):
+        raise ArtifactError(f"{where}: time grid of {sims.time.size} samples "
+                            f"({sims.time[0]:g}-{sims.time[-1]:g} s) differs from the config's "
+                            f"model.output.times ({times.size} samples); re-run 'twinmon simulate'")
+    if sims.bounds.shape != cfg.model.bounds.shape or not np.allclose(sims.bounds, cfg.model.bounds):
+        raise ArtifactError(f"{where}: design box {sims.bounds.tolist()} differs from the config's "
+                            f"input ranges {cfg.model.bounds.tolist()}; re-run 'twinmon simulate'")
 
 
 def write_surrogate(path, s: Surrogate, val: Validation, cfg: Config, inputs) -> None:
@@ -338,6 +394,8 @@ def write_surrogate(path, s: Surrogate, val: Validation, cfg: Config, inputs) ->
         put(f, "xi_train", s.xi_train, "1", "mode coefficients of the training transients")
         put(f, "scales", s.scales, "1 (unit box)", "kernel scale per mode and input")
         put(f, "amplitudes", s.amplitudes, "1", "kernel amplitude per mode")
+        put(f, "X_test", s.X_test, "input units", "held-out test inputs, one row per FMU run")
+        put(f, "Y_test", s.Y_test, s.units, "held-out FMU transients of the test inputs")
         g = f.create_group("trend_coefficients")
         for k, c in enumerate(s.trend_coefs):
             put(g, str(k), c, "1", f"trend coefficients of mode {k}")
@@ -357,7 +415,9 @@ def read_surrogate(path: str | os.PathLike) -> Surrogate:
                          kernel=str(f.attrs["kernel"]), trend=str(f.attrs["trend"]),
                          scales=get("scales"), amplitudes=get("amplitudes"),
                          trend_coefs=coefs, transform=str(f.attrs["transform"]),
-                         units=str(f.attrs["output_units"]))
+                         units=str(f.attrs["output_units"]),
+                         X_test=get("X_test") if "X_test" in f else np.empty((0, 0)),
+                         Y_test=get("Y_test") if "Y_test" in f else np.empty((0, 0)))
 
 
 def read_validation(path: str | os.PathLike) -> dict:

@@ -1,56 +1,145 @@
-"""The safety criterion: time to reach a fraction of nominal flow (t90), and unsafe units.
+"""The health indicator and the safety criterion, both declared in the config.
 
-A unit is unsafe when its flow does not reach ``fraction`` (90 %) of the unit type's nominal
-flow within ``max_time`` (30 s) of start, or when its twin is in the non-physical mode.
+The indicator is one number per recorded transient (``safety.indicator``): the time a
+variable takes to reach a level, its value at a time, its max / min / mean over a window, or
+its final value. A unit is unsafe when that number passes ``safety.unsafe_if`` (above or
+below a limit) or when its twin is non-physical; its failure year is the first year in which
+the probability of being unsafe exceeds ``safety.failure_probability``.
+
+Nothing here knows which machine it judges: the pump's t90 > 30 s is
+``{kind: time_to_reach, level: 360, initial: 0}`` with ``unsafe_if: {above: 30}``.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
-from .config import SafetyConfig
+from .config import Config, IndicatorSpec, SafetyConfig
+
+_KIND_WORDS = {"time_to_reach": "time to reach {level:g} {vunits}", "value_at": "{var} at {at:g} s",
+               "max": "maximum of {var}", "min": "minimum of {var}", "mean": "mean of {var}",
+               "final": "final {var}"}
 
 
-def time_to_fraction(time: np.ndarray, flow: np.ndarray, safety: SafetyConfig) -> np.ndarray:
-    """Time at which the flow first reaches ``fraction * nominal_flow`` (t90).
-
-    The crossing is located by linear interpolation between the two samples around it, and
-    the flow is taken as 0 at t = 0 (the unit starts from rest), so a crossing before the first
-    sample is interpolated too.
+def compute_indicator(time: np.ndarray, values: np.ndarray, spec: IndicatorSpec) -> np.ndarray:
+    """The health indicator of transients.
 
     Parameters
     ----------
     time : ndarray, shape [n_t]
         Sample times (s), increasing.
-    flow : ndarray, shape [..., n_t]
-        Flow transients (kg/s).
-    safety : SafetyConfig
+    values : ndarray, shape [..., n_t]
+        The indicator's variable at those times (its own units). NaN marks a missing
+        sample: it is skipped (a crossing is interpolated between the samples around it).
+    spec : IndicatorSpec
 
     Returns
     -------
     ndarray, shape [...]
-        t90 in seconds; ``inf`` where the level is never reached within the record.
+        The indicator (s for ``time_to_reach``, else the variable's units). For
+        ``time_to_reach``: ``inf`` where the level is never reached within the record.
+        NaN where a transient has no usable sample.
     """
-    flow = np.asarray(flow, dtype=float)
-    level = safety.fraction * safety.nominal_flow
-    t = np.concatenate([[0.0], np.asarray(time, float)])
-    f = np.concatenate([np.zeros(flow.shape[:-1] + (1,)), flow], axis=-1)
-    above = f >= level
-    reached = above.any(axis=-1)
-    k = np.argmax(above, axis=-1)                      # first sample at or above the level
-    k = np.maximum(k, 1)
-    f1 = np.take_along_axis(f, (k - 1)[..., None], -1)[..., 0]
-    f2 = np.take_along_axis(f, k[..., None], -1)[..., 0]
-    t1, t2 = t[k - 1], t[k]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        frac = np.where(f2 > f1, (level - f1) / (f2 - f1), 1.0)
-    out = t1 + np.clip(frac, 0.0, 1.0) * (t2 - t1)
-    return np.where(reached, out, np.inf)
+    t = np.asarray(time, float)
+    v = np.asarray(values, float)
+    kind = spec.kind
+    if kind == "time_to_reach":
+        return _time_to_reach(t, v, spec)
+    with np.errstate(invalid="ignore", divide="ignore"), _quiet_nan():
+        if kind == "value_at":
+            return _value_at(t, v, float(spec.at))
+        if kind == "final":
+            return _last_finite(v)
+        lo, hi = spec.window if spec.window is not None else (-np.inf, np.inf)
+        sel = (t >= lo) & (t <= hi)
+        w = v[..., sel]
+        if kind == "max":
+            return np.nanmax(w, axis=-1) if w.shape[-1] else np.full(v.shape[:-1], np.nan)
+        if kind == "min":
+            return np.nanmin(w, axis=-1) if w.shape[-1] else np.full(v.shape[:-1], np.nan)
+        return np.nanmean(w, axis=-1)
+    raise ValueError(f"unknown indicator kind {kind!r}")  # the config rejects it first
 
 
-def is_unsafe(t90: np.ndarray, safety: SafetyConfig,
+class _quiet_nan:
+    """Silence numpy's all-NaN warnings: a NaN result already says it."""
+
+    def __enter__(self):
+        import warnings
+        self._w = warnings.catch_warnings()
+        self._w.__enter__()
+        warnings.simplefilter("ignore", RuntimeWarning)
+
+    def __exit__(self, *exc):
+        self._w.__exit__(*exc)
+
+
+def _time_to_reach(t: np.ndarray, v: np.ndarray, spec: IndicatorSpec) -> np.ndarray:
+    level = float(spec.level)
+    sign = 1.0 if spec.direction == "up" else -1.0
+    if spec.initial is not None:
+        # A start from rest: the value at t = 0 is known, so an early crossing is
+        # interpolated from it instead of being reported at the first sample.
+        t = np.concatenate([[0.0], t])
+        v = np.concatenate([np.full(v.shape[:-1] + (1,), float(spec.initial)), v], axis=-1)
+    out = np.full(v.shape[:-1], np.inf)
+    if v.shape[-1] == 0:
+        return out
+    flat = v.reshape(-1, v.shape[-1])
+    res = out.reshape(-1)
+    has_nan = np.isnan(flat).any(axis=1)
+    # Fast path (no missing samples): vectorised first crossing.
+    full = np.flatnonzero(~has_nan)
+    if full.size:
+        f = sign * flat[full]
+        above = f >= sign * level
+        reached = above.any(axis=1)
+        k = np.argmax(above, axis=1)
+        kk = np.maximum(k, 1)
+        f1 = np.take_along_axis(f, (kk - 1)[:, None], 1)[:, 0]
+        f2 = np.take_along_axis(f, kk[:, None], 1)[:, 0]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            frac = np.where(f2 > f1, (sign * level - f1) / (f2 - f1), 1.0)
+        tc = t[kk - 1] + np.clip(frac, 0.0, 1.0) * (t[kk] - t[kk - 1])
+        tc = np.where(k == 0, t[0], tc)        # reached at the first (known) sample
+        res[full] = np.where(reached, tc, np.inf)
+    for i in np.flatnonzero(has_nan):
+        ok = ~np.isnan(flat[i])
+        if not ok.any():
+            res[i] = np.nan
+            continue
+        sub = IndicatorSpec(kind="time_to_reach", level=level, direction=spec.direction)
+        res[i] = _time_to_reach(t[ok], flat[i, ok], sub)
+    return res.reshape(v.shape[:-1])
+
+
+def _value_at(t: np.ndarray, v: np.ndarray, at: float) -> np.ndarray:
+    flat = v.reshape(-1, v.shape[-1])
+    out = np.empty(flat.shape[0])
+    for i, row in enumerate(flat):
+        ok = ~np.isnan(row)
+        out[i] = np.interp(at, t[ok], row[ok]) if ok.any() else np.nan
+    return out.reshape(v.shape[:-1])
+
+
+def _last_finite(v: np.ndarray) -> np.ndarray:
+    ok = ~np.isnan(v)
+    idx = v.shape[-1] - 1 - np.argmax(ok[..., ::-1], axis=-1)
+    last = np.take_along_axis(v, idx[..., None], -1)[..., 0]
+    return np.where(ok.any(axis=-1), last, np.nan)
+
+
+def is_unsafe(value: np.ndarray, safety: SafetyConfig,
               nonphysical: np.ndarray | None = None) -> np.ndarray:
-    """True where t90 exceeds ``max_time`` or the twin is non-physical (same shape as t90)."""
-    bad = np.asarray(t90) > safety.max_time
+    """True where the indicator passes ``unsafe_if`` or the twin is non-physical.
+
+    A NaN indicator (no usable sample) is not judged unsafe here: callers decide what a
+    failed evaluation means (a failed FMU run counts as unsafe in ``forecast``)."""
+    value = np.asarray(value, float)
+    u = safety.unsafe_if
+    with np.errstate(invalid="ignore"):
+        bad = value > u.above if u.above is not None else value < u.below
     if nonphysical is not None:
         bad = bad | np.asarray(nonphysical, bool)
     return bad
@@ -60,3 +149,71 @@ def failure_year(years: np.ndarray, p_unsafe: np.ndarray, safety: SafetyConfig) 
     """First year whose probability of being unsafe exceeds ``failure_probability``."""
     over = np.flatnonzero(np.asarray(p_unsafe) > safety.failure_probability)
     return int(years[over[0]]) if over.size else None
+
+
+@dataclass(frozen=True)
+class Indicator:
+    """The config's indicator with its resolved words, for computing and for reports.
+
+    Attributes
+    ----------
+    spec : IndicatorSpec
+    variable : str
+        FMU variable it is computed from.
+    name, label, units : str
+        Short name, words, and units of the indicator.
+    limit : float
+        The ``unsafe_if`` value; ``sense`` +1 when above is unsafe, -1 when below is.
+    """
+
+    spec: IndicatorSpec
+    safety: SafetyConfig
+    variable: str
+    name: str
+    label: str
+    units: str
+    limit: float
+    sense: int
+
+    @classmethod
+    def from_config(cls, cfg: Config) -> "Indicator":
+        spec = cfg.safety.indicator
+        var = cfg.indicator_variable
+        if var == cfg.model.output.variable:
+            vlabel, vunits = cfg.model.output.label, cfg.model.output.units
+        else:
+            ch = cfg.model.channels.get(var)
+            vlabel = ch.label if ch is not None and ch.label else var
+            vunits = ch.units if ch is not None else ""
+        units = spec.units or ("s" if spec.kind == "time_to_reach" else vunits)
+        words = _KIND_WORDS[spec.kind].format(var=vlabel, level=spec.level or 0.0,
+                                              at=spec.at or 0.0, vunits=vunits).strip()
+        if spec.kind == "time_to_reach" and spec.direction == "down":
+            words = words.replace("time to reach", "time to fall to")
+        if spec.kind in ("max", "min", "mean") and spec.window is not None:
+            words += f" over {spec.window[0]:g}-{spec.window[1]:g} s"
+        label = spec.label or words
+        name = spec.name or spec.kind.replace("_", " ")
+        u = cfg.safety.unsafe_if
+        return cls(spec, cfg.safety, var, name, label, units, float(u.limit), u.sense)
+
+    def __call__(self, time: np.ndarray, values: np.ndarray) -> np.ndarray:
+        """Indicator of transients [..., n_t] -> [...] (see :func:`compute_indicator`)."""
+        return compute_indicator(time, values, self.spec)
+
+    def unsafe(self, value: np.ndarray, nonphysical: np.ndarray | None = None) -> np.ndarray:
+        return is_unsafe(value, self.safety, nonphysical)
+
+    @property
+    def rule(self) -> str:
+        """The criterion in words, e.g. ``t90 above 30 s``."""
+        side = "above" if self.sense > 0 else "below"
+        return f"{self.name} {side} {self.limit:g} {self.units}".rstrip()
+
+    def fmt(self, value: float) -> str:
+        """One indicator value for people: ``14.5 s``, ``never`` for a level not reached."""
+        if value is None or not np.isfinite(value):
+            if value is not None and np.isinf(value) and self.spec.kind == "time_to_reach":
+                return "never reached"
+            return "n/a"
+        return f"{value:.3g} {self.units}".rstrip()

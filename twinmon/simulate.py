@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import os
 import time as _time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterable, Mapping, Sequence
 
@@ -19,7 +19,7 @@ import numpy as np
 
 from . import artifacts
 from .config import Config
-from .errors import ArtifactError, SimulationError
+from .errors import ArtifactError, Interrupted, SimulationError
 from .executors import Executor, SimulationSpec, make_executor
 
 SPLITS = ("train", "test")
@@ -65,14 +65,74 @@ def draw_design(cfg: Config, size: int, seed: int) -> np.ndarray:
     return np.array(sample)
 
 
+def twin_outputs(cfg: Config) -> list[str]:
+    """FMU variables a twin run records: the output, the indicator's variable (when it is
+    another one) and the non-physical flag."""
+    outputs = [cfg.model.output.variable, cfg.indicator_variable]
+    if cfg.model.nonphysical:
+        outputs.append(cfg.model.nonphysical)
+    return list(dict.fromkeys(outputs))
+
+
+def check_model(cfg: Config) -> None:
+    """Check every FMU variable the config names against the FMU's model description.
+
+    Done once, before any run and in this process, so that a typo or a foreign FMU ends the
+    command with one line instead of failing in every worker.
+
+    Raises
+    ------
+    SimulationError
+        The FMU cannot be read, does not support ``model.fmi_type``, or lacks a named
+        variable (the message names the config path, the name and the closest names the
+        FMU has).
+    """
+    from .fmu import closest_names, describe_fmu
+    info = describe_fmu(cfg.model.fmu)
+    src = cfg.source
+    kind_ok = info.co_simulation if cfg.model.fmi_type == "CoSimulation" else info.model_exchange
+    if not kind_ok:
+        raise SimulationError(f"{src}: model.fmi_type: {info.path} does not support "
+                              f"{cfg.model.fmi_type}")
+    params = {v.name for v in info.tunable_parameters()}
+    values = {v.name for v in info.recordable()}
+
+    def need(where: str, name: str, pool: set, what: str) -> None:
+        if name in pool:
+            return
+        near = closest_names(name, sorted(pool))
+        hint = f"; closest: {', '.join(near)}" if near else ""
+        found = info.variables.get(name)
+        why = (f"is a {found.causality} {found.type}, not {what}" if found is not None
+               else f"is not a variable of {info.path.name}")
+        raise SimulationError(f"{src}: {where}: {name!r} {why}{hint}")
+
+    for key, spec in cfg.model.inputs.items():
+        need(f"model.inputs.{key}.variable", spec.variable, params, "a tunable parameter")
+    need("model.output.variable", cfg.model.output.variable, values, "a recordable output")
+    for ch in cfg.model.channels:
+        need(f"model.channels.{ch}", ch, values, "a recordable output")
+    if cfg.model.nonphysical:
+        need("model.nonphysical", cfg.model.nonphysical, values, "a recordable output")
+    if cfg.safety.indicator.variable:
+        need("safety.indicator.variable", cfg.safety.indicator.variable, values,
+             "a recordable output")
+    for name in cfg.model.fixed:
+        need(f"model.fixed.{name}", name, params, "a tunable parameter")
+    for name in cfg.model.effects:
+        need(f"model.effects.{name}", name, params, "a tunable parameter")
+    fab = cfg.fabricate
+    if fab is not None:
+        for name in fab.truth_variables:
+            need(f"fabricate.truth_variables.{name}", name, values, "a recordable output")
+
+
 def spec_for(cfg: Config, outputs: Sequence[str] | None = None,
              times: np.ndarray | None = None) -> SimulationSpec:
     """Simulation spec of the config's FMU (built from sources if need be)."""
     from .fmu import resolve_fmu
     if outputs is None:
-        outputs = [cfg.model.output.variable]
-        if cfg.model.nonphysical:
-            outputs.append(cfg.model.nonphysical)
+        outputs = twin_outputs(cfg)
     return SimulationSpec(fmu=resolve_fmu(cfg.model.fmu), outputs=tuple(outputs),
                           times=cfg.model.output.times.times if times is None else times,
                           fmi_type=cfg.model.fmi_type, fixed=dict(cfg.model.fixed))
@@ -143,6 +203,8 @@ class SimulateSummary:
     wall_time: float
     workers: int
     output: str
+    #: Plain-words warnings about the design (a criterion no run meets, failed runs).
+    warnings: list = field(default_factory=list)
 
     @property
     def runs_per_second(self) -> float:
@@ -151,7 +213,35 @@ class SimulateSummary:
     def as_dict(self) -> dict:
         return {"runs": self.runs, "failures": self.failures, "resumed": self.resumed,
                 "wall_time": round(self.wall_time, 3), "workers": self.workers,
-                "runs_per_s": round(self.runs_per_second, 1), "output": self.output}
+                "runs_per_s": round(self.runs_per_second, 1), "output": self.output,
+                "warnings": list(self.warnings)}
+
+
+def criterion_warnings(cfg: Config, sims: "Simulations") -> list[str]:
+    """Warn when the safety criterion is met by no training run, or by every one.
+
+    Either way the forecast cannot tell units apart inside the design box: the limit is
+    probably in the wrong place, in the wrong direction, or in other units."""
+    from .safety import Indicator
+    ind = Indicator.from_config(cfg)
+    ok = sims.ok["train"]
+    if not ok.any():
+        return []
+    series = sims.indicator_series["train"][ok]
+    values = ind(sims.time, series)
+    unsafe = ind.unsafe(values, sims.nonphysical["train"][ok])
+    finite = values[np.isfinite(values)]
+    span = (f"{ind.fmt(finite.min())} to {ind.fmt(finite.max())}" if finite.size
+            else "never finite")
+    if unsafe.all():
+        return [f"every training run is already unsafe ({ind.rule}; {ind.name} over the design "
+                f"box: {span}): every unit will be judged unsafe; check safety.unsafe_if and "
+                "safety.indicator"]
+    if not unsafe.any():
+        return [f"no training run is unsafe ({ind.rule}; {ind.name} over the design box: "
+                f"{span}): the twin cannot predict a failure inside the box; check "
+                "safety.unsafe_if, safety.indicator and the input ranges"]
+    return []
 
 
 def simulate(cfg: Config, output: str | os.PathLike, *, workers: int | None = None,
@@ -169,6 +259,7 @@ def simulate(cfg: Config, output: str | os.PathLike, *, workers: int | None = No
         ``progress(done, total)`` after each run.
     """
     output = Path(output)
+    check_model(cfg)
     output.parent.mkdir(parents=True, exist_ok=True)
     spec = spec_for(cfg)
     section = cfg.section_yaml(*SECTIONS)
@@ -199,14 +290,24 @@ def simulate(cfg: Config, output: str | os.PathLike, *, workers: int | None = No
         with h5py.File(partial, "a") as f:
             for split in SPLITS:
                 failures += int(np.sum(f[split]["status"][()] == STATUS_FAILED))
+            if failures == total:
+                first = f["train"]["message"][0] if len(f["train"]["message"]) else b""
+                first = first.decode() if isinstance(first, bytes) else str(first)
+                raise SimulationError(f"{output}: all {total} runs failed; first: {first} "
+                                      f"({partial} kept for inspection)")
             f.attrs["created"] = artifacts.utc_now()
         os.replace(partial, output)
     except KeyboardInterrupt:
-        raise SimulationError(f"{output}: interrupted; {partial} keeps the finished runs and "
-                              "the next 'twinmon simulate' resumes from it") from None
+        raise Interrupted(f"{output}: interrupted; {partial} keeps the finished runs and "
+                          "the next 'twinmon simulate' resumes from it") from None
     wall = _time.perf_counter() - start
+    warnings = criterion_warnings(cfg, read_simulations(output))
+    if failures:
+        warnings.insert(0, f"{failures} of {total} runs failed (their messages are in "
+                           f"{output}, /train/message and /test/message)")
     return SimulateSummary(runs=total - resumed, failures=failures, resumed=resumed,
-                           wall_time=wall, workers=executor.workers, output=str(output))
+                           wall_time=wall, workers=executor.workers, output=str(output),
+                           warnings=warnings)
 
 
 def _open_partial(partial: Path, section: str, spec: SimulationSpec, cfg: Config,
@@ -247,6 +348,11 @@ def _open_partial(partial: Path, section: str, spec: SimulationSpec, cfg: Config
             artifacts.put(g, "Y", np.full((len(X), times.size), np.nan),
                           cfg.model.output.units,
                           f"{cfg.model.output.variable} at the sample times; NaN if the run failed")
+            if cfg.indicator_variable != cfg.model.output.variable:
+                artifacts.put(g, "Y_indicator", np.full((len(X), times.size), np.nan),
+                              cfg.model.channel_units.get(cfg.indicator_variable, ""),
+                              f"{cfg.indicator_variable} (the health indicator's variable) at "
+                              "the sample times; NaN if the run failed")
             artifacts.put(g, "nonphysical", np.zeros(len(X), np.int8), "1",
                           "1 when the twin ended in its non-physical mode")
             artifacts.put(g, "status", np.full(len(X), STATUS_PENDING, np.int8), "1",
@@ -261,6 +367,8 @@ def _store_chunk(g: h5py.Group, idx: np.ndarray, batch: BatchResult, spec: Simul
     # Write only this chunk's rows (idx is increasing, as h5py's point selection needs).
     rows = idx.tolist()
     g["Y"][rows] = batch.outputs[cfg.model.output.variable]
+    if "Y_indicator" in g:
+        g["Y_indicator"][rows] = batch.outputs[cfg.indicator_variable]
     if cfg.model.nonphysical:
         flag = batch.outputs[cfg.model.nonphysical][:, -1]
         g["nonphysical"][rows] = np.where(batch.ok, flag > 0.5, 0).astype(np.int8)
@@ -278,6 +386,8 @@ class Simulations:
     input_names : list of str
     bounds : ndarray, shape [n_inputs, 2]
     X, Y, ok, nonphysical : dict split -> arrays [n, n_inputs], [n, n_t], [n], [n]
+    indicator_series : dict split -> array [n, n_t]
+        The health indicator's variable (``Y`` itself when it is the output).
     """
 
     path: Path
@@ -288,6 +398,7 @@ class Simulations:
     Y: dict[str, np.ndarray]
     ok: dict[str, np.ndarray]
     nonphysical: dict[str, np.ndarray]
+    indicator_series: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 def read_simulations(path: str | os.PathLike) -> Simulations:
@@ -296,7 +407,7 @@ def read_simulations(path: str | os.PathLike) -> Simulations:
     path = Path(path)
     with artifacts.open_artifact(path, "simulations") as f:
         names = json.loads(f.attrs["input_names"])
-        X, Y, ok, nph = {}, {}, {}, {}
+        X, Y, ok, nph, ind = {}, {}, {}, {}, {}
         for split in SPLITS:
             if split not in f:
                 raise ArtifactError(f"{path}: group /{split} is missing")
@@ -306,5 +417,6 @@ def read_simulations(path: str | os.PathLike) -> Simulations:
             status = artifacts.get(g, "status", path)
             ok[split] = status == STATUS_OK
             nph[split] = artifacts.get(g, "nonphysical", path).astype(bool)
+            ind[split] = artifacts.get(g, "Y_indicator", path) if "Y_indicator" in g else Y[split]
         return Simulations(path, artifacts.get(f, "time", path), names,
-                           artifacts.get(f, "bounds", path), X, Y, ok, nph)
+                           artifacts.get(f, "bounds", path), X, Y, ok, nph, ind)

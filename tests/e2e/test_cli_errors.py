@@ -41,7 +41,7 @@ def test_unknown_key_exit_3(tmp_path):
 def test_bad_csv_exit_4(tmp_path):
     csv = tmp_path / "m.csv"
     csv.write_text("unit,year,time,m_flow\nA,1,2,nan-ish\n")
-    r = twinmon("import-csv", csv, "-o", tmp_path / "o.h5")
+    r = twinmon("import-csv", csv, "-c", CONFIGS / "pump.yaml", "-o", tmp_path / "o.h5")
     assert r.returncode == 4
     assert "m.csv: line 2: column 'm_flow' is 'nan-ish'" in one_line(r.stderr)
 

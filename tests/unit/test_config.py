@@ -23,7 +23,11 @@ def test_paper_config_loads_with_its_values():
     assert set(cfg.model.effects) == {"sensor.tau", "sensor.gain", "valve.opening_time",
                                       "pipe.fouling", "pump.leak", "motor.start_delay",
                                       "motor.supply_ratio"}
-    assert cfg.safety.max_time == 30.0 and cfg.safety.fraction == 0.9
+    ind = cfg.safety.indicator
+    assert ind.kind == "time_to_reach" and ind.level == 360.0 and ind.initial == 0.0
+    assert cfg.safety.unsafe_if.above == 30.0 and cfg.safety.unsafe_if.below is None
+    assert cfg.model.output.name == "m_flow" and cfg.model.output.units == "kg/s"
+    assert cfg.model.channels["motor.w"].units == "rad/s"
 
 
 def test_config_is_frozen():
@@ -52,7 +56,12 @@ def test_set_overrides_apply_before_validation():
     ("simulate.bogus=1", r"simulate.bogus: unknown key \(value 1\)"),
     ("seed=abc", r"seed: expected an integer, got 'abc'"),
     ("simulate.design=random", r"simulate.design: expected one of lhs, sobol, halton, got 'random'"),
-    ("safety.fraction=1.5", r"safety.fraction: must lie in \(0, 1\], got 1.5"),
+    ("safety.failure_probability=1.5", r"safety.failure_probability: must lie in \(0, 1\), got 1.5"),
+    ("safety.indicator.kind=peak", r"safety.indicator.kind: expected one of time_to_reach, value_at"),
+    ("safety.unsafe_if.below=3", r"safety.unsafe_if.above: give exactly one of above or below"),
+    ("seed=-1", r"seed: must lie in \[0, 2\*\*32 - 1\]"),
+    ("seed=1180591620717411303424", r"seed: must lie in \[0, 2\*\*32 - 1\]"),
+    ("model.output.times.stop=2", r"model.output.times.stop: must be at least start \+ step"),
     ("model.inputs.pump_coef.low=5", r"model.inputs.pump_coef.high: must be greater than low"),
     ("reduce.variance_threshold=.nan", r"reduce.variance_threshold: expected a finite number"),
     ("novalue", r"expected KEY.PATH=VALUE"),
@@ -97,3 +106,43 @@ def test_section_yaml_is_resolved_with_defaults():
     text = cfg.section_yaml("simulate")
     assert "chunk_size: 64" in text  # a default not written in the file
     assert np.isclose(cfg.model.bounds, [[4.0, 30.0], [2.2, 4.0]]).all()
+
+
+def test_scientific_notation_without_dot_is_a_number(tmp_path):
+    # YAML 1.1 reads 1e6 as a string; people write it, so it is a float here.
+    cfg = load_config(CONFIGS / "pump.yaml", ["safety.unsafe_if.above=3e1",
+                                               "calibrate.noise_std=4e0"])
+    assert cfg.safety.unsafe_if.above == 30.0
+    assert cfg.calibrate.noise_std == 4.0
+
+
+def test_duplicate_keys_are_an_error_naming_the_line(tmp_path):
+    p = tmp_path / "dup.yaml"
+    p.write_text(f"extends: {CONFIGS / 'pump.yaml'}\nseed: 1\nseed: 2\n")
+    with pytest.raises(ConfigError, match=r"dup.yaml: line 3: key 'seed' appears twice .*line 2"):
+        load_config(p)
+
+
+def test_non_utf8_config_is_one_line(tmp_path):
+    p = tmp_path / "latin1.yaml"
+    p.write_bytes(b"seed: 1\n# caf\xe9\n")
+    with pytest.raises(ConfigError, match=r"latin1.yaml: line 2: not UTF-8") as exc:
+        load_config(p)
+    assert "\n" not in str(exc.value)
+
+
+def test_channels_accept_a_plain_list_and_indicator_defaults(tmp_path):
+    p = write_yaml(tmp_path / "c.yaml", {"extends": str(CONFIGS / "pump.yaml"),
+                                         "model": {"channels": ["motor.w"]}})
+    cfg = load_config(p)
+    assert list(cfg.model.channels) == ["motor.w"]
+    assert cfg.indicator_variable == "sensor.m_flow"
+
+
+def test_default_diagnose_windows_split_the_record_in_thirds():
+    cfg = load_config(CONFIGS / "pump.yaml", ["diagnose.windows={}"])
+    w = cfg.diagnose_windows()
+    assert list(w) == ["early", "middle", "late"]
+    t = cfg.model.output.times.times
+    counts = [int(np.sum((t >= v.start) & (t < v.stop))) for v in w.values()]
+    assert sum(counts) == t.size and min(counts) >= 8

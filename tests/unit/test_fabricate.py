@@ -57,7 +57,7 @@ def test_noise_level_and_truth_separation(small_fleet_config, tmp_path):
         names = []
         f.visit(names.append)
     assert not any("inputs" in n or "clean" in n for n in names)  # no truth in observations
-    resid = np.concatenate([(obs.units[u].m_flow - clean[u]).ravel() for u in obs.units])
+    resid = np.concatenate([(obs.output_of(u) - clean[u]).ravel() for u in obs.units])
     assert resid.std() == pytest.approx(4.0, rel=0.15)
     assert abs(resid.mean()) < 4.0 * 4 / np.sqrt(resid.size)
 
@@ -77,7 +77,7 @@ def test_injected_effect_starts_at_onset(tmp_path, fmu_path):
     cfg = load_config(p)
     fabricate(cfg, tmp_path / "o.h5", tmp_path / "t.h5")
     obs = read_observations(tmp_path / "o.h5")
-    a, b, c = (obs.units[u].m_flow for u in "ABC")
+    a, b, c = (obs.output_of(u) for u in "ABC")
     assert np.array_equal(a[:2], b[:2])                 # identical before onset
     assert np.all(b[2:, :5] < a[2:, :5] - 1.0)          # a lagging meter reads low while rising
     assert np.array_equal(a[0], c[0]) and not np.allclose(a[1], c[1])

@@ -16,7 +16,8 @@ def _csv(tmp_path, text, name="m.csv"):
     return p
 
 
-GOOD = """unit,year,time,m_flow,motor.w
+# The output is named by the config: "speed" here, not the pump's flow.
+GOOD = """unit,year,time,speed,drive.i
 A,1,2,10.5,50
 A,1,4,20.5,80
 A,2,2,9.5,49
@@ -27,19 +28,41 @@ B,1,4,21.0,82
 
 
 def test_import_csv_round_trip(tmp_path):
-    obs = import_csv(_csv(tmp_path, GOOD), tmp_path / "o.h5", noise_std=4.0)
+    obs = import_csv(_csv(tmp_path, GOOD), tmp_path / "o.h5", "speed", noise_std=4.0,
+                     units={"speed": "rad/s", "drive.i": "A"})
     back = read_observations(tmp_path / "o.h5")
+    assert back.output == "speed"                       # recorded in the file
     assert np.array_equal(back.time, [2.0, 4.0])
     assert list(back.units) == ["A", "B"]
     assert np.array_equal(back.units["A"].years, [1, 2])
-    assert np.array_equal(back.units["A"].m_flow, [[10.5, 20.5], [9.5, 19.0]])
-    assert np.isnan(back.units["A"].channels["motor.w"][1, 1])  # empty cell = missing
-    assert back.units["B"].noise_std == {"m_flow": 4.0}
-    assert obs.units["B"].m_flow.shape == (1, 2)
+    assert np.array_equal(back.output_of("A"), [[10.5, 20.5], [9.5, 19.0]])
+    assert np.isnan(back.units["A"].channels["drive.i"][1, 1])  # empty cell = missing
+    assert back.units["B"].noise_std == {"speed": 4.0}
+    assert obs.output_of("B").shape == (1, 2)
+    with h5py.File(tmp_path / "o.h5") as f:
+        assert f["units/A/speed"].attrs["units"] == "rad/s"
+
+
+def test_import_csv_strips_a_bom_and_rejects_latin1_and_foreign_columns(tmp_path):
+    p = tmp_path / "bom.csv"
+    p.write_bytes(b"\xef\xbb\xbf" + GOOD.encode())
+    assert list(import_csv(p, tmp_path / "o.h5", "speed").units) == ["A", "B"]
+    p.write_bytes(GOOD.replace("A,1,2", "\xc9,1,2", 1).encode("latin-1"))
+    with pytest.raises(InputDataError, match=r"bom.csv: line 2: not UTF-8"):
+        import_csv(p, tmp_path / "o2.h5", "speed")
+    with pytest.raises(InputDataError, match=r"line 1: column 'drive.i' is not a channel of the "
+                                             r"config \(allowed: shaft.w, speed\)"):
+        import_csv(_csv(tmp_path, GOOD), tmp_path / "o3.h5", "speed", channels=["shaft.w"])
+    big = "unit,year,time,speed\nA,9223372036854775808,2,1\n"
+    with pytest.raises(InputDataError, match=r"line 2: column 'year' is 9223372036854775808"):
+        import_csv(_csv(tmp_path, big), tmp_path / "o4.h5", "speed")
+    for out in ("o2.h5", "o3.h5", "o4.h5"):
+        assert not (tmp_path / out).exists()
 
 
 @pytest.mark.parametrize("text, message", [
     ("unit,year,m_flow\nA,1,3\n", r"line 1: missing column 'time'"),
+    ("unit,year,time,flow\nA,1,3,1\n", r"line 1: missing column 'm_flow'"),
     ("unit,year,time,m_flow\nA,1,2,abc\n", r"line 2: column 'm_flow' is 'abc', expected a number"),
     ("unit,year,time,m_flow\nA,x,2,1\n", r"line 2: column 'year' is 'x', expected an integer"),
     ("unit,year,time,m_flow\nA,1,2,1\nA,1,2,2\n", r"line 3: duplicate row for unit 'A' year 1 "
@@ -53,20 +76,20 @@ def test_import_csv_round_trip(tmp_path):
 def test_import_csv_errors_name_the_line(tmp_path, text, message):
     out = tmp_path / "o.h5"
     with pytest.raises(InputDataError, match=message) as exc:
-        import_csv(_csv(tmp_path, text), out)
+        import_csv(_csv(tmp_path, text), out, "m_flow")
     assert "m.csv" in str(exc.value) and not out.exists()
 
 
 def test_import_csv_missing_file(tmp_path):
     with pytest.raises(InputDataError, match="nope.csv: file not found"):
-        import_csv(tmp_path / "nope.csv", tmp_path / "o.h5")
+        import_csv(tmp_path / "nope.csv", tmp_path / "o.h5", "m_flow")
 
 
 def _obs(**over):
     u = UnitObservations(np.array([1, 2]), {"m_flow": np.ones((2, 3))}, {"m_flow": 1.0})
     for k, v in over.items():
         setattr(u, k, v)
-    return Observations(np.array([2.0, 4.0, 6.0]), {"A": u})
+    return Observations(np.array([2.0, 4.0, 6.0]), {"A": u}, output="m_flow")
 
 
 @pytest.mark.parametrize("over, message", [
@@ -88,9 +111,34 @@ def test_read_rejects_wrong_schema_and_missing_flow(tmp_path):
     write_observations(out, _obs())
     with h5py.File(out, "a") as f:
         del f["units/A/m_flow"]
-    with pytest.raises(ArtifactError, match=r"o.h5: dataset /units/A/m_flow is missing"):
+    with pytest.raises(ArtifactError, match=r"o.h5: dataset /units/A/m_flow \(the config.s "
+                                            r"model.output.name\) is missing"):
         read_observations(out)
     with h5py.File(out, "a") as f:
         f.attrs["schema"] = "twinmon.observations/0"
     with pytest.raises(ArtifactError, match="expected 'twinmon.observations/1'"):
         read_observations(out)
+
+
+@pytest.mark.parametrize("raw, expect", [
+    (2.5, {"m_flow": 2.5}),                      # a bare number by hand: the output's noise
+    ('{"m_flow": 3.0}', {"m_flow": 3.0}),
+    ("2.5", {"m_flow": 2.5}),
+])
+def test_noise_std_attribute_written_by_hand(tmp_path, raw, expect):
+    out = tmp_path / "o.h5"
+    write_observations(out, _obs())
+    with h5py.File(out, "a") as f:
+        f["units/A"].attrs["noise_std"] = raw
+    assert read_observations(out, "m_flow").units["A"].noise_std == expect
+
+
+@pytest.mark.parametrize("raw", ["loud", [1.0, 2.0], "[1, 2]", -1.0])
+def test_bad_noise_std_attribute_is_one_line(tmp_path, raw):
+    out = tmp_path / "o.h5"
+    write_observations(out, _obs())
+    with h5py.File(out, "a") as f:
+        f["units/A"].attrs["noise_std"] = raw
+    with pytest.raises(InputDataError, match=r"o.h5: /units/A attribute noise_std") as exc:
+        read_observations(out, "m_flow")
+    assert "\n" not in str(exc.value)

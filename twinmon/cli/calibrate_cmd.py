@@ -42,7 +42,8 @@ def calibrate(config_path, overrides, surrogate, observations, truth, output, as
     d = s.as_dict()
     for unit, nz in d["noise"].items():
         p = s.posterior[unit]
-        say(f"calibrate: {unit}: {len(p.years)} years, noise std {nz['std']:.3g} kg/s "
+        say(f"calibrate: {unit}: {len(p.years)} years, noise std {nz['std']:.3g} "
+            f"{cfg.model.output.units} "
             f"({_SOURCE[nz['source']]}), R-hat <= {p.rhat.max():.3f}, ESS >= {p.ess.min():.0f}, "
             f"acceptance {p.acceptance.min():.2f}-{p.acceptance.max():.2f}")
         last = {n: p.mean[-1, j] for j, n in enumerate(s.input_names)}

@@ -40,6 +40,11 @@ def say(text: str = "") -> None:
         click.echo(text, err=True)
 
 
+def warn(text: str) -> None:
+    """A warning on stderr, shown even with --quiet (it may change what the user does)."""
+    click.echo(f"twinmon: warning: {text}", err=True)
+
+
 def emit_json(obj) -> None:
     click.echo(json.dumps(obj, indent=2, default=_plain))
 

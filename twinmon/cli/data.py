@@ -4,7 +4,7 @@ from __future__ import annotations
 import click
 
 from . import main
-from .common import config_options, emit_json, json_option, load, progress_bar, say
+from .common import config_options, emit_json, json_option, load, progress_bar, say, warn
 
 
 @main.command()
@@ -27,6 +27,8 @@ def simulate(config_path, overrides, output, workers, as_json):
         say(f"simulate: {summary.runs} runs ({summary.resumed} resumed), {summary.failures} "
             f"failed, {summary.wall_time:.2f} s on {summary.workers} workers "
             f"({summary.runs_per_second:.0f} runs/s) -> {output}")
+    for w in summary.warnings:
+        warn(f"simulate: {w}")
 
 
 @main.command()
@@ -51,15 +53,26 @@ def fabricate(config_path, overrides, output, truth, as_json):
 
 @main.command("import-csv")
 @click.argument("csv_file", type=click.Path(dir_okay=False))
+@config_options
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False),
               help="Observations file to write.")
 @click.option("--noise-std", type=float, default=None,
-              help="Known flow noise standard deviation (kg/s).")
+              help="Known noise standard deviation of the output, in its units.")
 @json_option
-def import_csv(csv_file, output, noise_std, as_json):
-    """Convert long CSV measurements (unit,year,time,m_flow[,...]) to observations."""
+def import_csv(csv_file, config_path, overrides, output, noise_std, as_json):
+    """Convert long CSV measurements (unit,year,time,<output>[,<channel>...]) to observations.
+
+    Column names are the config's: model.output.name and the FMU variables of
+    model.channels."""
+    import math
+
+    from ..errors import InputDataError
     from ..observations import import_csv as run
-    obs = run(csv_file, output, noise_std)
+    cfg = load(config_path, overrides)
+    if noise_std is not None and not (math.isfinite(noise_std) and noise_std > 0):
+        raise InputDataError(f"--noise-std: expected a positive number, got {noise_std!r}")
+    obs = run(csv_file, output, cfg.model.output.name, noise_std,
+              channels=list(cfg.model.channels), units=cfg.model.channel_units)
     summary = {"units": {u: {"years": o.years.tolist(), "channels": sorted(o.channels)}
                          for u, o in obs.units.items()},
                "samples_per_year": int(obs.time.size), "output": output}

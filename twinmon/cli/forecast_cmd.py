@@ -4,7 +4,7 @@ from __future__ import annotations
 import click
 
 from . import main
-from .common import config_options, emit_json, json_option, load, say
+from .common import config_options, emit_json, json_option, load, say, warn
 
 
 @main.command()
@@ -23,7 +23,7 @@ def forecast(config_path, overrides, posterior, surrogate, output, truth, as_jso
 
     Linear trends of the yearly posterior means with Student-t prediction intervals,
     propagated by Monte Carlo through the twin (surrogate inside its training box, FMU
-    outside it); root cause from one-sided t tests of the slopes against normal ageing.
+    outside it); root cause from t tests of the slopes against normal ageing.
     """
     from ..forecast import forecast as run
     cfg = load(config_path, overrides)
@@ -46,4 +46,6 @@ def forecast(config_path, overrides, posterior, surrogate, output, truth, as_jso
         say(f"  plan: {u.plan}")
         if u.fmu_failures:
             say(f"  warning: {u.fmu_failures} FMU run(s) failed and were counted unsafe")
+    for w in s.warnings:
+        warn(f"forecast: {w}")
     say(f"forecast: {len(s.units)} units in {s.wall_time:.1f} s -> {output}")

@@ -24,11 +24,14 @@ def reduce(config_path, overrides, simulations, output, as_json):
         emit_json(s.as_dict())
     else:
         v = s.validation
+        rel = (f"; relative: max {100 * v.max_rel_error:.3f} %, mean "
+               f"{100 * v.mean_rel_error:.4f} %" if v.max_rel_error == v.max_rel_error else "")
         say(f"reduce: {s.modes} modes ({100 * s.variance_ratio:.3f} % of variance), "
-            f"{s.train_runs} training runs; on {v.n_test} test runs: max relative error "
-            f"{100 * v.max_rel_error:.3f} %, mean {100 * v.mean_rel_error:.4f} % "
-            f"(paper: 1.5 % / 0.2 %), Q2 per mode {', '.join(f'{q:.5f}' for q in v.q2)}, "
-            f"90 % band coverage {100 * v.coverage_90:.1f} % -> {output}")
+            f"{s.train_runs} training runs; on {v.n_test} test runs: error max "
+            f"{100 * v.max_range_error:.3f} %, mean {100 * v.mean_range_error:.4f} % of the "
+            f"output's range ({v.output_range:.4g} {cfg.model.output.units}){rel}; Q2 per mode "
+            f"{', '.join(f'{q:.5f}' for q in v.q2)}, 90 % band coverage "
+            f"{100 * v.coverage_90:.1f} % -> {output}")
 
 
 @main.command()

@@ -9,6 +9,9 @@ from .local import ProcessExecutor, SerialExecutor
 
 def make_executor(kind: str, workers: int = 0) -> Executor:
     """Executor by config name (``"process"`` or ``"serial"``); ``workers=0``: one per core."""
+    if workers < 0:
+        from ..errors import ConfigError
+        raise ConfigError(f"workers: expected 0 (one per core) or a positive count, got {workers}")
     if kind == "serial":
         return SerialExecutor()
     if kind == "process":

@@ -1,0 +1,57 @@
+"""Executors fail fast: a worker that cannot open the FMU ends the batch with its reason."""
+from __future__ import annotations
+
+import signal
+
+import numpy as np
+import pytest
+
+from twinmon.errors import ConfigError, SimulationError
+from twinmon.executors import ProcessExecutor, SerialExecutor, SimulationSpec, make_executor
+
+TIMES = np.arange(2.0, 50.0 + 1e-9, 2.0)
+
+
+@pytest.fixture
+def alarm():
+    """Fail (instead of hanging the suite) if the block takes more than 60 s."""
+    def on_alarm(*_):
+        raise TimeoutError("executor hung")
+    old = signal.signal(signal.SIGALRM, on_alarm)
+    signal.alarm(60)
+    yield
+    signal.alarm(0)
+    signal.signal(signal.SIGALRM, old)
+
+
+@pytest.mark.parametrize("executor", [SerialExecutor(), ProcessExecutor(2)],
+                         ids=["serial", "process"])
+def test_a_worker_that_cannot_open_the_fmu_ends_the_batch(fmu_path, executor, alarm):
+    spec = SimulationSpec(fmu=fmu_path, outputs=("no.such.output",), times=TIMES)
+    params = [(i, {"motor.D": 10.0}) for i in range(16)]
+    with pytest.raises(SimulationError, match=r"no.such.output") as exc:
+        list(executor.map(spec, params))
+    assert "\n" not in str(exc.value)
+
+
+@pytest.mark.parametrize("executor", [SerialExecutor(), ProcessExecutor(2)],
+                         ids=["serial", "process"])
+def test_a_corrupt_fmu_ends_the_batch(tmp_path, executor, alarm):
+    bad = tmp_path / "truncated.fmu"
+    bad.write_bytes(b"PK\x03\x04" + b"\0" * 40)
+    spec = SimulationSpec(fmu=bad, outputs=("y",), times=TIMES)
+    with pytest.raises(SimulationError, match=r"truncated.fmu"):
+        list(executor.map(spec, [(i, {}) for i in range(16)]))
+
+
+def test_process_results_equal_serial(fmu_path, alarm):
+    spec = SimulationSpec(fmu=fmu_path, outputs=("sensor.m_flow",), times=TIMES)
+    params = [(i, {"motor.D": 5.0 + i, "pump.b2": 3.0}) for i in range(12)]
+    a = {r.index: r.outputs["sensor.m_flow"] for r in SerialExecutor().map(spec, params)}
+    b = {r.index: r.outputs["sensor.m_flow"] for r in ProcessExecutor(2).map(spec, params)}
+    assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
+
+
+def test_negative_worker_count_is_a_config_error():
+    with pytest.raises(ConfigError, match="got -5"):
+        make_executor("process", -5)
