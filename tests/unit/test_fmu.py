@@ -340,3 +340,189 @@ def test_fmumodel_rejects_bad_construction(fmu_path):
         FMUModel(fmu_path, ["pump.m_flow"], np.array([0.0, 1.0]))
     with pytest.raises(SimulationError, match="bogus"):
         FMUModel(fmu_path, ["pump.m_flow"], TIMES, start_values={"bogus": 1.0})
+
+
+# ----------------------------------------------------------------------------------------
+# FMI 3.0, introspection, broken files (the DC drive FMUs: fmus/DCDrive, fmus/DCDrive3)
+
+from twinmon.fmu import FMUInfo, VariableInfo, closest_names, describe_fmu  # noqa: E402
+
+DC2 = ROOT / "fmus" / "DCDrive"
+DC3 = ROOT / "fmus" / "DCDrive3"
+DC_TIMES = np.round(np.arange(0.1, 3.0 + 1e-9, 0.1), 10)
+
+
+@pytest.fixture(scope="session")
+def dc2_fmu() -> Path:
+    return build_fmu(DC2)
+
+
+@pytest.fixture(scope="session")
+def dc3_fmu() -> Path:
+    return build_fmu(DC3)
+
+
+def test_built_fmu_is_world_readable(fmu_path, dc3_fmu, tmp_path):
+    assert fmu_path.stat().st_mode & 0o777 == 0o644
+    assert dc3_fmu.stat().st_mode & 0o777 == 0o644
+    # a cached file left private by an older build is fixed on the next call
+    src = tmp_path / "PumpCircuit"
+    shutil.copytree(SRC / "sources", src / "sources")
+    shutil.copy(SRC / "modelDescription.xml", src / "modelDescription.xml")
+    out = build_fmu(src)
+    os.chmod(out, 0o600)
+    assert build_fmu(src) == out and out.stat().st_mode & 0o777 == 0o644
+
+
+def test_fmi3_build_layout(dc2_fmu, dc3_fmu):
+    import zipfile
+
+    import fmpy
+    with zipfile.ZipFile(dc3_fmu) as zf:
+        names = set(zf.namelist())
+    assert f"binaries/{fmpy.platform_tuple}/DCDrive3{fmpy.sharedLibraryExtension}" in names
+    assert "sources/buildDescription.xml" in names
+    with zipfile.ZipFile(dc2_fmu) as zf:
+        assert f"binaries/{fmpy.platform}/DCDrive{fmpy.sharedLibraryExtension}" in zf.namelist()
+
+
+def test_describe_fmu_fields(fmu_path, dc3_fmu):
+    info = describe_fmu(DC3)                       # a source folder: built, then described
+    assert isinstance(info, FMUInfo) and info.path == dc3_fmu
+    assert (info.fmi_version, info.model_name) == ("3.0", "DCDrive3")
+    assert info.co_simulation and info.model_exchange and "DC motor" in info.description
+    b = info.variables["bearing.b"]
+    assert b == VariableInfo(name="bearing.b", causality="parameter", variability="fixed",
+                             type="Float64", start=0.001, unit="N.m.s/rad",
+                             description=b.description)
+    assert b.is_float and b.is_numeric and "bearing" in b.description
+    stalled = info.variables["stalled"]
+    assert (stalled.type, stalled.causality, stalled.is_float, stalled.is_numeric) == \
+        ("Int32", "output", False, True)
+    assert info.variables["time"].causality == "independent"
+    tunable = [v.name for v in info.tunable_parameters()]
+    assert tunable == ["bearing.b", "winding.R", "tacho.tau", "tacho.gain", "supply.ratio",
+                       "load.extra", "supply.delay", "fan.c"]
+    recordable = [v.name for v in info.recordable()]
+    assert recordable[:5] == ["tacho.w", "shaft.w", "armature.i", "shaft.torque", "stalled"]
+    assert "state.w" in recordable and "time" not in recordable and "bearing.b" not in recordable
+
+    pump = describe_fmu(fmu_path)
+    assert (pump.fmi_version, pump.model_name) == ("2.0", "PumpCircuit")
+    d = pump.variables["motor.D"]
+    assert (d.type, d.start, d.unit, d.variability) == ("Real", 10.0, "N.m.s/rad", "fixed")
+    assert {v.name for v in pump.tunable_parameters()} == set(DEFAULTS)
+    assert [v.name for v in pump.recordable()][:6] == OUTPUTS
+
+
+def test_closest_names():
+    pool = ["bearing.b", "winding.R", "tacho.w", "tacho.tau", "shaft.w"]
+    assert closest_names("winding.r", pool)[0] == "winding.R"
+    assert closest_names("tacho_w", pool, n=2) == ["tacho.w", "tacho.tau"]
+    assert len(closest_names("x", pool, n=10)) <= len(pool)
+    assert closest_names("anything", []) == []
+
+
+def _broken_fmus(good: Path, folder: Path) -> dict[str, Path]:
+    import zipfile
+    data = good.read_bytes()
+    files = {"empty": b"", "truncated": data[: len(data) // 2], "text": b"not a zip\n"}
+    corrupt = bytearray(data)
+    mid = len(corrupt) // 3
+    corrupt[mid:mid + 200] = bytes(x ^ 0xFF for x in corrupt[mid:mid + 200])
+    files["corrupt"] = bytes(corrupt)
+    out = {}
+    for name, content in files.items():
+        out[name] = folder / f"{name}.fmu"
+        out[name].write_bytes(content)
+    out["no_model_description"] = folder / "no_md.fmu"
+    with zipfile.ZipFile(out["no_model_description"], "w") as zf:
+        zf.writestr("binaries/readme.txt", "nothing here")
+    out["bad_xml"] = folder / "bad_xml.fmu"
+    with zipfile.ZipFile(out["bad_xml"], "w") as zf:
+        zf.writestr("modelDescription.xml", '<fmiModelDescription fmiVersion="2.0"><oops')
+    return out
+
+
+@pytest.mark.parametrize("kind", ["empty", "truncated", "text", "corrupt",
+                                  "no_model_description", "bad_xml"])
+def test_broken_fmu_is_one_line_simulation_error(kind, dc2_fmu, tmp_path):
+    path = _broken_fmus(dc2_fmu, tmp_path)[kind]
+    for call in (lambda: describe_fmu(path), lambda: FMUModel(path, ["tacho.w"], DC_TIMES)):
+        with pytest.raises(SimulationError) as e:
+            call()
+        msg = str(e.value)
+        assert "\n" not in msg and str(path) in msg, msg
+        assert "Traceback" not in msg and len(msg) < 500
+
+
+def test_missing_fmu_is_simulation_error(tmp_path):
+    with pytest.raises(SimulationError, match="nowhere.fmu"):
+        describe_fmu(tmp_path / "nowhere.fmu")
+
+
+def test_unknown_names_suggest_closest(dc2_fmu):
+    with pytest.raises(SimulationError, match=r"'tacho_w'.*closest: tacho\.w"):
+        FMUModel(dc2_fmu, ["tacho_w"], DC_TIMES)
+    with FMUModel(dc2_fmu, ["tacho.w"], DC_TIMES) as m:
+        with pytest.raises(SimulationError, match=r"'bearing_b'.*closest: bearing\.b"):
+            m.run({"bearing_b": 2e-3})
+        with pytest.raises(SimulationError, match=r"'tacho.w' is an output.*not a float parameter"):
+            m.run({"tacho.w": 1.0})
+
+
+def test_fmi3_cosimulation_run(dc3_fmu, dc2_fmu):
+    outs = ["tacho.w", "armature.i", "stalled"]
+    with FMUModel(dc3_fmu, outs, DC_TIMES) as m3, FMUModel(dc2_fmu, outs, DC_TIMES) as m2:
+        assert m3.fmi_version == "3.0" and m2.fmi_version == "2.0"
+        assert "bearing.b" in m3.parameter_names
+        for params in ({}, {"winding.R": 4.0}, {"bearing.b": 5e-3, "supply.delay": 0.3}):
+            a, b = m3.run(params), m2.run(params)
+            for k in outs:
+                np.testing.assert_allclose(a[k], b[k], rtol=1e-9, atol=0)
+        assert m3.run({"winding.R": 4.0})["stalled"][-1] == 1.0      # Int32 read as float
+        # the instance survives a failed run (non-finite parameter rejected by the FMU)
+        with pytest.raises(SimulationError, match="fmi3SetFloat64 failed"):
+            m3.run({"winding.R": float("nan")})
+        np.testing.assert_array_equal(m3.run({})["tacho.w"], m2.run({})["tacho.w"])
+        # start values and output order as given
+        with FMUModel(dc3_fmu, ["stalled", "tacho.w"], DC_TIMES,
+                      start_values={"tacho.gain": 0.5}) as half:
+            r = half.run({})
+            assert list(r) == ["stalled", "tacho.w"]
+            np.testing.assert_allclose(r["tacho.w"], 0.5 * m2.run({})["tacho.w"], rtol=1e-15)
+
+
+def test_fmi3_model_exchange_run(dc3_fmu, dc2_fmu):
+    with FMUModel(dc3_fmu, ["tacho.w", "stalled"], DC_TIMES, fmi_type="ModelExchange") as me, \
+            FMUModel(dc2_fmu, ["tacho.w", "stalled"], DC_TIMES) as cs:
+        for params in ({"bearing.b": 3e-3}, {"winding.R": 4.0}):
+            a, b = me.run(params), cs.run(params)
+            np.testing.assert_allclose(a["tacho.w"], b["tacho.w"], rtol=1e-4)
+            np.testing.assert_array_equal(a["stalled"], b["stalled"])
+
+
+def test_fmi2_integer_output_is_read(tmp_path):
+    """An FMI 2.0 Integer output goes through fmi2GetInteger (the Real-only fast path is not
+    used): the DC drive's stall flag declared as an Integer."""
+    src = tmp_path / "DCDriveInt"
+    shutil.copytree(DC2 / "sources", src / "sources")
+    md = (DC2 / "modelDescription.xml").read_text()
+    md = md.replace('(latched)"><Real unit="1"/>', '(latched)"><Integer/>')
+    assert "<Integer/>" in md
+    (src / "modelDescription.xml").write_text(md)
+    c = (src / "sources" / "fmi2.c").read_text()
+    c = c.replace(
+        "fmi2Status fmi2GetInteger(fmi2Component c, const fmi2ValueReference vr[], size_t nvr, fmi2Integer value[])\n"
+        "{ (void)c; (void)vr; (void)value; return nvr == 0 ? fmi2OK : fmi2Error; }",
+        "fmi2Status fmi2GetInteger(fmi2Component c, const fmi2ValueReference vr[], size_t nvr, fmi2Integer value[])\n"
+        "{ for (size_t k = 0; k < nvr; ++k) { if (vr[k] != VR_STALLED) return fmi2Error;"
+        " value[k] = ((inst_t *)c)->s.stalled; } return fmi2OK; }")
+    assert "value[k] = ((inst_t *)c)->s.stalled" in c
+    (src / "sources" / "fmi2.c").write_text(c)
+    fmu = build_fmu(src)
+    with FMUModel(fmu, ["stalled", "tacho.w"], DC_TIMES) as m:
+        r = m.run({"winding.R": 4.0})
+        assert r["stalled"][-1] == 1.0 and r["stalled"][0] == 0.0
+        assert m.run({})["stalled"].max() == 0.0
+    assert describe_fmu(fmu).variables["stalled"].type == "Integer"
