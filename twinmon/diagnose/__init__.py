@@ -39,10 +39,10 @@ import numpy as np
 from scipy import stats
 from scipy.optimize import least_squares
 
-from . import artifacts
-from .config import Config
-from .errors import ArtifactError, ConfigError, InputDataError, SimulationError
-from .observations import read_observations
+from .. import artifacts
+from ..config import Config
+from ..errors import ArtifactError, ConfigError, InputDataError, SimulationError
+from ..observations import read_observations
 
 #: Config sections recorded in the artifact (and compared by ``twinmon run``).
 SECTIONS = ("model", "diagnose", "safety")
@@ -84,7 +84,7 @@ class Twin:
 
     def __init__(self, cfg: Config, fmu_path, channels: Sequence[str], time: np.ndarray,
                  sigma: dict, effects: Sequence[str]):
-        from .fmu import FMUModel
+        from ..fmu import FMUModel
         self.cfg = cfg
         self.channels = list(channels)
         out = cfg.model.output
@@ -955,7 +955,7 @@ class _UnitDiagnosis:
         None if none within the horizon. Effects that alter only the measurement
         (``measurement_only``) are left out: a lagging sensor does not make the machine
         unsafe."""
-        from .safety import Indicator
+        from ..safety import Indicator
         ind = Indicator.from_config(self.cfg)
         effects = {k: v for k, v in (effects or {}).items()
                    if not self.cfg.model.effects[k].measurement_only}
@@ -1087,10 +1087,10 @@ def diagnose(cfg: Config, observations: str | os.PathLike, output: str | os.Path
         the calibrated twin's posterior predictive.
     """
     from concurrent.futures import ProcessPoolExecutor
-    from .fmu import resolve_fmu
+    from ..fmu import resolve_fmu
 
     t0 = _time.perf_counter()
-    from .simulate import check_model
+    from ..simulate import check_model
     check_model(cfg)
     obs = read_observations(observations, cfg.model.output.name)
     candidate_names(cfg)
@@ -1101,7 +1101,7 @@ def diagnose(cfg: Config, observations: str | os.PathLike, output: str | os.Path
     fmu = resolve_fmu(cfg.model.fmu)
     post = None
     if posterior is not None:
-        from .calibrate import read_posterior
+        from ..calibrate import read_posterior
         post = read_posterior(posterior)
     jobs = [(cfg, fmu, u, obs.time, uo.years, uo.channels, _unit_sigma(cfg, uo, obs.time),
              None, _posterior_for(posterior, post, cfg, u, uo.years))
