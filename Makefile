@@ -15,7 +15,7 @@ GAP_OBS ?= data/fleet_gap.h5
 FMU_SRC := $(wildcard fmus/PumpCircuit/modelDescription.xml fmus/PumpCircuit/sources/*)
 PKG_SRC := $(shell find twinmon -name '*.py')
 
-.PHONY: all setup fmu run test bench data clean help
+.PHONY: all setup fmu run test bench data example clean help
 all: run
 
 help:
@@ -23,6 +23,7 @@ help:
 	@echo "make test   set up, then the whole test suite"
 	@echo "make bench  benchmarks (figures printed)"
 	@echo "make data   regenerate the shipped fleet data from configs/fleet.yaml and fleet_gap.yaml"
+	@echo "make example  the second worked example (a DC drive, fmus/DCDrive) end to end"
 	@echo "make $(OUT)/report/index.html   stage by stage, only what changed"
 
 # --- set-up: a virtualenv with the package installed (editable) ------------------------
@@ -71,5 +72,17 @@ data: setup
 	$(TWINMON) fabricate -c configs/fleet.yaml -o data/fleet.h5 --truth data/fleet_truth.h5
 	$(TWINMON) fabricate -c configs/fleet_gap.yaml -o data/fleet_gap.h5 --truth data/fleet_gap_truth.h5
 
+# --- the second worked example: a DC drive, not a pump (README, "A second machine") ------
+EXAMPLE_OUT ?= out-dcdrive
+example: setup
+	$(TWINMON) build-fmu fmus/DCDrive
+	$(TWINMON) fabricate -c configs/dcdrive_fleet.yaml -o $(EXAMPLE_OUT)/fleet.h5 \
+	    --truth $(EXAMPLE_OUT)/fleet_truth.h5
+	$(TWINMON) fabricate -c configs/dcdrive_gap.yaml -o $(EXAMPLE_OUT)/gap_fleet.h5 \
+	    --truth $(EXAMPLE_OUT)/gap_fleet_truth.h5
+	$(TWINMON) run -c configs/dcdrive.yaml --observations $(EXAMPLE_OUT)/fleet.h5 \
+	    --truth $(EXAMPLE_OUT)/fleet_truth.h5 --gap-observations $(EXAMPLE_OUT)/gap_fleet.h5 \
+	    --workdir $(EXAMPLE_OUT)
+
 clean:
-	rm -rf $(OUT) fmus/*/.build
+	rm -rf $(OUT) $(EXAMPLE_OUT) fmus/*/.build

@@ -20,7 +20,7 @@ from typing import Any, Iterator, Sequence
 import h5py
 import numpy as np
 
-from .errors import ArtifactError
+from .errors import ArtifactError, OutputBusyError
 
 #: Current major version of each artifact kind. Bump on an incompatible layout change.
 SCHEMAS = {
@@ -85,17 +85,125 @@ def write_artifact(path: str | os.PathLike, kind: str, *, config: str = "",
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     records = input_records(inputs)  # hash before writing: an input may be overwritten
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    with output_lock(path, f"twinmon ({kind})"):
+        remove_stale_temporaries(path)
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        try:
+            with h5py.File(tmp, "w") as f:
+                set_provenance(f, kind, config=config, records=records, seed=seed)
+                for key, value in (extra_attrs or {}).items():
+                    f.attrs[key] = value
+                yield f
+            os.replace(tmp, path)
+        except OSError as exc:
+            # Name the artifact, not the hidden temporary file, and keep HDF5's multi-line
+            # internals out of the message.
+            reason = exc.strerror or str(exc).splitlines()[0]
+            raise OSError(exc.errno, f"cannot write: {reason}", str(path)) from None
+        finally:
+            if tmp.exists():
+                tmp.unlink()
+
+
+# ---------------------------------------------------------------------------------------
+# Output locks: one writer per output
+# ---------------------------------------------------------------------------------------
+_held: dict[str, list] = {}
+
+
+def lock_path(path: str | os.PathLike) -> Path:
+    path = Path(path)
+    return path.with_name(f".{path.name}.lock")
+
+
+@contextlib.contextmanager
+def output_lock(path: str | os.PathLike, command: str = "twinmon") -> Iterator[None]:
+    """Hold an advisory lock on ``path`` (a file or a folder) while writing it.
+
+    The lock is ``flock`` on a hidden ``.<name>.lock`` file beside ``path`` holding the
+    holder's PID and command: the kernel drops it when the holder dies (even by ``kill -9``),
+    so a lock is never stale. Re-entrant within one process.
+
+    Raises
+    ------
+    OutputBusyError
+        Another process holds the lock; the message names it. Nothing was touched.
+    """
+    import fcntl
+    import sys
+    path = Path(path)
+    key = str(path.resolve())
+    if key in _held:
+        _held[key][1] += 1
+        try:
+            yield
+        finally:
+            _held[key][1] -= 1
+        return
+    lp = lock_path(path)
+    lp.parent.mkdir(parents=True, exist_ok=True)
+    while True:
+        fd = os.open(lp, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 4096, 0).decode("utf-8", "replace").strip() or "another process"
+            os.close(fd)
+            raise OutputBusyError(f"{path} is being written by {holder}; wait for it to finish "
+                                  "or choose another output") from None
+        # The previous holder unlinks the lock file on release: if we locked a file that is
+        # no longer the one under that name, start again with the current one.
+        try:
+            same = os.stat(lp).st_ino == os.fstat(fd).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)
+    argv = " ".join(Path(sys.argv[0]).name if i == 0 else a for i, a in enumerate(sys.argv[:2]))
+    os.pwrite(fd, f"{argv or command} (pid {os.getpid()})".encode(), 0)
+    _held[key] = [fd, 1]
     try:
-        with h5py.File(tmp, "w") as f:
-            set_provenance(f, kind, config=config, records=records, seed=seed)
-            for key, value in (extra_attrs or {}).items():
-                f.attrs[key] = value
-            yield f
-        os.replace(tmp, path)
+        yield
     finally:
-        if tmp.exists():
-            tmp.unlink()
+        del _held[key]
+        try:
+            os.unlink(lp)          # while still locked, so no one else holds this inode
+        except OSError:
+            pass
+        os.close(fd)
+
+
+def remove_stale_temporaries(path: str | os.PathLike) -> list[Path]:
+    """Remove ``.<name>.<pid>.tmp`` files beside ``path`` whose writer is gone (a crash or
+    ``kill -9`` before it could clean up). Call with the output lock held."""
+    path = Path(path)
+    removed = []
+    for tmp in path.parent.glob(f".{path.name}.*.tmp"):
+        pid = tmp.name[len(path.name) + 2:-4]
+        if pid.isdigit() and not _alive(int(pid)):
+            try:
+                if tmp.is_dir():
+                    import shutil
+                    shutil.rmtree(tmp)
+                else:
+                    tmp.unlink()
+                removed.append(tmp)
+            except OSError:
+                pass
+    return removed
+
+
+def _alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
 def utc_now() -> str:

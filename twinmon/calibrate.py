@@ -708,6 +708,9 @@ _worker = {}
 
 
 def _init_worker(surrogate, surrogate_path) -> None:
+    import signal
+    # Ctrl-C is the parent's: a worker that caught it too would print a traceback each.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     if surrogate is None:  # spawned, not forked: rebuild from the file
         from .reduce import read_surrogate
         surrogate = read_surrogate(surrogate_path)

@@ -566,12 +566,24 @@ class Config:
             yield "seed", "must lie in [0, 2**32 - 1] (OpenTURNS and numpy seeds)", self.seed
 
     def section_yaml(self, *names: str) -> str:
-        """The resolved YAML of the named sections, recorded in artifacts as provenance."""
+        """The resolved YAML of the named sections, recorded in artifacts as provenance.
+
+        Settings that decide how the work is spread over processes but cannot change a
+        result (``EXECUTION_ONLY``) are left out, so changing them does not make ``twinmon
+        run`` redo a stage."""
         out = {n: to_plain(getattr(self, n)) for n in names}
+        for section, keys in EXECUTION_ONLY.items():
+            if isinstance(out.get(section), dict):
+                for k in keys:
+                    out[section].pop(k, None)
         return yaml.safe_dump(out, sort_keys=True)
 
 
 _NOT_KEYS = {"source", "raw"}
+
+#: Per section, the keys that spread the work over processes without changing any result.
+EXECUTION_ONLY = {"simulate": ("workers", "executor", "chunk_size"),
+                  "calibrate": ("workers",), "diagnose": ("workers",)}
 
 
 # ---------------------------------------------------------------------------------------

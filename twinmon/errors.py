@@ -63,6 +63,13 @@ class CalibrationError(TwinmonError):
     family = "calibration error"
 
 
+class OutputBusyError(TwinmonError):
+    """Another twinmon process is writing the same output; nothing was touched."""
+
+    exit_code = 8
+    family = "I/O error"
+
+
 class Interrupted(TwinmonError):
     """The user interrupted a command (Ctrl-C); the message says what is kept."""
 
@@ -72,4 +79,4 @@ class Interrupted(TwinmonError):
 
 EXIT_CODES = {cls.family: cls.exit_code for cls in
               (TwinmonError, ConfigError, InputDataError, ArtifactError,
-               SimulationError, CalibrationError, Interrupted)}
+               SimulationError, CalibrationError, OutputBusyError, Interrupted)}

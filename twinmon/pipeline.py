@@ -75,8 +75,7 @@ def run_pipeline(cfg: Config, observations: str | os.PathLike, workdir: str | os
     log : callable
         Receives one human line per stage.
     """
-    from . import calibrate, diagnose, forecast, reduce, report, simulate
-
+    from . import simulate
     from .errors import InputDataError
 
     obs = Path(observations)
@@ -90,6 +89,14 @@ def run_pipeline(cfg: Config, observations: str | os.PathLike, workdir: str | os
     simulate.check_model(cfg)
     wd = Path(workdir)
     wd.mkdir(parents=True, exist_ok=True)
+    # Two runs into one workdir would race on every artifact: the second one stops at once.
+    with artifacts.output_lock(wd, "twinmon run"):
+        return _run_locked(cfg, obs, gap_obs, wd, truth, force, log)
+
+
+def _run_locked(cfg: Config, obs: Path, gap_obs: Path, wd: Path, truth, force: bool,
+                log) -> RunSummary:
+    from . import calibrate, diagnose, forecast, reduce, report, simulate
     p = {k: wd / f"{k}.h5" for k in ("simulations", "surrogate", "posterior", "forecast", "gap")}
     extra = [truth] if truth else []
     stages = []

@@ -261,6 +261,13 @@ def simulate(cfg: Config, output: str | os.PathLike, *, workers: int | None = No
     output = Path(output)
     check_model(cfg)
     output.parent.mkdir(parents=True, exist_ok=True)
+    # One writer per output: a second 'simulate' into the same file must not take the
+    # first one's partial file for a corrupt one and delete it.
+    with artifacts.output_lock(output, "twinmon simulate"):
+        return _simulate_locked(cfg, output, workers, progress)
+
+
+def _simulate_locked(cfg: Config, output: Path, workers, progress) -> SimulateSummary:
     spec = spec_for(cfg)
     section = cfg.section_yaml(*SECTIONS)
     designs = {"train": draw_design(cfg, cfg.simulate.train_size, cfg.seed),

@@ -63,3 +63,44 @@ def test_up_to_date_follows_config_and_input_hashes(tmp_path):
     assert not artifacts.is_up_to_date(out, "gap", "other", [src])
     src.write_text("b")
     assert not artifacts.is_up_to_date(out, "gap", "c", [src])
+
+
+def _hold_lock(path, ready, release):
+    with artifacts.output_lock(path, "twinmon test"):
+        ready.set()
+        release.wait(30)
+
+
+def test_a_second_writer_is_refused_and_a_killed_holder_leaves_no_lock(tmp_path):
+    import multiprocessing as mp
+    import os
+    import signal
+
+    from twinmon.errors import OutputBusyError
+    out = tmp_path / "a.h5"
+    with artifacts.write_artifact(out, "gap") as f:
+        artifacts.put(f, "v", [1.0], "1", "first")
+    before = out.read_bytes()
+    ctx = mp.get_context("fork")
+    ready, release = ctx.Event(), ctx.Event()
+    holder = ctx.Process(target=_hold_lock, args=(out, ready, release))
+    holder.start()
+    assert ready.wait(30)
+    with pytest.raises(OutputBusyError, match=rf"a.h5 is being written by .*pid {holder.pid}"):
+        with artifacts.write_artifact(out, "gap") as f:
+            artifacts.put(f, "v", [2.0], "1", "second")
+    assert out.read_bytes() == before                   # nothing touched
+    os.kill(holder.pid, signal.SIGKILL)                  # the kernel drops a dead holder's lock
+    holder.join()
+    with artifacts.write_artifact(out, "gap") as f:
+        artifacts.put(f, "v", [3.0], "1", "third")
+    assert [p.name for p in tmp_path.iterdir()] == ["a.h5"]
+
+
+def test_stale_temporaries_of_dead_writers_are_removed(tmp_path):
+    out = tmp_path / "a.h5"
+    stale = tmp_path / ".a.h5.999999999.tmp"             # no such process
+    stale.write_bytes(b"half")
+    with artifacts.write_artifact(out, "gap") as f:
+        artifacts.put(f, "v", [1.0], "1", "first")
+    assert not stale.exists()

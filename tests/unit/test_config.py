@@ -103,8 +103,14 @@ def test_extends_cycle_is_an_error(tmp_path):
 
 def test_section_yaml_is_resolved_with_defaults():
     cfg = load_config(CONFIGS / "pump.yaml")
-    text = cfg.section_yaml("simulate")
-    assert "chunk_size: 64" in text  # a default not written in the file
+    text = cfg.section_yaml("calibrate")
+    assert "rhat_warn: 1.05" in text  # a default not written in the file
+    # How the work is spread over processes cannot change a result: not provenance.
+    other = load_config(CONFIGS / "pump.yaml", ["simulate.workers=1", "simulate.executor=serial",
+                                                "calibrate.workers=3", "diagnose.workers=1"])
+    for section in ("simulate", "calibrate", "diagnose"):
+        assert other.section_yaml(section) == cfg.section_yaml(section)
+    assert "workers" not in cfg.section_yaml("simulate")
     assert np.isclose(cfg.model.bounds, [[4.0, 30.0], [2.2, 4.0]]).all()
 
 

@@ -27,6 +27,11 @@ class TwinmonGroup(click.Group):
                 traceback.print_exc()
             click.echo(f"twinmon: {exc.family}: {exc.message}", err=True)
             ctx.exit(exc.exit_code)
+        except KeyboardInterrupt:
+            # Ctrl-C: one line and the shell's code for SIGINT; stages that resume say so
+            # themselves (Interrupted above).
+            click.echo("twinmon: interrupted", err=True)
+            ctx.exit(130)
         except OSError as exc:
             # A file system problem (permissions, full disk) that no stage anticipated: still one
             # line naming the file, with its own exit code.
@@ -47,7 +52,7 @@ def main(ctx, verbose, quiet):
     """Health monitoring of machines through calibrated digital twins.
 
     Exit codes: 0 ok, 2 usage, 3 config, 4 input data, 5 artifact, 6 simulation,
-    7 calibration, 8 I/O.
+    7 calibration, 8 I/O (or output busy), 130 interrupted.
     """
     ctx.ensure_object(dict)
     ctx.obj["verbose"] = verbose
