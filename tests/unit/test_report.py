@@ -17,7 +17,8 @@ import pytest
 
 from twinmon.config import load_config
 from twinmon.errors import ArtifactError
-from twinmon.report import _t90_rows, report
+from twinmon.report import indicator_rows, report
+from twinmon.safety import Indicator
 
 from ..conftest import CONFIGS, write_yaml
 
@@ -100,13 +101,13 @@ def test_full_report_is_self_contained_with_a_figure_per_section(pipeline, full)
     for unit in ("Park", "Colt", "Monk"):
         assert unit in text
     names = set(files)
-    assert {"fig2_last_transients", "fig3_t90_history", "fig5_surrogate"} <= names
+    assert {"fig2_last_transients", "fig3_indicator_history", "fig5_surrogate"} <= names
     expected_sections = {"observations", "surrogate"}
     if art["posterior"]:
         assert "fig6_estimates" in names
         expected_sections.add("calibration")
     if art["forecast"]:
-        assert {"fig7_trends", "fig8_marginals", "fig9_t90_forecast"} <= names
+        assert {"fig7_trends", "fig8_marginals", "fig9_indicator_forecast"} <= names
         expected_sections.add("forecast")
     if art["gap"]:
         assert {"diag_residual_map", "diag_candidates"} <= names
@@ -121,12 +122,16 @@ def test_summary_json_is_derived_from_the_artifacts(pipeline, full):
     data = json.loads((out / "summary.json").read_text())
     assert data == json.loads(json.dumps(summary.as_dict()))
     keys = {"health", "root_cause", "failure_year", "p_unsafe", "action", "plan",
-            "estimates", "confidence", "diagnose", "last_t90"}
+            "estimates", "confidence", "diagnose", "last_indicator"}
     assert set(data["units"]) == {"Park", "Colt", "Monk"}
     for unit in data["units"].values():
         assert keys <= set(unit)
     assert data["surrogate"]["n_test"] == 8
+    assert data["surrogate"]["max_range_error"] >= data["surrogate"]["mean_range_error"] > 0
+    # The pump's flow stays away from 0: the relative error is defined too.
     assert data["surrogate"]["max_rel_error"] >= data["surrogate"]["mean_rel_error"] > 0
+    assert data["indicator"]["name"] == Indicator.from_config(cfg).name
+    assert data["output"]["units"] == cfg.model.output.units
     if art["posterior"]:
         from twinmon.calibrate import read_posterior
         post = read_posterior(art["posterior"])
@@ -169,14 +174,14 @@ def test_report_with_observations_only_skips_the_other_sections(pipeline):
     cfg, _, tmp, art = pipeline
     out = tmp / "report_obs"
     s = report(cfg, out, observations=art["observations"])
-    assert [f["name"] for f in s.figures] == ["fig2_last_transients", "fig3_t90_history"]
+    assert [f["name"] for f in s.figures] == ["fig2_last_transients", "fig3_indicator_history"]
     assert s.sections["observations"] == "rendered"
     text = (out / "index.html").read_text()
     for sec in ("surrogate", "calibration", "forecast", "diagnose"):
         assert s.sections[sec].startswith("skipped")
         assert f'<h2 id="{sec}">' in text
     assert text.count("Section skipped") == 4
-    assert all(u.health == "unknown" and u.last_t90 > 0 for u in s.units.values())
+    assert all(u.health == "unknown" and u.last_indicator > 0 for u in s.units.values())
     assert len(_embedded_pngs(text)) == 2
     assert json.loads((out / "summary.json").read_text())["units"].keys() == s.units.keys()
 
@@ -200,15 +205,31 @@ def test_failed_report_leaves_the_previous_one_intact(pipeline):
     assert (out / "index.html").read_bytes() == before
 
 
-def test_t90_of_a_record_ignores_missing_samples(pipeline):
+def test_indicator_of_a_record_ignores_missing_samples(pipeline):
     from twinmon.observations import read_observations
     cfg, _, _, art = pipeline
-    obs = read_observations(art["observations"])
-    flow = obs.units["Park"].m_flow[:1].copy()
-    ref = _t90_rows(obs.time, flow, cfg.safety)[0]
-    flow[0, -3] = np.nan                     # a plateau sample, far after the crossing
-    assert _t90_rows(obs.time, flow, cfg.safety)[0] == ref
-    assert 5 < ref < cfg.safety.max_time
+    ind = Indicator.from_config(cfg)
+    obs = read_observations(art["observations"], cfg.model.output.name)
+    out = obs.output_of("Park")[:1].copy()
+    ref = indicator_rows(ind, obs.time, out)[0]
+    out[0, -3] = np.nan                      # a late sample, far after the crossing
+    assert indicator_rows(ind, obs.time, out)[0] == ref
+    assert 5 < ref < ind.limit
+
+
+def test_html_speaks_the_configs_words(pipeline, full):
+    cfg, _, _, art = pipeline
+    summary, out = full
+    text = (out / "index.html").read_text()
+    ind = Indicator.from_config(cfg)
+    captions = " ".join(f["caption"] + " " + f["title"] for f in summary.figures)
+    for words in (cfg.model.output.label, cfg.model.output.units, ind.name, ind.label,
+                  f"{ind.limit:g} {ind.units}"):
+        assert words in text, words
+    assert f"measured {cfg.model.output.label}" in captions.lower()
+    # The report's own words are neutral ("start-up" may still come from the config's
+    # diagnose windows).
+    assert "start-up" not in captions.lower()
 
 
 def test_cli_report_finds_artifacts_in_workdir(pipeline):
@@ -226,3 +247,19 @@ def test_cli_report_finds_artifacts_in_workdir(pipeline):
     for role in ("simulations", "surrogate", "posterior", "forecast", "gap"):
         assert (role in data["artifacts"]) == (art[role] is not None)
     assert "truth" not in data["artifacts"]
+
+
+def test_cli_report_fails_on_a_workdir_that_is_missing_or_empty(pipeline, tmp_path):
+    from click.testing import CliRunner
+
+    from twinmon.cli import main
+    from twinmon.errors import ArtifactError
+    _, cfg_path, _, _ = pipeline
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    for folder in (tmp_path / "no_such_folder", empty):
+        res = CliRunner().invoke(main, ["report", "-c", str(cfg_path), "--workdir", str(folder)])
+        assert res.exit_code == ArtifactError.exit_code, res.output
+        lines = res.stderr.strip().splitlines()
+        assert len(lines) == 1 and str(folder) in lines[0] and "artifact error" in lines[0]
+        assert not (folder / "report").exists()

@@ -12,6 +12,31 @@ from .common import config_options, emit_json, json_option, load, say
 _WORKDIR_ARTIFACTS = ("simulations", "surrogate", "posterior", "forecast", "gap")
 
 
+def _from_workdir(workdir: Path, given: dict, explicit: bool) -> None:
+    """Fill ``given`` with the artifacts found in ``workdir``.
+
+    Raises
+    ------
+    ArtifactError
+        ``workdir`` does not exist, or holds none of the artifacts while no other artifact
+        was given: the report would be empty (most likely a mistyped folder).
+    """
+    from ..errors import ArtifactError
+    if not workdir.is_dir():
+        raise ArtifactError(f"{workdir}: --workdir folder does not exist")
+    found = []
+    for name in _WORKDIR_ARTIFACTS:
+        candidate = workdir / f"{name}.h5"
+        if candidate.exists():
+            found.append(name)
+            if given[name] is None:
+                given[name] = str(candidate)
+    if not found and not explicit:
+        names = ", ".join(f"{n}.h5" for n in _WORKDIR_ARTIFACTS)
+        raise ArtifactError(f"{workdir}: --workdir folder holds no artifact (looked for {names}); "
+                            "nothing to report")
+
+
 def _artifact_option(name: str, help_text: str):
     return click.option(f"--{name}", name, default=None, type=click.Path(dir_okay=False),
                         help=help_text)
@@ -45,10 +70,8 @@ def report(config_path, overrides, workdir, observations, simulations, surrogate
     given = {"simulations": simulations, "surrogate": surrogate, "posterior": posterior,
              "forecast": forecast, "gap": gap}
     if workdir is not None:
-        for name in _WORKDIR_ARTIFACTS:
-            candidate = Path(workdir) / f"{name}.h5"
-            if given[name] is None and candidate.exists():
-                given[name] = str(candidate)
+        _from_workdir(Path(workdir), given, explicit=any(
+            v is not None for v in (*given.values(), observations, truth)))
     if output is None:
         output = str(Path(workdir) / "report") if workdir is not None else "out/report"
     s = run(cfg, output, observations=observations, truth=truth, **given)

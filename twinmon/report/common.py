@@ -1,0 +1,200 @@
+"""What every figure and page of the report shares: colours, the figure saver, the config's words.
+
+Nothing in the report names a machine: the output's label and units, the health indicator's
+name, label, units and limit all come from the config (:class:`Words`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Optional
+
+import numpy as np
+
+from ..config import Config
+from ..safety import Indicator
+
+#: Resolution of every PNG (dots per inch).
+DPI = 150
+#: Colours of the units, in order of first appearance (tab10 without red: red means "limit").
+UNIT_COLOURS = ["#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd", "#8c564b", "#e377c2",
+                "#7f7f7f", "#bcbd22", "#17becf"]
+LIMIT_COLOUR = "#d62728"
+
+SECTIONS = ("observations", "surrogate", "calibration", "forecast", "diagnose")
+SECTION_TITLES = {
+    "observations": "Observations",
+    "surrogate": "Reduced model (surrogate) against the FMU",
+    "calibration": "Calibration: degradation inputs per year",
+    "forecast": "Forecast: trends, failure probability, time to failure",
+    "diagnose": "Sim-to-real gap (diagnose)",
+}
+SKIP_HINTS = {
+    "observations": "no observations file given (--observations)",
+    "surrogate": "no surrogate artifact given (run `twinmon reduce`)",
+    "calibration": "no posterior artifact given (run `twinmon calibrate`)",
+    "forecast": "no forecast artifact given (run `twinmon forecast`)",
+    "diagnose": "no gap artifact given (run `twinmon diagnose`)",
+}
+
+
+# ---------------------------------------------------------------------------------------
+# The config's words
+# ---------------------------------------------------------------------------------------
+def qty(value: float, units: str) -> str:
+    """``30 s``; a dimensionless value (units ``1`` or empty) without units."""
+    return f"{value:g}" if units in ("", "1") else f"{value:g} {units}"
+
+
+def axis_label(label: str, units: str) -> str:
+    """``<label> (<units>)`` axis label; ``(-)`` for a dimensionless quantity."""
+    return f"{label} ({'-' if units in ('', '1') else units})"
+
+
+@dataclass(frozen=True)
+class Words:
+    """The config's names for what the report shows.
+
+    Attributes
+    ----------
+    out_label, out_units : str
+        The observed output's words and units (``model.output``).
+    out_axis : str
+        Axis label of the output, e.g. ``"<label> (<units>)"``.
+    ind : Indicator
+        The health indicator (name, label, units, limit, sense, rule, fmt).
+    ind_axis : str
+        Axis label of the indicator, e.g. ``"<name> (<units>)"``.
+    var_label, var_units : str
+        Words and units of the variable the indicator is computed from.
+    on_output : bool
+        The indicator is computed from the observed output (its level can be drawn there).
+    has_nonphysical : bool
+        The model flags a non-physical twin (which counts as unsafe).
+    """
+
+    out_label: str
+    out_units: str
+    out_axis: str
+    ind: Indicator
+    ind_axis: str
+    var_label: str
+    var_units: str
+    on_output: bool
+    has_nonphysical: bool
+
+    @classmethod
+    def from_config(cls, cfg: Config) -> "Words":
+        out = cfg.model.output
+        ind = Indicator.from_config(cfg)
+        on_output = ind.variable == out.variable
+        if on_output:
+            vlabel, vunits = out.label, out.units
+        else:
+            ch = cfg.model.channels.get(ind.variable)
+            vlabel = ch.label if ch is not None and ch.label else ind.variable
+            vunits = ch.units if ch is not None else ""
+        return cls(out.label, out.units, axis_label(out.label, out.units), ind,
+                   axis_label(ind.name, ind.units), vlabel, vunits, on_output,
+                   bool(cfg.model.nonphysical))
+
+    @property
+    def kind(self) -> str:
+        return self.ind.spec.kind
+
+    @property
+    def side(self) -> str:
+        """``above`` or ``below``: where the indicator is unsafe."""
+        return "above" if self.ind.sense > 0 else "below"
+
+    @property
+    def limit_text(self) -> str:
+        """The limit with its units, e.g. ``30 s``."""
+        return qty(self.ind.limit, self.ind.units)
+
+    @property
+    def unsafe_text(self) -> str:
+        """``<label> (<name>) above <limit>``, plus the non-physical mode when the model has one."""
+        text = f"its {self.ind.label} ({self.ind.name}) is {self.side} {self.limit_text}"
+        return text + (" or its twin leaves the physical domain" if self.has_nonphysical else "")
+
+
+def state_words(root_cause: Optional[str]) -> str:
+    """``healthy``, ``<component> fault``, ``several faults`` (root cause ``both``)."""
+    if root_cause is None:
+        return "unknown"
+    if root_cause == "healthy":
+        return "healthy"
+    if root_cause == "both":
+        return "several faults"
+    return f"{root_cause} fault"
+
+
+# ---------------------------------------------------------------------------------------
+# Small helpers
+# ---------------------------------------------------------------------------------------
+def pct(p: Optional[float]) -> str:
+    if p is None or not np.isfinite(p):
+        return "n/a"
+    if 0 < p < 0.005:
+        return "<1 %"
+    return f"{100 * p:.0f} %"
+
+
+def plain(obj: Any) -> Any:
+    """JSON-able copy (numpy scalars and arrays made plain, non-finite floats -> None)."""
+    if isinstance(obj, dict):
+        return {str(k): plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [plain(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return plain(obj.tolist())
+    if isinstance(obj, np.generic):
+        return plain(obj.item())
+    if isinstance(obj, float) and not np.isfinite(obj):
+        return None
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj
+
+
+def input_label(cfg: Config, name: str) -> str:
+    spec = cfg.model.inputs.get(name)
+    return axis_label(name, spec.units if spec is not None else "")
+
+
+def indicator_rows(ind: Indicator, time: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """The health indicator per row of ``values`` [n, n_t] (missing samples, NaN, left out
+    row by row); shape [n]."""
+    return np.asarray(ind(np.asarray(time, float), np.atleast_2d(np.asarray(values, float))),
+                      float)
+
+
+# ---------------------------------------------------------------------------------------
+# Figures
+# ---------------------------------------------------------------------------------------
+class Figures:
+    """Saves figures as PNG files and remembers them for the HTML."""
+
+    def __init__(self, folder: Path):
+        self.folder = folder
+        self.items: list[dict] = []
+
+    def new(self, width: float, height: float, **kw):
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+        fig = Figure(figsize=(width, height), layout="constrained", **kw)
+        FigureCanvasAgg(fig)
+        return fig
+
+    def save(self, fig, name: str, section: str, title: str, caption: str) -> None:
+        path = self.folder / f"{name}.png"
+        fig.savefig(path, dpi=DPI)
+        self.items.append({"name": name, "section": section, "title": title,
+                           "caption": caption, "file": f"figures/{name}.png", "_path": path})
+
+
+def indicator_limit_line(ax, words: Words) -> None:
+    """The indicator's limit on an indicator axis (horizontal, red, dashed)."""
+    ax.axhline(words.ind.limit, color=LIMIT_COLOUR, ls="--", lw=1.2,
+               label=f"{words.limit_text} limit ({words.side} is unsafe)")

@@ -1,0 +1,340 @@
+"""What the report says in words: the per-unit summary, the verdict and action words, the
+terminal text and the content of ``summary.json``."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+
+from ..config import Config
+from .common import pct, plain, state_words
+from .load import Inputs
+
+
+@dataclass
+class UnitSummary:
+    """Plain-language state of one unit, derived from the artifacts given.
+
+    Attributes
+    ----------
+    name : str
+    health : str
+        ``"healthy"``, ``"degrading: <component>"`` (components from the config's inputs), ...
+        or ``"unknown"`` when no forecast was given.
+    root_cause : str or None
+        The forecast's verdict (``healthy``, a component name, ``both``), None without one.
+    failure_year : int or None
+        First future year with P(unsafe) above the limit (year of service).
+    p_unsafe : float or None
+        P(unsafe) in the failure year, or the largest over the horizon when none fails.
+    last_year : int or None
+        Last observed (or calibrated) year.
+    horizon_end : int or None
+        Last forecast year.
+    last_indicator : float or None
+        Health indicator of the last recorded transient (its units); inf for a level never
+        reached.
+    indicator : str
+        The health indicator's name (from the config).
+    last_indicator_text : str
+        ``last_indicator`` for people, with its units.
+    action : str
+        Short recommendation, e.g. ``"inspect the <component> before year 13 ends"``.
+    plan : str
+        The forecast's full maintenance plan with its evidence ("" without a forecast).
+    estimates : dict
+        Latest year's estimate per input: ``{name: {year, mean, q05, q95, units}}``.
+    confidence : str
+        What the statements rest on (tests, diagnostics), in one or two sentences.
+    diagnose : dict or None
+        The sim-to-real gap verdict of this unit, if a gap artifact was given.
+    true_failure_year : int or None
+        From the forecast's truth check, when the data were fabricated.
+    """
+
+    name: str
+    health: str = "unknown"
+    root_cause: Optional[str] = None
+    failure_year: Optional[int] = None
+    p_unsafe: Optional[float] = None
+    last_year: Optional[int] = None
+    horizon_end: Optional[int] = None
+    last_indicator: Optional[float] = None
+    indicator: str = "indicator"
+    last_indicator_text: str = ""
+    action: str = ""
+    plan: str = ""
+    estimates: dict = field(default_factory=dict)
+    confidence: str = ""
+    diagnose: Optional[dict] = None
+    true_failure_year: Optional[int] = None
+
+    @property
+    def short_health(self) -> str:
+        return state_words(self.root_cause)
+
+    @property
+    def time_to_failure(self) -> str:
+        """e.g. ``"fails in year 14 (P(unsafe) 12 % in 14)"``."""
+        if self.root_cause is None:
+            if self.last_indicator is None:
+                return "no forecast"
+            return f"last {self.indicator} {self.last_indicator_text} (no forecast)"
+        if self.failure_year is not None:
+            return (f"fails in year {self.failure_year} "
+                    f"(P(unsafe) {pct(self.p_unsafe)} in {self.failure_year})")
+        return f"no failure by year {self.horizon_end} (max P(unsafe) {pct(self.p_unsafe)})"
+
+    def as_dict(self) -> dict:
+        return {
+            "health": self.health, "root_cause": self.root_cause,
+            "failure_year": self.failure_year, "p_unsafe": self.p_unsafe,
+            "last_year": self.last_year, "horizon_end": self.horizon_end,
+            "last_indicator": (None if self.last_indicator is None
+                               or not np.isfinite(self.last_indicator)
+                               else round(float(self.last_indicator), 3)),
+            "last_indicator_text": self.last_indicator_text or None,
+            "time_to_failure": self.time_to_failure, "action": self.action, "plan": self.plan,
+            "estimates": self.estimates, "confidence": self.confidence,
+            "diagnose": self.diagnose, "true_failure_year": self.true_failure_year,
+        }
+
+
+@dataclass
+class ReportSummary:
+    """What :func:`~twinmon.report.report` wrote; ``as_dict()`` is the content of
+    ``summary.json``.
+
+    Attributes
+    ----------
+    output_dir : str
+    index : str
+        Path of ``index.html``.
+    units : dict of str to UnitSummary
+    sections : dict of str to str
+        ``"rendered"`` or ``"skipped: <why>"`` per section.
+    figures : list of dict
+        ``{name, section, title, caption, file, path}`` per PNG written (``file`` relative
+        to ``output_dir``).
+    surrogate : dict or None
+        Validation figures of the surrogate on the test runs.
+    calibration : dict or None
+        Convergence diagnostics per unit (R-hat, ESS, acceptance, noise).
+    artifacts : dict of str to str
+        The artifacts the report was made from.
+    notes : list of str
+    output : dict
+        The observed output's words: ``{name, label, units}``.
+    indicator : dict
+        The health indicator: ``{name, label, units, kind, variable, limit, sense, rule}``.
+    """
+
+    output_dir: str
+    index: str
+    units: dict[str, UnitSummary]
+    sections: dict[str, str]
+    figures: list[dict]
+    surrogate: Optional[dict] = None
+    calibration: Optional[dict] = None
+    artifacts: dict = field(default_factory=dict)
+    notes: list = field(default_factory=list)
+    output: dict = field(default_factory=dict)
+    indicator: dict = field(default_factory=dict)
+
+    def as_dict(self) -> dict:
+        return {
+            "units": {u: s.as_dict() for u, s in self.units.items()},
+            "sections": dict(self.sections),
+            "figures": list(self.figures),
+            "surrogate": self.surrogate,
+            "calibration": self.calibration,
+            "artifacts": dict(self.artifacts),
+            "notes": list(self.notes),
+            "output": dict(self.output),
+            "indicator": dict(self.indicator),
+            "index": self.index,
+        }
+
+    def terminal(self) -> str:
+        """A short multi-line text: one line per unit, then the report's path."""
+        if not self.units:
+            lines = ["report: no units"]
+        else:
+            w = max(len(u) for u in self.units)
+            h = max(len(s.short_health) for s in self.units.values())
+            t = max(len(s.time_to_failure) for s in self.units.values())
+            lines = [f"{u:<{w}}  {s.short_health:<{h}}  {s.time_to_failure:<{t}}"
+                     + (f"  -> {s.action}" if s.action else "")
+                     for u, s in self.units.items()]
+        skipped = [k for k, v in self.sections.items() if v != "rendered"]
+        if skipped:
+            lines.append(f"(skipped: {', '.join(skipped)})")
+        return "\n".join(lines)
+
+
+def words_dict(inp: Inputs) -> tuple[dict, dict]:
+    """The output's and the indicator's words, for ``summary.json``."""
+    cfg, ind = inp.cfg, inp.words.ind
+    out = cfg.model.output
+    return ({"name": out.name, "variable": out.variable, "label": out.label, "units": out.units},
+            {"name": ind.name, "label": ind.label, "units": ind.units, "kind": ind.spec.kind,
+             "variable": ind.variable, "limit": ind.limit, "sense": ind.sense,
+             "rule": ind.rule})
+
+
+def calibration_diagnostics(inp: Inputs) -> dict:
+    """Convergence diagnostics per unit and the sampler's warnings (``summary.json``)."""
+    from ..calibrate import diagnostics_warnings
+    post, cfg = inp.posterior, inp.cfg
+    units = {}
+    for u, p in post.units.items():
+        units[u] = {"years": [int(y) for y in p.years],
+                    "max_rhat": float(np.nanmax(p.rhat)), "min_ess": float(np.nanmin(p.ess)),
+                    "acceptance": [float(np.min(p.acceptance)), float(np.max(p.acceptance))],
+                    "noise_std": float(np.asarray(p.noise_std)[0]),
+                    "noise_source": p.noise_source}
+    return {"units": units,
+            "warnings": diagnostics_warnings(post.units, list(post.input_names), cfg)}
+
+
+def faulty_components(cfg: Config, uf) -> list[str]:
+    """Components of the inputs whose drift the root-cause test rejects (the config's
+    ``component`` words; the input's name when it has none)."""
+    out = set()
+    for name, t in uf.trends.items():
+        if t.rejects:
+            spec = cfg.model.inputs.get(name)
+            out.add((spec.component if spec is not None else "") or t.component or name)
+    return sorted(out)
+
+
+def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
+    """The plain-language summary of one unit; ``observed``: {unit: (years, indicator)}."""
+    cfg, ind = inp.cfg, inp.words.ind
+    s = UnitSummary(unit, indicator=ind.name)
+    limit = cfg.safety.failure_probability
+    if unit in observed:
+        yrs, values = observed[unit]
+        s.last_year, s.last_indicator = int(yrs[-1]), float(values[-1])
+        s.last_indicator_text = ind.fmt(s.last_indicator)
+    elif inp.obs is not None and unit in inp.obs.units:
+        s.last_year = int(inp.obs.units[unit].years[-1])
+    post = inp.posterior.units.get(unit) if inp.posterior is not None else None
+    if post is not None:
+        s.last_year = s.last_year or int(post.years[-1])
+        s.estimates = {
+            name: {"year": int(post.years[-1]), "mean": float(post.mean[-1, j]),
+                   "q05": float(post.q05[-1, j]), "q95": float(post.q95[-1, j]),
+                   "units": cfg.model.inputs[name].units if name in cfg.model.inputs else ""}
+            for j, name in enumerate(inp.posterior.input_names)}
+    uf = inp.forecast.units.get(unit) if inp.forecast is not None else None
+    gap = (inp.gap.units.get(unit) if inp.gap is not None and inp.gap_other_source is None
+           else None)
+    why: list[str] = []
+
+    if uf is not None:
+        comps = faulty_components(cfg, uf)
+        s.root_cause = uf.root_cause
+        s.health = "healthy" if not comps else "degrading: " + " and ".join(comps)
+        s.failure_year = uf.failure_year
+        s.horizon_end = int(uf.years_future[-1])
+        s.last_year = s.last_year or int(uf.years_observed[-1])
+        s.plan = uf.plan
+        s.true_failure_year = uf.true_failure_year if uf.has_truth else None
+        yf = np.asarray(uf.years_future)
+        last = int(uf.years_observed[-1])
+        what = " and the ".join(comps) if comps else None
+        if uf.failure_year is not None:
+            s.p_unsafe = float(uf.p_unsafe[int(np.flatnonzero(yf == uf.failure_year)[0])])
+            now = (uf.p_unsafe_observed.size and uf.p_unsafe_observed[-1] > limit) \
+                or uf.failure_year <= last + 1
+            when = "now" if now else f"before year {uf.failure_year - 1} ends"
+            s.action = (f"inspect the {what} {when}" if what
+                        else f"overhaul the unit {when} (normal ageing reaches the limit)")
+        else:
+            s.p_unsafe = float(np.max(uf.p_unsafe)) if uf.p_unsafe.size else 0.0
+            s.action = (f"inspect the {what} at the next planned stop" if what
+                        else "no action; re-check at next year's recorded transient")
+        for name, t in uf.trends.items():
+            if t.rejects:
+                lo, hi = t.slope_ci
+                why.append(f"{name} drifts {t.slope:+.3g}/yr (90 % CI {lo:+.3g} to {hi:+.3g}) "
+                           f"against normal ageing {t.normal_rate:+.3g} +- {t.tolerance:.3g}/yr "
+                           f"({'one' if t.direction else 'two'}-sided t test, p = {t.p_value:.1g})")
+        if not comps:
+            pmin = min(t.p_value for t in uf.trends.values())
+            why.append(f"every input drifts within normal ageing (t tests of the slopes, all "
+                       f"p >= {np.floor(pmin * 100) / 100:.2f})")
+        why.append(f"P(unsafe) from {uf.indicator.shape[1]} Monte Carlo draws of the {ind.name} "
+                   f"per year through the twin; failure = first year above {100 * limit:g} %")
+    elif post is not None:
+        s.action = "run `twinmon forecast` for a trend and a time to failure"
+    else:
+        s.action = "run `twinmon calibrate` and `twinmon forecast` for a diagnosis"
+        if s.last_indicator is not None and bool(ind.unsafe(np.asarray(s.last_indicator))):
+            s.action = (f"unsafe at the last recorded transient ({ind.name} "
+                        f"{s.last_indicator_text}, {ind.rule} is unsafe): inspect the unit; "
+                        + s.action)
+
+    if post is not None:
+        cc = cfg.calibrate
+        rmax, emin = float(np.nanmax(post.rhat)), float(np.nanmin(post.ess))
+        if rmax <= cc.rhat_warn and emin >= cc.ess_warn:
+            why.append(f"calibration converged (R-hat <= {rmax:.3f}, ESS >= {emin:.0f})")
+        else:
+            why.append(f"calibration diagnostics miss their thresholds (max R-hat {rmax:.3f} "
+                       f"vs {cc.rhat_warn:g}, min ESS {emin:.0f} vs {cc.ess_warn:g}): the "
+                       "intervals are less certain than they look")
+
+    if gap is not None:
+        s.diagnose = {
+            "verdict": gap.verdict, "effects": list(gap.effects), "group": list(gap.group),
+            "onset": gap.onset, "where_windows": list(gap.where_windows),
+            "where_years": [int(y) for y in gap.where_years],
+            "absorbed_share": plain(float(gap.absorbed_share)),
+            "closed_percent": plain(float(gap.closed_percent)),
+            "rms_before": plain(float(gap.rms_before)), "rms_after": plain(float(gap.rms_after)),
+            "separating_channel": gap.separating_channel or None,
+            "failure_year_before": gap.failure_year_before,
+            "failure_year_after": gap.failure_year_after,
+            "estimate": {k: {"mean": plain(float(v[0])), "q05": plain(float(v[1])),
+                             "q95": plain(float(v[2]))} for k, v in gap.estimate.items()},
+        }
+        if gap.verdict == "effect":
+            group = gap.group if len(gap.group) > 1 else gap.effects
+            eff = " or ".join(group)
+            s.action += (f"; the twin misses the plant from year {gap.onset}: check {eff}"
+                         if gap.onset is not None else f"; the twin misses the plant: check {eff}")
+            eff_units = {k: (cfg.model.effects[k].units if k in cfg.model.effects else "")
+                         for k in gap.estimate}
+            est = "; ".join(f"{k} = {v[0]:.3g} (90 % interval {v[1]:.3g} to {v[2]:.3g}) "
+                            f"{'' if eff_units[k] == '1' else eff_units[k]}".rstrip()
+                            for k, v in gap.estimate.items())
+            where = " and ".join(gap.where_windows)
+            plural = "s" if len(gap.where_windows) > 1 else ""
+            why.append(f"diagnose: the gap sits in the {where or 'whole record'} window{plural}; "
+                       "adding "
+                       f"{', '.join(gap.effects)} closes {gap.closed_percent:.0f} % of the "
+                       f"excess gap (BIC gain {gap.delta_bic_final:.0f}); {est}"
+                       + (f"; {gap.separating_channel} would tell the group apart"
+                          if len(gap.group) > 1 and gap.separating_channel else ""))
+            share = float(gap.absorbed_share)
+            if uf is not None and np.isfinite(share) and share > 0.1:
+                why.append(f"the calibrated twin lacks this effect and its degradation inputs "
+                           f"absorb {100 * share:.0f} % of its signature, so the root cause and "
+                           "time to failure above may be biased")
+            if gap.failure_year_before != gap.failure_year_after:
+                why.append(f"with the effect in the twin the projected failure year moves from "
+                           f"{gap.failure_year_before or 'none'} to "
+                           f"{gap.failure_year_after or 'none'}")
+        elif gap.verdict == "unexplained":
+            s.action += "; the twin misses the plant and no candidate explains it: check the data"
+            why.append("diagnose: a significant gap no candidate effect explains, so the "
+                       "estimates may be biased")
+        else:
+            why.append("diagnose: no significant gap between the twin and the plant")
+    if s.true_failure_year is not None or (uf is not None and uf.has_truth):
+        why.append(f"true failure year (fabricated data): {s.true_failure_year or 'none'}")
+    s.confidence = "; ".join(why) + ("." if why else "")
+    return s
