@@ -734,6 +734,38 @@ def _check_inputs(cfg: Config, surrogate, surrogate_path, obs) -> None:
             f"{obs.path}: time grid ({t_o.size} samples, {t_o[0]:g}..{t_o[-1]:g} s) differs "
             f"from the surrogate's in {surrogate_path} ({t_s.size} samples, "
             f"{t_s[0]:g}..{t_s[-1]:g} s)")
+    check_observed_range(cfg, surrogate, obs)
+
+
+#: Observed values beyond the simulated range by more than this many times its width are
+#: taken for a unit or scale mistake (or a broken sensor), not for a degraded machine.
+RANGE_FACTOR = 3.0
+
+
+def check_observed_range(cfg: Config, surrogate, obs) -> None:
+    """Observed output values must lie near what the design's simulations produced.
+
+    Raises
+    ------
+    InputDataError
+        A value further than ``RANGE_FACTOR`` times the simulated range from it, naming the
+        unit, year, time and value."""
+    train = surrogate.training_outputs()
+    lo, hi = float(np.min(train)), float(np.max(train))
+    width = max(hi - lo, abs(hi), 1e-300)
+    low, high = lo - RANGE_FACTOR * width, hi + RANGE_FACTOR * width
+    name, units = cfg.model.output.name, cfg.model.output.units
+    for unit in obs.units:
+        y = obs.output_of(unit)
+        with np.errstate(invalid="ignore"):
+            bad = (y < low) | (y > high)
+        if bad.any():
+            k, j = np.argwhere(bad)[0]
+            raise InputDataError(
+                f"{obs.path}: /units/{unit}/{name} year {obs.units[unit].years[k]} at "
+                f"t = {obs.time[j]:g} s is {y[k, j]:g} {units}, far outside anything the "
+                f"design's simulations produced ({lo:.4g} to {hi:.4g} {units}); check the "
+                "units and the channel")
 
 
 def calibrate(cfg: Config, surrogate_path: str | os.PathLike,

@@ -660,6 +660,7 @@ def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
         if mean.shape != (years.size, d) or not np.all(np.isfinite(mean)):
             raise ArtifactError(f"{posterior_path}: /units/{unit}/mean must be finite with "
                                 f"shape ({years.size}, {d}), got shape {mean.shape}")
+        _check_plausible(posterior_path, unit, np.asarray(up.samples, float), cfg)
         trends, resid = {}, np.empty((years.size, d))
         for i, name in enumerate(names):
             spec = cfg.model.inputs[name]
@@ -725,6 +726,23 @@ def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
            inputs=[posterior_path, surrogate_path] + ([truth_path] if truth_path else []))
     return ForecastSummary(units, str(output), _time.perf_counter() - start, box_ok,
                            [d.note for d in directions.values() if d.note])
+
+
+def _check_plausible(path, unit: str, samples: np.ndarray, cfg: Config) -> None:
+    """Posterior draws must be finite and inside the design box widened by the fit margin
+    (calibration's prior never leaves the box): anything else is a damaged or foreign file,
+    and a forecast from it would be garbage with exit 0."""
+    box = cfg.model.bounds
+    pad = cfg.diagnose.fit_margin * (box[:, 1] - box[:, 0])
+    lo, hi = box[:, 0] - pad, box[:, 1] + pad
+    bad = ~np.isfinite(samples) | (samples < lo) | (samples > hi)
+    if bad.any():
+        k, j, i = np.argwhere(bad)[0]
+        name = cfg.model.input_names[i]
+        raise ArtifactError(f"{path}: /units/{unit}/samples[{k}, {j}, {i}] ({name}) is "
+                            f"{samples[k, j, i]!r}, outside the design box "
+                            f"[{box[i, 0]:g}, {box[i, 1]:g}] widened by the fit margin: "
+                            "a damaged or foreign posterior; re-run calibrate")
 
 
 def _add_truth(cfg: Config, uf: UnitForecast, unit: str, truth, truth_path) -> None:

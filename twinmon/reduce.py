@@ -160,6 +160,11 @@ class Surrogate:
     def _untransform(self, z: np.ndarray) -> np.ndarray:
         return np.exp(z) if self.transform == "log" else z
 
+    def training_outputs(self) -> np.ndarray:
+        """The training transients as the kept modes reproduce them, shape [n, n_t], output
+        units (for range checks; the truncated modes hold a tiny share of the variance)."""
+        return self._untransform(self.mean + self.xi_train @ self.basis)
+
     def predict(self, X: np.ndarray) -> np.ndarray:
         """Predicted transients, shape [n, n_t], output units."""
         return self._untransform(self.mean + self.coefficients(X) @ self.basis)
