@@ -6,8 +6,6 @@ import click
 from . import main
 from .common import config_options, emit_json, json_option, load, progress_bar, say
 
-#: The paper's figures (section V), relative errors of the Bayesian estimates.
-PAPER = {"pump_coef": (0.071, 0.034), "motor_damping": (0.099, 0.035)}
 #: Warning lines printed; the rest are counted (all are in the --json summary).
 MAX_WARNINGS = 12
 
@@ -51,12 +49,10 @@ def calibrate(config_path, overrides, surrogate, observations, truth, output, as
             f"{n} {v:.4g} [{p.q05[-1, j]:.4g}, {p.q95[-1, j]:.4g}]"
             for j, (n, v) in enumerate(last.items())))
     if s.truth_check:
-        say("relative error of the posterior mean against the truth (paper's in brackets):")
+        say("relative error of the posterior mean against the truth:")
         for name, tc in s.truth_check.items():
-            ref = PAPER.get(name)
-            paper = f" (paper {100 * ref[0]:.1f} % / {100 * ref[1]:.1f} %)" if ref else ""
             say(f"  {name}: max {100 * tc['max_rel_error']:.1f} %, mean "
-                f"{100 * tc['mean_rel_error']:.2f} %{paper}; 90 % interval coverage "
+                f"{100 * tc['mean_rel_error']:.2f} %; 90 % interval coverage "
                 f"{100 * tc['coverage_90']:.0f} %")
     say(f"calibrate: {len(s.warnings)} warning(s) -> {output}")
 
