@@ -263,3 +263,65 @@ def test_cli_report_fails_on_a_workdir_that_is_missing_or_empty(pipeline, tmp_pa
         lines = res.stderr.strip().splitlines()
         assert len(lines) == 1 and str(folder) in lines[0] and "artifact error" in lines[0]
         assert not (folder / "report").exists()
+
+
+DCDRIVE = CONFIGS / "dcdrive_fleet.yaml"
+
+
+def _dcdrive_config():
+    """The DC drive example's config, or None when it is not there (or does not load)."""
+    if not DCDRIVE.exists():
+        return None
+    try:
+        return load_config(DCDRIVE)
+    except Exception:  # noqa: BLE001  (the example is being written: skip, do not fail)
+        return None
+
+
+@pytest.mark.skipif(_dcdrive_config() is None, reason="configs/dcdrive_fleet.yaml not available")
+def test_report_of_another_machine_speaks_its_words(tmp_path):
+    """The whole chain on the DC drive (a mean speed over a window, unsafe below a limit): the
+    report names its output and indicator and nothing of the pump."""
+    from twinmon.calibrate import calibrate
+    from twinmon.fabricate import fabricate
+    from twinmon.forecast import forecast
+    from twinmon.reduce import reduce
+    from twinmon.simulate import simulate
+    cfg = load_config(write_yaml(tmp_path / "dc.yaml", {
+        "extends": str(DCDRIVE),
+        "simulate": {"train_size": 24, "test_size": 8, "executor": "serial"},
+        "calibrate": {"chains": 2, "samples": 200, "burn_in": 50, "workers": 1},
+        "forecast": {"samples": 200},
+        "fabricate": {"years": 4},
+    }))
+    art = {"observations": tmp_path / "obs.h5", "truth": tmp_path / "truth.h5",
+           "simulations": tmp_path / "sims.h5", "surrogate": tmp_path / "sur.h5",
+           "posterior": tmp_path / "post.h5", "forecast": tmp_path / "fc.h5"}
+    simulate(cfg, art["simulations"])
+    reduce(cfg, art["simulations"], art["surrogate"])
+    fabricate(cfg, art["observations"], art["truth"])
+    calibrate(cfg, art["surrogate"], art["observations"], art["posterior"])
+    forecast(cfg, art["posterior"], art["surrogate"], art["forecast"])
+    out = tmp_path / "report"
+    s = report(cfg, out, **art)
+
+    assert {k for k, v in s.sections.items() if v == "rendered"} == {
+        "observations", "surrogate", "calibration", "forecast"}
+    assert {"fig2_last_transients", "fig3_indicator_history", "fig5_surrogate",
+            "fig9_indicator_forecast"} <= {f["name"] for f in s.figures}
+    text = (out / "index.html").read_text()
+    ind = Indicator.from_config(cfg)
+    out_spec = cfg.model.output
+    for words in (out_spec.label, out_spec.units, f"Measured {out_spec.label}", ind.name,
+                  ind.label, f"{ind.limit:g} {ind.units}", f"{ind.name} is below"):
+        assert words in text, words
+    words_only = re.sub(r'src="data:image/png;base64,[^"]*"', "", text)   # base64 is not words
+    for words in ("kg/s", "mass flow", "t90", "nominal flow", "start-up transient"):
+        assert words not in words_only, words
+    data = json.loads((out / "summary.json").read_text())
+    assert data["indicator"]["name"] == ind.name and data["indicator"]["sense"] == -1
+    assert data["output"]["label"] == out_spec.label
+    assert data["surrogate"]["max_range_error"] >= data["surrogate"]["mean_range_error"] > 0
+    for u in data["units"].values():
+        assert u["last_indicator"] is not None        # a mean speed is always defined
+        assert u["last_indicator_text"].endswith(ind.units)

@@ -41,7 +41,7 @@ def _indicator_marks(ax, w: Words, t_end: float) -> str:
         what = {"max": "maximum", "min": "minimum", "mean": "mean"}[kind]
         if spec.window is not None:
             a, b = float(spec.window[0]), float(spec.window[1])
-            ax.axvspan(max(a, 0.0), min(b, t_end + 1.0), color=MARK_COLOUR, alpha=0.08, lw=0,
+            ax.axvspan(max(a, 0.0), min(b, t_end * 1.02), color=MARK_COLOUR, alpha=0.08, lw=0,
                        label=f"{ind.name} window ({a:g}-{min(b, t_end):g} s)")
             words.append(f"The {ind.name} is the {what} of the {w.var_label} over the shaded "
                          "window")
@@ -76,7 +76,7 @@ def fig_last_transients(figs: Figures, inp: Inputs, colours: dict, observed: dic
     marks = _indicator_marks(ax, w, float(obs.time[-1]))
     ax.set_xlabel("time since start (s)")
     ax.set_ylabel(w.out_axis)
-    ax.set_xlim(0, obs.time[-1] + 1)
+    ax.set_xlim(0, obs.time[-1] * 1.02)
     ax.set_title("Last recorded transient per unit")
     ax.legend(loc="best", fontsize=9)
     ax.grid(alpha=0.3)

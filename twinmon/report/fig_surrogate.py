@@ -37,7 +37,7 @@ def fig_surrogate(figs: Figures, inp: Inputs) -> dict:
     order = np.argsort(np.where(np.isnan(key), np.inf, key), kind="stable")
     pick = order[np.unique(np.linspace(0, len(order) - 1, min(4, len(order))).round()
                            .astype(int))]
-    fig = figs.new(12, 4.8)
+    fig = figs.new(12, 5.6)
     a1, a2 = fig.subplots(1, 2, width_ratios=[1.25, 1])
     cmap = ["#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd"]
     sd = np.sqrt(np.maximum(var, 0.0))
@@ -52,7 +52,8 @@ def fig_surrogate(figs: Figures, inp: Inputs) -> dict:
     a1.set_xlabel("time since start (s)")
     a1.set_ylabel(w.out_axis)
     a1.set_title(f"{len(pick)} of {len(X)} test runs")
-    a1.legend(fontsize=8, loc="best")
+    # Below the axes: the runs fill the plot, whatever the output's shape.
+    a1.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=2)
     a1.grid(alpha=0.3)
     a2.semilogy(time, 100 * rng.max(axis=0), "o-", color="#d62728", ms=3,
                 label="max over test runs (% of range)")
@@ -67,8 +68,7 @@ def fig_surrogate(figs: Figures, inp: Inputs) -> dict:
     a2.set_ylabel("error |surrogate - FMU| (%)")
     a2.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
     span = float(f"{e['span']:.3g}")
-    a2.set_title(f"Error per time step ({w.out_label} range over the test runs: "
-                 f"{qty(span, w.out_units)})")
+    a2.set_title(f"Error per time step (test-run range {qty(span, w.out_units)})")
     a2.legend(fontsize=8, loc="best")
     a2.grid(alpha=0.3, which="both")
     mx, mn = float(rng.max()), float(rng.mean())

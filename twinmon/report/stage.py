@@ -92,7 +92,8 @@ def _render(cfg: Config, inp: Inputs, tmp: Path, out: Path, provenance: dict) ->
             fig_indicator_history(figs, inp, colours, observed)
         else:
             extra["observations"] = [e_p(
-                f"The observations do not record {w.ind.variable}, the variable the "
+                f"The observations do not record the {w.var_label} ({w.ind.variable}), the "
+                f"variable the "
                 f"{w.ind.name} is computed from: no observed {w.ind.name} history.")]
         sections["observations"] = "rendered"
     else:
