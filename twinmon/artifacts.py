@@ -20,7 +20,7 @@ from typing import Any, Iterator, Sequence
 import h5py
 import numpy as np
 
-from .errors import ArtifactError, OutputBusyError
+from .errors import ArtifactError, OutputBusyError, ReadError, TwinmonError
 
 #: Current major version of each artifact kind. Bump on an incompatible layout change.
 SCHEMAS = {
@@ -234,10 +234,15 @@ def open_artifact(path: str | os.PathLike, kind: str) -> h5py.File:
     path = Path(path)
     if not path.exists():
         raise ArtifactError(f"{path}: file not found (expected a {kind} artifact)")
+    if path.is_dir():
+        raise ArtifactError(f"{path}: is a folder (expected a {kind} artifact file)")
+    if not os.access(path, os.R_OK):
+        raise ReadError(f"{path}: permission denied (cannot read the {kind} artifact)")
     try:
-        f = h5py.File(path, "r")
+        f = _ArtifactFile(path, "r")
     except OSError:
         raise ArtifactError(f"{path}: not a readable HDF5 file (expected a {kind} artifact)") from None
+    f.twinmon_path = path
     found = f.attrs.get("schema", None)
     if isinstance(found, bytes):
         found = found.decode()
@@ -246,6 +251,24 @@ def open_artifact(path: str | os.PathLike, kind: str) -> h5py.File:
         f.close()
         raise ArtifactError(f"{path}: schema is {found!r}, expected {expected!r}")
     return f
+
+
+class _ArtifactFile(h5py.File):
+    """An artifact open for reading: damage found while reading it (a corrupt object header,
+    a missing attribute, a truncated dataset) leaves the ``with`` block as one
+    :class:`ArtifactError` naming the file, not as an h5py traceback."""
+
+    twinmon_path: Path = Path("<artifact>")
+
+    def __exit__(self, typ, exc, tb):
+        super().__exit__(typ, exc, tb)
+        if exc is not None and isinstance(exc, (KeyError, OSError, RuntimeError, ValueError,
+                                                TypeError, json.JSONDecodeError)) \
+                and not isinstance(exc, TwinmonError):
+            what = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            raise ArtifactError(f"{self.twinmon_path}: damaged or incomplete artifact ({what}); "
+                                "re-run the stage that made it") from None
+        return False
 
 
 def put(group: h5py.Group, name: str, data: Any, units: str, description: str,

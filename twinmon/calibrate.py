@@ -725,6 +725,11 @@ def _check_inputs(cfg: Config, surrogate, surrogate_path, obs) -> None:
     if list(surrogate.input_names) != cfg.model.input_names:
         raise ArtifactError(f"{surrogate_path}: inputs are {surrogate.input_names}, the "
                             f"config's are {cfg.model.input_names}")
+    times = cfg.model.output.times.times
+    if surrogate.time.shape != times.shape or not np.allclose(surrogate.time, times):
+        raise ArtifactError(f"{surrogate_path}: made for a time grid of {surrogate.time.size} "
+                            f"samples, the config's model.output.times has {times.size}; "
+                            "re-run simulate and reduce")
     if not np.allclose(surrogate.bounds, cfg.model.bounds):
         raise ArtifactError(f"{surrogate_path}: trained on the box {surrogate.bounds.tolist()}, "
                             f"the config's is {cfg.model.bounds.tolist()} (re-run reduce)")
@@ -739,7 +744,7 @@ def _check_inputs(cfg: Config, surrogate, surrogate_path, obs) -> None:
 
 #: Observed values beyond the simulated range by more than this many times its width are
 #: taken for a unit or scale mistake (or a broken sensor), not for a degraded machine.
-RANGE_FACTOR = 3.0
+RANGE_FACTOR = 1.0
 
 
 def check_observed_range(cfg: Config, surrogate, obs) -> None:

@@ -23,7 +23,7 @@ from typing import Any, Literal, Mapping, Optional
 import numpy as np
 import yaml
 
-from .errors import ConfigError
+from .errors import ConfigError, ReadError
 
 
 # ---------------------------------------------------------------------------------------
@@ -641,7 +641,7 @@ def _load_yaml_tree(path: Path, seen: tuple) -> dict:
     except IsADirectoryError:
         raise ConfigError(f"{path}: is a folder, expected a YAML file") from None
     except OSError as exc:
-        raise ConfigError(f"{path}: cannot read config: {exc.strerror}") from None
+        raise ReadError(f"{path}: cannot read config: {exc.strerror}") from None
     except UnicodeDecodeError as exc:
         line = exc.object[:exc.start].count(b"\n") + 1
         raise ConfigError(f"{path}: line {line}: not UTF-8 text (byte 0x{exc.object[exc.start]:02x}); "

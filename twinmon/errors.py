@@ -63,6 +63,13 @@ class CalibrationError(TwinmonError):
     family = "calibration error"
 
 
+class ReadError(TwinmonError):
+    """An input file exists but cannot be read (permissions, a folder given for a file)."""
+
+    exit_code = 8
+    family = "I/O error"
+
+
 class OutputBusyError(TwinmonError):
     """Another twinmon process is writing the same output; nothing was touched."""
 
@@ -79,4 +86,4 @@ class Interrupted(TwinmonError):
 
 EXIT_CODES = {cls.family: cls.exit_code for cls in
               (TwinmonError, ConfigError, InputDataError, ArtifactError,
-               SimulationError, CalibrationError, OutputBusyError, Interrupted)}
+               SimulationError, CalibrationError, ReadError, OutputBusyError, Interrupted)}

@@ -587,7 +587,7 @@ def maintenance_plan(trends: dict, years_future: np.ndarray,
                 f"degrading faster than normal ageing [{evidence}], though P(unsafe) stays "
                 f"<= {limit:.2f} through year {horizon_end} (max {pmax:.2f}){sound_txt}.")
     return (f"No action: all components within normal ageing; P(unsafe) stays <= {limit:.2f} "
-            f"through year {horizon_end} (max {pmax:.2f}). Re-check at next year's start-up.")
+            f"through year {horizon_end} (max {pmax:.2f}). Re-check at next year's recording.")
 
 
 def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str | os.PathLike,
@@ -643,6 +643,11 @@ def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
                             f"differs from the config's output times ({times.size} samples)")
     if not post.units:
         raise ArtifactError(f"{posterior_path}: no units in the posterior")
+    made_from = [r.get("sha256") for r in artifacts.read_provenance(posterior_path).get("inputs", [])]
+    if made_from and artifacts.file_sha256(surrogate_path) not in made_from:
+        raise ArtifactError(f"{posterior_path}: calibrated with another surrogate than "
+                            f"{surrogate_path} (its recorded inputs do not include that file's "
+                            "hash); re-run calibrate, or pass the surrogate it was made with")
     ot.RandomGenerator.SetSeed(cfg.seed + SEED_OFFSET)
     directions = degrading_directions(cfg, sur)
     box_ok = box_is_physical(cfg)
@@ -859,6 +864,9 @@ class Forecast:
     confidence: float
     units: dict
     directions: dict = field(default_factory=dict)
+    #: The health indicator the forecast was made with (name, label, units, limit, sense,
+    #: variable, kind); empty for files written before it was recorded.
+    indicator: dict = field(default_factory=dict)
 
 
 def read_forecast(path: str | os.PathLike) -> Forecast:
@@ -906,4 +914,5 @@ def read_forecast(path: str | os.PathLike) -> Forecast:
                 true_inputs={n: get(g, f"truth/inputs/{n}") for n in names} if has_truth
                 else None)
         return Forecast(path, names, float(f.attrs["confidence"]), units,
-                        json.loads(f.attrs["directions"]))
+                        json.loads(f.attrs["directions"]),
+                        json.loads(f.attrs["indicator"]) if "indicator" in f.attrs else {})
