@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import copy
 import json
+import os
+import signal
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +16,7 @@ from twinmon import artifacts
 from twinmon.config import config_from_mapping, load_config
 from twinmon.diagnose import (JointFit, Twin, candidate_names, diagnose, diagnose_unit,
                               estimate_noise, ljung_box, pooled_onset_pvalues, read_gap)
-from twinmon.errors import ArtifactError, ConfigError, InputDataError
+from twinmon.errors import ArtifactError, ConfigError, InputDataError, Interrupted, SimulationError
 from twinmon.fabricate import fabricate
 from twinmon.fmu import resolve_fmu
 
@@ -248,3 +250,57 @@ def test_posterior_predictive_map_and_mismatched_posterior(cfg, fmu, twin):
         _posterior_for("p.h5", post, cfg, "U", years)
     with pytest.raises(ArtifactError, match="no posterior"):
         _posterior_for("p.h5", post, cfg, "V", years)
+
+
+# -- the process pool ------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def two_units(tmp_path_factory):
+    """A 2-unit, 1-year fleet: enough for diagnose to start a pool of 2 workers."""
+    tmp = tmp_path_factory.mktemp("pool")
+    cfg = small_fleet_cfg({"A": HEALTHY, "B": HEALTHY}, years=1)
+    fabricate(cfg, tmp / "obs.h5", tmp / "truth.h5")
+    return cfg, tmp / "obs.h5"
+
+
+def _die_in_worker(args, parent=os.getpid()):
+    # A crash in the FMU's native code, as the parent sees it: the worker vanishes.
+    if os.getpid() != parent:
+        os._exit(1)
+    raise AssertionError("the unit ran in the parent process, not in a worker")
+
+
+def _report_sigint_handler(args):
+    raise RuntimeError(f"SIGINT handler in the worker: {signal.getsignal(signal.SIGINT)!r}")
+
+
+def test_dead_worker_is_one_simulation_error(two_units, tmp_path, monkeypatch):
+    import twinmon.diagnose as dg
+    cfg, obs = two_units
+    monkeypatch.setattr(dg, "_job", _die_in_worker)
+    with pytest.raises(SimulationError, match="worker process died") as info:
+        diagnose(cfg, obs, tmp_path / "gap.h5", workers=2)
+    msg = str(info.value)
+    assert "\n" not in msg and str(resolve_fmu(cfg.model.fmu)) in msg
+    assert not (tmp_path / "gap.h5").exists()
+
+
+def test_workers_ignore_ctrl_c(two_units, tmp_path, monkeypatch):
+    # Ctrl-C reaches the whole process group; only the parent may act on it.
+    import twinmon.diagnose as dg
+    cfg, obs = two_units
+    monkeypatch.setattr(dg, "_job", _report_sigint_handler)
+    with pytest.raises(RuntimeError, match="SIG_IGN"):
+        diagnose(cfg, obs, tmp_path / "gap.h5", workers=2)
+
+
+def test_ctrl_c_is_interrupted_and_writes_nothing(two_units, tmp_path, monkeypatch):
+    import twinmon.diagnose as dg
+
+    def interrupt(args):
+        raise KeyboardInterrupt
+    cfg, obs = two_units
+    monkeypatch.setattr(dg, "_job", interrupt)
+    out = tmp_path / "gap.h5"
+    with pytest.raises(Interrupted, match=r"gap\.h5: interrupted; nothing was written"):
+        diagnose(cfg, obs, out, workers=1)
+    assert not out.exists()

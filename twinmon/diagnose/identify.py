@@ -1,0 +1,319 @@
+"""Step 2, **identify**: which candidate effect causes the gap.
+
+Every candidate effect (an FMU parameter of ``model.effects``) is
+
+- **screened** (:func:`screen`): how much of the residual its signature explains once the
+  degradation inputs are linearly re-adjusted, on a grid over the effect's range and for every
+  onset year at once (cheap);
+- **confirmed** (:func:`confirm`): the augmented fit through the FMU (per-year degradation
+  inputs plus the effect, one value per unit from its onset), compared with the base twin by
+  BIC (:func:`bic`).
+
+Candidates within ``group_bic`` of the best form one **group**; :func:`separation` names the
+unobserved FMU channel that would separate them. Further effects are added
+(:func:`_further`) only while the BIC gain stays above ``bic_gain``. :func:`identify` runs all
+this and returns an :class:`Identification`; :func:`ranking` tabulates the candidates.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+from scipy import stats
+
+from ..errors import SimulationError
+from .fit import JointFit
+from .state import UnitState
+
+
+@dataclass
+class Identification:
+    """What step 2 found for one unit.
+
+    Attributes
+    ----------
+    screened : dict of str to tuple
+        ``{candidate: (score, value, onset, gain [n_v, n_y])}`` from :func:`screen`.
+    confirmed : dict of str to tuple or None
+        ``{candidate: (chi2, FitResult, first fitted row, onset)}`` from :func:`confirm`.
+    dbic : dict of str to float
+        BIC of the base twin minus BIC with the candidate (higher = better).
+    order : list of str
+        Candidates by ``dbic``, best first; ``best`` is the first (None if no candidate).
+    bic_base : float
+    significant : bool
+        A gap by the omnibus tests, or a candidate above ``bic_gain``.
+    p_gap : float
+        Omnibus p-value, lowered by the best candidate's likelihood ratio.
+    model_effects : list of (str, int)
+        Effects of the final model with their onset years (empty if none accepted).
+    model_values : list of float
+        Their values (effect units).
+    final : (float, FitResult, int) or None
+        Chi-square, fit and first fitted row of the final model.
+    group : list of str
+        Candidates within ``group_bic`` of the best (empty if none accepted).
+    """
+
+    screened: dict
+    confirmed: dict
+    dbic: dict
+    order: list
+    best: Optional[str]
+    bic_base: float
+    significant: bool
+    p_gap: float
+    model_effects: list
+    model_values: list
+    final: Optional[tuple]
+    group: list
+
+
+def identify(s: UnitState, candidates: list) -> Identification:
+    """Screen and confirm every candidate, then build the final model (needs step 1)."""
+    bic_base = bic(s, float(s.chi2_base.sum()), 0)
+
+    # Screening, then confirmation of every candidate (cheap with the FMU at ~0.1 ms/run).
+    screened = {}
+    for name in candidates:
+        screened[name] = screen(s, name, s.base_u, s.base_rows, s.base_Q, {})
+    confirmed = {}
+    for name in candidates:
+        score, v, on, _ = screened[name]
+        confirmed[name] = confirm(s, name, v, on)
+    dbic = {n: (bic_base - bic(s, c[0], 1)) if c else -np.inf for n, c in confirmed.items()}
+    order = sorted(candidates, key=lambda n: -dbic[n])
+    best = order[0] if order else None
+
+    significant = s.p_omnibus < s.dc.alpha or (
+        best is not None and dbic[best] > s.dc.bic_gain)
+    p_gap = s.p_omnibus
+    if best is not None and dbic[best] > 0:
+        # Likelihood-ratio p-value of the best candidate, Bonferroni over candidates and
+        # onsets (value and onset both free: 2 degrees of freedom).
+        lr = float(s.chi2_base.sum() - confirmed[best][0])
+        p_lr = min(1.0, stats.chi2.sf(lr, 2) * len(candidates) * s.n_y)
+        p_gap = min(p_gap, p_lr)
+
+    # The final model: effects added while the BIC gain stays above bic_gain.
+    model_effects, model_values, final = [], [], None
+    group = []
+    if significant and best is not None and dbic[best] > s.dc.bic_gain:
+        chi2_b, fit_b, k0_b, on_b = confirmed[best]
+        ue, _ = fit_b.problem.unpack(fit_b.x)
+        model_effects = [(best, on_b)]
+        model_values = [s.twin.effect_of(best, ue[0])]
+        final = (chi2_b, fit_b, k0_b)
+        group = [n for n in order if dbic[n] > s.dc.bic_gain
+                 and dbic[best] - dbic[n] <= s.dc.group_bic]
+        while len(model_effects) < s.dc.max_effects:
+            nxt = _further(s, final, model_effects, model_values, candidates)
+            if nxt is None:
+                break
+            final, model_effects, model_values = nxt
+    return Identification(screened, confirmed, dbic, order, best, bic_base, significant,
+                          p_gap, model_effects, model_values, final, group)
+
+
+# -- screening -----------------------------------------------------------------------------------
+def _grid(s: UnitState, name: str) -> np.ndarray:
+    """Screening values of effect ``name``: ``screen_points`` per side of its baseline."""
+    e = s.twin.effects[name]
+    n = s.dc.screen_points
+    fr = np.arange(1, n + 1) / n
+    vals = []
+    if e.high > e.baseline:
+        vals += list(e.baseline + fr * (e.high - e.baseline))
+    if e.low < e.baseline:
+        vals += list(e.baseline - fr * (e.baseline - e.low))
+    return np.array(vals)
+
+
+def screen(s: UnitState, name: str, u_inputs, rows, Qs, fixed: dict) -> tuple:
+    """Chi-square reduction of adding effect ``name`` (value on a grid, onset any year),
+    the degradation inputs re-adjusted linearly.
+
+    Returns ``(score, value, onset, gain [n_v, n_y])``; ``fixed`` maps years index ->
+    effects already in the twin."""
+    grid = _grid(s, name)
+    gains = np.zeros((grid.size, s.n_y))
+    for k in range(s.n_y):
+        theta = s.twin.theta_of(u_inputs[k])
+        eff0 = fixed.get(k, {})
+        mask = np.isfinite(s.Y[k])
+        try:
+            f0 = s.twin.predict(theta, eff0)[mask]
+        except SimulationError:
+            continue
+        Q = Qs[k]
+        r = rows[k]
+        rp = r - Q @ (Q.T @ r)
+        base = float(rp @ rp)
+        for i, v in enumerate(grid):
+            try:
+                f = s.twin.predict(theta, {**eff0, name: v})[mask]
+            except SimulationError:
+                gains[i, k] = -np.inf
+                continue
+            r2 = r - (f - f0)
+            r2 = r2 - Q @ (Q.T @ r2)
+            gains[i, k] = base - float(r2 @ r2)
+    cum = np.cumsum(gains[:, ::-1], axis=1)[:, ::-1]      # [n_v, onset index]
+    i, o = np.unravel_index(int(np.argmax(cum)), cum.shape)
+    return float(cum[i, o]), float(grid[i]), int(s.years[o]), gains
+
+
+# -- confirmation by the augmented fit -------------------------------------------------------
+def fit_with(s: UnitState, effects: list, values: list, u_start: np.ndarray):
+    """Fit the twin with ``effects`` [(name, onset)] from start values; years before the
+    earliest onset keep the base fit. Returns ``(chi2 total, FitResult, first row)``."""
+    first = min(on for _, on in effects)
+    k0 = int(np.searchsorted(s.years, first))
+    if k0 >= s.n_y:
+        return np.inf, None, k0
+    prob = JointFit(s.twin, s.Y[k0:], s.years[k0:], effects)
+    x0 = np.concatenate([[s.twin.effect_u(n, v) for (n, _), v in zip(effects, values)],
+                         np.asarray(u_start)[k0:].ravel()])
+    fit = prob.solve(x0)
+    chi2 = float(s.chi2_base[:k0].sum() + fit.chi2_rows.sum())
+    return chi2, fit, k0
+
+
+def bic(s: UnitState, chi2: float, n_effects: int) -> float:
+    """BIC of a model of the unit with per-year degradation inputs and ``n_effects`` effects."""
+    # Each effect costs its value and its onset year.
+    return chi2 + (s.d * s.n_y + 2 * n_effects) * s.ln_n
+
+
+def confirm(s: UnitState, name: str, value: float, onset: int, fixed_fit=None):
+    """Best augmented fit of candidate ``name`` over onsets ``onset +- onset_search``:
+    ``(chi2, FitResult, first fitted row, onset)``, or None if no onset is within the years."""
+    best = None
+    for on in range(onset - s.dc.onset_search, onset + s.dc.onset_search + 1):
+        if on < s.years[0] or on > s.years[-1]:
+            continue
+        u0 = _readjusted_start(s, name, value, on)
+        chi2, fit, k0 = fit_with(s, [(name, on)], [value], u0)
+        if fit is not None and (best is None or chi2 < best[0]):
+            best = (chi2, fit, k0, on)
+    return best
+
+
+def _readjusted_start(s: UnitState, name, value, onset):
+    """Base inputs moved by one linear step to make room for the effect."""
+    u = s.base_u.copy()
+    for k in range(s.n_y):
+        if s.years[k] < onset:
+            continue
+        mask = np.isfinite(s.Y[k])
+        theta = s.twin.theta_of(u[k])
+        try:
+            df = (s.twin.predict(theta, {name: value}) - s.twin.predict(theta))[mask]
+        except SimulationError:
+            continue
+        J = -s.base_J[k]                        # d f / d u
+        step = np.linalg.lstsq(J, s.base_rows[k] - df, rcond=None)[0]
+        u[k] = np.clip(u[k] + step, 0.0, 1.0)
+    return u
+
+
+# -- further effects -------------------------------------------------------------------------------
+def _further(s: UnitState, final, model_effects, model_values, candidates):
+    """Try one more effect on top of the current model; None unless the BIC gain is
+    above ``bic_gain``."""
+    chi2_cur, fit, k0 = final
+    _, ut = fit.problem.unpack(fit.x)
+    u_now = s.base_u.copy()
+    u_now[k0:] = ut
+    rows = list(s.base_rows[:k0]) + list(fit.rows)
+    fixed = {k: {n: v for (n, on), v in zip(model_effects, model_values) if s.years[k] >= on}
+             for k in range(s.n_y)}
+    Qs = []
+    for k in range(s.n_y):
+        prob = JointFit(s.twin, s.Y[k:k + 1], s.years[k:k + 1],
+                        [(n, on) for n, on in model_effects])
+        # Sensitivities of this year's inputs at the current model (effects held).
+        x = np.concatenate([[s.twin.effect_u(n, v) for (n, _), v in
+                             zip(model_effects, model_values)], u_now[k]])
+        J = prob.jacobian(x)[:, len(model_effects):]
+        Qs.append(np.linalg.qr(J)[0])
+    used = {n for n, _ in model_effects}
+    scores = []
+    for name in candidates:
+        if name in used:
+            continue
+        sc, v, on, _ = screen(s, name, u_now, rows, Qs, fixed)
+        scores.append((sc, name, v, on))
+    scores.sort(reverse=True)
+    best = None
+    for sc, name, v, on in scores[:s.dc.confirm_further]:
+        effs = model_effects + [(name, on)]
+        vals = model_values + [v]
+        chi2, fit2, k02 = fit_with(s, effs, vals, u_now)
+        if fit2 is not None and (best is None or chi2 < best[0][0]):
+            ue, _ = fit2.problem.unpack(fit2.x)
+            best = ((chi2, fit2, k02), effs,
+                    [s.twin.effect_of(n, ue[j]) for j, (n, _) in enumerate(effs)])
+    if best is None:
+        return None
+    gain = bic(s, chi2_cur, len(model_effects)) - bic(s, best[0][0], len(best[1]))
+    return best if gain > s.dc.bic_gain else None
+
+
+# -- the group: separating channel, ranking table ------------------------------------------------
+def separation(s: UnitState, group: list, confirmed: dict) -> tuple:
+    """The unobserved FMU channel on which the group's fitted twins differ most,
+    relative to its noise (``channel_noise_fraction`` of its healthy plateau, or of its
+    range for a channel that ends near 0). Returns ``(channel, {channel: score})``."""
+    chans = [c for c in s.cfg.model.channels if c not in s.twin.channels]
+    if not chans:
+        return "", {}
+    healthy = s.twin.run(np.array([p.nominal for p in s.cfg.model.inputs.values()]))
+
+    def scale(x: np.ndarray) -> float:
+        final, span = abs(float(x[-1])), float(x.max() - x.min())
+        return max(final if final > 0.1 * span else span, 1e-12)
+
+    noise = {c: s.dc.channel_noise_fraction * scale(healthy[c]) for c in chans}
+    sims = []
+    for n in group:
+        chi2, fit, k0, on = confirmed[n]
+        ue, ut = fit.problem.unpack(fit.x)
+        sims.append(s.twin.run(s.twin.theta_of(ut[-1]),
+                               {n: s.twin.effect_of(n, ue[0])}))
+    scores = {}
+    for c in chans:
+        best = 0.0
+        for i in range(len(sims)):
+            for j in range(i + 1, len(sims)):
+                diff = (sims[i][c] - sims[j][c]) / noise[c]
+                best = max(best, float(np.sqrt(np.mean(diff ** 2))))
+        scores[c] = best
+    return max(scores, key=scores.get), scores
+
+
+def ranking(s: UnitState, idn: Identification) -> dict:
+    """The candidates in ranking order with their screening and confirmed fits, as the
+    :class:`~twinmon.diagnose.result.UnitGap` fields ``candidates`` and ``screen_score``,
+    ``screen_onset``, ``fit_onset``, ``fit_value``, ``fit_sd``, ``delta_bic`` (each [n_c];
+    ``fit_onset`` -1 and NaN values for a candidate with no fit)."""
+    order, confirmed, screened = idn.order, idn.confirmed, idn.screened
+    fit_on, fit_val, fit_sd = [], [], []
+    for n in order:
+        c = confirmed[n]
+        if c is None:
+            fit_on.append(-1), fit_val.append(np.nan), fit_sd.append(np.nan)
+            continue
+        ue, _ = c[1].problem.unpack(c[1].x)
+        e = s.twin.effects[n]
+        fit_on.append(c[3])
+        fit_val.append(s.twin.effect_of(n, ue[0]))
+        fit_sd.append(math.sqrt(max(c[1].covariance()[0, 0], 0.0)) * (e.high - e.low))
+    return dict(candidates=order,
+                screen_score=np.array([screened[n][0] for n in order]),
+                screen_onset=np.array([screened[n][2] for n in order]),
+                fit_onset=np.array(fit_on), fit_value=np.array(fit_val),
+                fit_sd=np.array(fit_sd),
+                delta_bic=np.array([idn.dbic[n] for n in order]))

@@ -1,0 +1,121 @@
+"""The diagnosis of one unit as a record: :class:`UnitGap` (what ``gap.h5`` stores per unit and
+what ``--json`` prints).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+
+#: The three verdicts a unit can get (see :mod:`twinmon.diagnose.shrink`).
+VERDICTS = ("none", "effect", "unexplained")
+
+
+@dataclass
+class UnitGap:
+    """Diagnosis of one unit. Arrays are per year [n_y] and per time step [n_t] of the output.
+
+    Attributes
+    ----------
+    verdict : str
+        ``"none"``, ``"effect"`` or ``"unexplained"``.
+    effects : list of str
+        The effect, or the group of indistinguishable effects (best first), then any further
+        effect added; empty unless the verdict is ``"effect"``.
+    group : list of str
+        The first effect's group (candidates within ``group_bic`` of the best).
+    residual_before, residual_after : ndarray, shape [n_y, n_t]
+        Standardised output residuals of the base and the final twin.
+    window_rms_before, window_rms_after : ndarray, shape [n_y, n_w]
+        RMS of the standardised output residual per year and window.
+    predicted_before, predicted_after, observed : ndarray, shape [n_y, n_t]
+        Output (its units).
+    inputs_before, inputs_after, inputs_sd_before, inputs_sd_after : ndarray, shape [n_y, d]
+        Degradation input estimates and their linearised standard deviations.
+    candidates : list of str
+        Candidate effects, in ranking order (best BIC first).
+    screen_score : ndarray, shape [n_c]
+        Screening chi-square reduction.
+    delta_bic : ndarray, shape [n_c]
+        BIC of the base twin minus BIC of the twin with that candidate (higher = better).
+    """
+
+    unit: str
+    years: np.ndarray
+    verdict: str
+    effects: list
+    group: list
+    onset: Optional[int]
+    where_windows: list
+    where_years: list
+    rms_before: float
+    rms_after: float
+    closed_percent: float
+    delta_bic_final: float
+    estimate: dict
+    separating_channel: str
+    separation_scores: dict
+    absorbed_share: float
+    p_gap: float
+    noise_std: float
+    residual_before: np.ndarray
+    residual_after: np.ndarray
+    chi2_before: np.ndarray
+    chi2_after: np.ndarray
+    dof: np.ndarray
+    p_chi2_before: np.ndarray
+    p_ljung_box_before: np.ndarray
+    p_chi2_after: np.ndarray
+    significant_years: np.ndarray
+    window_rms_before: np.ndarray
+    window_rms_after: np.ndarray
+    observed: np.ndarray
+    predicted_before: np.ndarray
+    predicted_after: np.ndarray
+    inputs_before: np.ndarray
+    inputs_after: np.ndarray
+    inputs_sd_before: np.ndarray
+    inputs_sd_after: np.ndarray
+    candidates: list
+    screen_score: np.ndarray
+    screen_onset: np.ndarray
+    fit_onset: np.ndarray
+    fit_value: np.ndarray
+    fit_sd: np.ndarray
+    delta_bic: np.ndarray
+    failure_year_before: Optional[int]
+    failure_year_after: Optional[int]
+    #: Onset year of each effect in the final twin ({fmu parameter: year}).
+    effect_onsets: dict = field(default_factory=dict)
+    fmu_runs: int = 0
+    wall_time: float = 0.0
+
+    def as_dict(self) -> dict:
+        """The ``--json`` entry of this unit (issue 4's schema, plus a few extra keys)."""
+        return {
+            "verdict": self.verdict,
+            "effects": list(self.effects),
+            "where": {"windows": list(self.where_windows), "years": [int(y) for y in self.where_years]},
+            "shrink": {"rms_before": _num(self.rms_before), "rms_after": _num(self.rms_after),
+                       "closed_percent": _num(self.closed_percent)},
+            "estimate": {k: {"mean": _num(v[0]), "q05": _num(v[1]), "q95": _num(v[2])}
+                         for k, v in self.estimate.items()},
+            "onset": self.onset,
+            "onsets": dict(self.effect_onsets),
+            "group": list(self.group),
+            "separating_channel": self.separating_channel or None,
+            "bic_gain": _num(self.delta_bic_final),
+            "absorbed_share": _num(self.absorbed_share),
+            "p_gap": _num(self.p_gap),
+            "failure_year": {"before": self.failure_year_before,
+                             "after": self.failure_year_after},
+            "ranking": [{"effect": c, "delta_bic": _num(b), "screen": _num(s)}
+                        for c, b, s in zip(self.candidates, self.delta_bic, self.screen_score)],
+        }
+
+
+def _num(x) -> Optional[float]:
+    x = float(x)
+    return round(x, 6) if math.isfinite(x) else None
