@@ -13,13 +13,13 @@ MAX_WARNINGS = 12
 @main.command()
 @config_options
 @click.option("--surrogate", default="out/surrogate.h5", show_default=True,
-              type=click.Path(dir_okay=False), help="Surrogate artifact (from reduce).")
-@click.option("--observations", required=True, type=click.Path(dir_okay=False),
+              type=click.Path(), help="Surrogate artifact (from reduce).")
+@click.option("--observations", required=True, type=click.Path(),
               help="Observations artifact (twinmon.observations/1).")
-@click.option("--truth", type=click.Path(dir_okay=False), default=None,
+@click.option("--truth", type=click.Path(), default=None,
               help="Truth file (from fabricate): print errors and interval coverage.")
 @click.option("-o", "--output", default="out/posterior.h5", show_default=True,
-              type=click.Path(dir_okay=False), help="Posterior artifact to write.")
+              type=click.Path(), help="Posterior artifact to write.")
 @json_option
 def calibrate(config_path, overrides, surrogate, observations, truth, output, as_json):
     """Bayesian calibration (MCMC) of each unit's inputs, year by year."""

@@ -15,7 +15,7 @@ def config_options(f):
     f = click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
                      help="Override a config value (YAML syntax), e.g. --set seed=3.")(f)
     f = click.option("-c", "--config", "config_path", required=True,
-                     type=click.Path(dir_okay=False),
+                     type=click.Path(),
                      help="YAML config file.")(f)
     return f
 

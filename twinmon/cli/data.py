@@ -10,7 +10,7 @@ from .common import config_options, emit_json, json_option, load, progress_bar, 
 @main.command()
 @config_options
 @click.option("-o", "--output", default="out/simulations.h5", show_default=True,
-              type=click.Path(dir_okay=False), help="Simulations artifact to write.")
+              type=click.Path(), help="Simulations artifact to write.")
 @click.option("-j", "--workers", type=int, default=None,
               help="Worker processes (default: simulate.workers, 0 = one per core).")
 @json_option
@@ -34,8 +34,8 @@ def simulate(config_path, overrides, output, workers, as_json):
 @main.command()
 @config_options
 @click.option("-o", "--output", default="data/fleet.h5", show_default=True,
-              type=click.Path(dir_okay=False), help="Observations file to write.")
-@click.option("--truth", "truth", default=None, type=click.Path(dir_okay=False),
+              type=click.Path(), help="Observations file to write.")
+@click.option("--truth", "truth", default=None, type=click.Path(),
               help="Truth file to write [default: OUTPUT with _truth before .h5].")
 @json_option
 def fabricate(config_path, overrides, output, truth, as_json):
@@ -52,9 +52,9 @@ def fabricate(config_path, overrides, output, truth, as_json):
 
 
 @main.command("import-csv")
-@click.argument("csv_file", type=click.Path(dir_okay=False))
+@click.argument("csv_file", type=click.Path())
 @config_options
-@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False),
+@click.option("-o", "--output", required=True, type=click.Path(),
               help="Observations file to write.")
 @click.option("--noise-std", type=float, default=None,
               help="Known noise standard deviation of the output, in its units.")

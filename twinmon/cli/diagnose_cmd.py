@@ -10,12 +10,12 @@ from .common import config_options, emit_json, json_option, load, progress_bar, 
 
 @main.command()
 @config_options
-@click.option("--observations", required=True, type=click.Path(dir_okay=False),
+@click.option("--observations", required=True, type=click.Path(),
               help="Observations artifact (twinmon.observations/1).")
-@click.option("--posterior", default=None, type=click.Path(dir_okay=False),
+@click.option("--posterior", default=None, type=click.Path(),
               help="Optional posterior.h5: standardise the residual map against it.")
 @click.option("-o", "--output", default="out/gap.h5", show_default=True,
-              type=click.Path(dir_okay=False), help="Gap artifact to write.")
+              type=click.Path(), help="Gap artifact to write.")
 @click.option("-j", "--workers", type=int, default=None,
               help="Worker processes over units (default: diagnose.workers, 0 = one per core).")
 @json_option

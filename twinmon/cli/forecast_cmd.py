@@ -10,12 +10,12 @@ from .common import config_options, emit_json, json_option, load, say, warn
 @main.command()
 @config_options
 @click.option("--posterior", default="out/posterior.h5", show_default=True,
-              type=click.Path(dir_okay=False), help="Posterior artifact of calibrate.")
+              type=click.Path(), help="Posterior artifact of calibrate.")
 @click.option("--surrogate", default="out/surrogate.h5", show_default=True,
-              type=click.Path(dir_okay=False), help="Surrogate artifact of reduce.")
+              type=click.Path(), help="Surrogate artifact of reduce.")
 @click.option("-o", "--output", default="out/forecast.h5", show_default=True,
-              type=click.Path(dir_okay=False), help="Forecast artifact to write.")
-@click.option("--truth", "truth", default=None, type=click.Path(dir_okay=False),
+              type=click.Path(), help="Forecast artifact to write.")
+@click.option("--truth", "truth", default=None, type=click.Path(),
               help="Truth file of fabricate: also give each unit's true failure year.")
 @json_option
 def forecast(config_path, overrides, posterior, surrogate, output, truth, as_json):

@@ -11,9 +11,9 @@ from .common import config_options, emit_json, json_option, load, say
 @main.command()
 @config_options
 @click.option("--simulations", default="out/simulations.h5", show_default=True,
-              type=click.Path(dir_okay=False), help="Simulations artifact to learn from.")
+              type=click.Path(), help="Simulations artifact to learn from.")
 @click.option("-o", "--output", default="out/surrogate.h5", show_default=True,
-              type=click.Path(dir_okay=False), help="Surrogate artifact to write.")
+              type=click.Path(), help="Surrogate artifact to write.")
 @json_option
 def reduce(config_path, overrides, simulations, output, as_json):
     """Karhunen-Loeve reduction + Gaussian-process surrogate of the FMU."""
@@ -36,11 +36,11 @@ def reduce(config_path, overrides, simulations, output, as_json):
 
 @main.command()
 @config_options
-@click.option("--observations", required=True, type=click.Path(dir_okay=False),
+@click.option("--observations", required=True, type=click.Path(),
               help="Plant observations to calibrate and forecast.")
-@click.option("--gap-observations", type=click.Path(dir_okay=False), default=None,
+@click.option("--gap-observations", type=click.Path(), default=None,
               help="Observations to diagnose for a sim-to-real gap [default: --observations].")
-@click.option("--truth", type=click.Path(dir_okay=False), default=None,
+@click.option("--truth", type=click.Path(), default=None,
               help="Truth file of fabricated data: adds errors against the truth.")
 @click.option("--workdir", default="out", show_default=True, type=click.Path(file_okay=False),
               help="Folder of the artifacts and of report/.")

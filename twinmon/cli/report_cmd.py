@@ -38,7 +38,7 @@ def _from_workdir(workdir: Path, given: dict, explicit: bool) -> None:
 
 
 def _artifact_option(name: str, help_text: str):
-    return click.option(f"--{name}", name, default=None, type=click.Path(dir_okay=False),
+    return click.option(f"--{name}", name, default=None, type=click.Path(),
                         help=help_text)
 
 
