@@ -100,12 +100,15 @@ def test_run_chains_everything_on_the_dc_drive(drive):
     assert (tmp / "run" / "report" / "index.html").exists()
 
 
-@pytest.mark.parametrize("fmi_type", ["CoSimulation", "ModelExchange"])
-def test_fmi3_fmu_simulates_like_the_fmi2_build(tmp_path, fmi_type):
-    """The FMI 3.0 build of the same model gives the same design results as the FMI 2.0 one."""
+@pytest.mark.parametrize("fmi_type, executor", [("CoSimulation", "process"),
+                                                ("CoSimulation", "serial"),
+                                                ("ModelExchange", "process")])
+def test_fmi3_fmu_simulates_like_the_fmi2_build(tmp_path, fmi_type, executor):
+    """The FMI 3.0 build of the same model gives the same design results as the FMI 2.0 one,
+    under either executor."""
     n = {"CoSimulation": 24, "ModelExchange": 4}[fmi_type]
     base = {"extends": str(CONFIGS / "dcdrive.yaml"),
-            "simulate": {"train_size": n, "test_size": 0, "executor": "process", "workers": 2}}
+            "simulate": {"train_size": n, "test_size": 0, "executor": executor, "workers": 2}}
     two = write_yaml(tmp_path / "fmi2.yaml", base)
     three = write_yaml(tmp_path / "fmi3.yaml", {**base, "model": {
         "fmu": str(CONFIGS.parent / "fmus" / "DCDrive3"), "fmi_type": fmi_type}})

@@ -124,3 +124,18 @@ def test_reader_rejects_other_schema(tmp_path):
         read_simulations(p)
     with pytest.raises(ArtifactError, match="file not found"):
         read_simulations(tmp_path / "missing.h5")
+
+
+@pytest.mark.parametrize("limit, words", [
+    ({"above": 1000.0}, "no training run is unsafe"),      # t90 never that long in the box
+    ({"above": 0.5}, "every training run is already unsafe"),
+])
+def test_a_criterion_no_run_or_every_run_meets_is_a_warning(small_config, tmp_path, limit,
+                                                            words):
+    from twinmon.simulate import simulate
+    key = next(iter(limit))
+    cfg = load_config(small_config, [f"safety.unsafe_if.{key}={limit[key]}"])
+    s = simulate(cfg, tmp_path / "s.h5")
+    assert len(s.warnings) == 1 and words in s.warnings[0]
+    assert "t90" in s.warnings[0] and "safety.unsafe_if" in s.warnings[0]
+    assert not simulate(load_config(small_config), tmp_path / "ok.h5").warnings
