@@ -323,7 +323,8 @@ class VariableInfo:
 class FMUInfo:
     """What an FMU offers, read from its model description (see :func:`describe_fmu`).
 
-    ``variables`` keeps the model description's order."""
+    ``variables`` keeps the model description's order; ``stop_time`` and ``step_size`` are
+    the model description's DefaultExperiment (None when it gives none)."""
 
     path: Path
     fmi_version: str
@@ -332,6 +333,8 @@ class FMUInfo:
     co_simulation: bool
     model_exchange: bool
     variables: dict[str, VariableInfo]
+    stop_time: float | None = None
+    step_size: float | None = None
 
     def tunable_parameters(self) -> list[VariableInfo]:
         """Float parameters (variability fixed or tunable) and float inputs: the variables
@@ -380,10 +383,20 @@ def describe_fmu(path) -> FMUInfo:
             type=v.type, start=_start_value(v) if not v.dimensions else None, unit=_unit(v),
             description=v.description or "",
             shape=tuple(d.start if d.start is not None else -1 for d in v.dimensions))
+    de = md.defaultExperiment
+
+    def number(text) -> float | None:
+        try:
+            return float(text) if text is not None else None
+        except (TypeError, ValueError):
+            return None
+
     return FMUInfo(path=fmu, fmi_version=md.fmiVersion, model_name=md.modelName or "",
                    description=md.description or "",
                    co_simulation=md.coSimulation is not None,
-                   model_exchange=md.modelExchange is not None, variables=variables)
+                   model_exchange=md.modelExchange is not None, variables=variables,
+                   stop_time=number(de.stopTime) if de is not None else None,
+                   step_size=number(de.stepSize) if de is not None else None)
 
 
 def closest_names(name: str, candidates: Iterable[str], n: int = 3) -> list[str]:
