@@ -26,7 +26,18 @@ The result is ``posterior.h5`` (``twinmon.posterior/1``)::
     /units/<U>/acceptance   float64 [n_y, chains]
     /units/<U>/noise_std    float64 [n_y]             output units (noise used in the likelihood)
     /units/<U>/surrogate_var_ratio float64 [n_y]      mean surrogate variance / noise variance
+    /units/<U>/fit/<field>  [n_y] or [n_y, d]         goodness of fit per year (FIT_FIELDS):
+                            rms, p_chi2, p_ljung_box, window, window_rms, edge_share,
+                            extensions, converged, status (ok|misfit|edge|unconverged)
     /units/<U>.attrs noise_source  "file" | "config" | "estimated"
+    attrs fit_windows (JSON list: the window names fit/window indexes)
+
+Goodness of fit: each year's residual at the posterior mean, standardised by the likelihood's
+variance, is tested for size and structure; a year whose residual is well above the noise
+(``calibrate.fit_min_rms``) and significant (``fit_alpha``) is "misfit" -- the twin misses the
+plant -- and one whose draws pile against a bound of the design box is "edge". A year whose
+R-hat or ESS is poor is sampled again with longer chains (``max_extensions`` times); still
+poor, it is "unconverged". ``forecast`` withholds or flags a prognosis on these verdicts.
 """
 from __future__ import annotations
 
@@ -38,12 +49,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Optional
 
+import h5py
 import numpy as np
 
 from . import artifacts
 from .config import Config
 from .errors import ArtifactError, CalibrationError, InputDataError
 from .observations import read_observations
+
+#: Per-year verdicts of the fit, in order of precedence.
+STATUS_OK, STATUS_MISFIT, STATUS_EDGE, STATUS_UNCONVERGED = "ok", "misfit", "edge", "unconverged"
 
 #: Config sections recorded as the posterior's provenance (and compared by ``twinmon run``).
 SECTIONS = ("model", "calibrate", "seed")
@@ -498,10 +513,19 @@ class UnitPosterior:
     noise_std: np.ndarray
     noise_source: str
     surrogate_var_ratio: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    #: Goodness of fit per year (see :func:`year_fit`); empty for posteriors written before.
+    fit: dict = field(default_factory=dict)
 
     @property
     def chains(self) -> int:
         return self.acceptance.shape[1]
+
+    @property
+    def status(self) -> np.ndarray:
+        """Per year: ``ok``, ``misfit`` (the twin misses the plant), ``edge`` (the posterior
+        sits on the design box's edge) or ``unconverged``; all ``ok`` when not recorded."""
+        st = self.fit.get("status")
+        return np.asarray(st) if st is not None else np.full(len(self.years), STATUS_OK)
 
 
 def year_prior(cfg: Config, previous: Optional[np.ndarray],
@@ -561,7 +585,9 @@ class _UnitRun:
         self.samples = np.empty((n_y, cc.chains * cc.samples, d))
         self.acc = np.empty((n_y, cc.chains))
         self.ratio = np.empty(n_y)
+        self.fits: list[dict] = []
         self.k = 0
+        self.ext = 0             # how many times year k's chains were lengthened
         self.prev = self.prev_var = None
 
     @property
@@ -577,34 +603,123 @@ class _UnitRun:
         total = self.noise[k] ** 2 + s_var
         self.ratio[k] = float(np.mean(s_var) / self.noise[k] ** 2)
         ld = make_log_density(self.surrogate, self.flows[k], total, prior)
+        self._total, self._prior = total, prior
         seed = self.seed + 97 * k
         starts, cov, _ = plan_chains(ld, cc.chains, seed)
         # The year-1 posterior (uniform prior) is wider and more curved than the Laplace
         # shape of the proposal: its chains mix about half as well, so they run twice as long.
-        thin = 2 if prior.is_uniform else 1
-        return [_ChainTask(prior, self.flows[k], total, starts[c], cov, cc.samples, cc.burn_in,
+        # A year sampled again (poor R-hat or ESS) runs 2^ext times longer, thinned to the
+        # same number of kept draws, from fresh seeds.
+        thin = (2 if prior.is_uniform else 1) * 2 ** self.ext
+        burn = cc.burn_in * 2 ** self.ext
+        seed = seed + 7919 * self.ext
+        return [_ChainTask(prior, self.flows[k], total, starts[c], cov, cc.samples, burn,
                            seed + 1 + c, thin) for c in range(cc.chains)]
 
     def finish(self, results: list[tuple[np.ndarray, float]]) -> None:
-        k = self.k
+        cc, k = self.cfg.calibrate, self.k
         draws = np.array([r[0] for r in results])          # [chains, samples, d]
+        d = draws.shape[2]
+        rhat = np.array([split_rhat(draws[:, :, j]) for j in range(d)])
+        n_eff = np.array([ess(draws[:, :, j], rank_normalize=True) for j in range(d)])
+        converged = bool(np.all(rhat <= cc.rhat_warn) and np.all(n_eff >= cc.ess_warn))
+        if not converged and self.ext < cc.max_extensions:
+            self.ext += 1          # sample this year again, longer (plan() sees ext)
+            return
         self.acc[k] = [r[1] for r in results]
-        pooled = draws.reshape(-1, draws.shape[2])
+        pooled = draws.reshape(-1, d)
         self.samples[k] = pooled
         st = self.stats
         st["mean"][k] = pooled.mean(axis=0)
         st["median"][k] = np.median(pooled, axis=0)
         st["q05"][k], st["q95"][k] = np.quantile(pooled, [0.05, 0.95], axis=0)
-        for j in range(draws.shape[2]):
-            st["rhat"][k, j] = split_rhat(draws[:, :, j])
-            st["ess"][k, j] = ess(draws[:, :, j], rank_normalize=True)
+        st["rhat"][k], st["ess"][k] = rhat, n_eff
+        fit = year_fit(self.surrogate, self.cfg, self.flows[k], self._total, pooled,
+                       self._prior.bounds)
+        fit.update(extensions=self.ext, converged=converged)
+        if fit["status"] == STATUS_OK and not converged:
+            fit["status"] = STATUS_UNCONVERGED
+        self.fits.append(fit)
         self.prev, self.prev_var = st["mean"][k], pooled.var(axis=0)
         self.k += 1
+        self.ext = 0
 
     def result(self) -> UnitPosterior:
+        fit = {key: np.array([f[key] for f in self.fits]) for key in FIT_FIELDS}
         return UnitPosterior(years=self.years, samples=self.samples, acceptance=self.acc,
                              noise_std=self.noise, noise_source=self.source,
-                             surrogate_var_ratio=self.ratio, **self.stats)
+                             surrogate_var_ratio=self.ratio, fit=fit, **self.stats)
+
+
+#: Per-year goodness-of-fit fields: (units, description). ``window`` indexes the
+#: config's diagnose windows (recorded as the posterior's ``fit_windows`` attribute).
+FIT_FIELDS = {
+    "rms": ("1", "RMS of the standardised residual at the posterior mean, in noise sd [year]"),
+    "p_chi2": ("1", "p-value of the residual's chi-square (n - d dof) [year]"),
+    "p_ljung_box": ("1", "Ljung-Box p-value of the residual (structure) [year]"),
+    "window": ("1", "index of the window where the residual RMS is largest [year]"),
+    "window_rms": ("1", "residual RMS in that window, in noise sd [year]"),
+    "edge_share": ("1", "share of draws within edge_margin of a box bound [year, input]"),
+    "extensions": ("1", "times the year's chains were lengthened for convergence [year]"),
+    "converged": ("1", "1 when R-hat and ESS met calibrate.rhat_warn/ess_warn [year]"),
+    "status": ("1", "ok | misfit | edge | unconverged [year]"),
+}
+
+
+def year_fit(surrogate, cfg: Config, y: np.ndarray, total_var: np.ndarray,
+             draws: np.ndarray, bounds: np.ndarray) -> dict:
+    """Goodness of fit of one calibrated year.
+
+    The residual of the observation against the twin at the posterior mean, standardised
+    by the likelihood's own variance (noise + surrogate), is tested for size (chi-square,
+    n - d degrees of freedom) and for structure (Ljung-Box, ``diagnose.ljung_box_lags``);
+    its RMS per diagnose window says where the twin misses. The draws' share near a box
+    bound says whether the plant needs inputs outside the twin's box.
+
+    Parameters
+    ----------
+    y : ndarray, shape [n_t]
+        The observation (output units); NaN = missing.
+    total_var : ndarray, shape [n_t]
+        Likelihood variance per time step (output units squared).
+    draws : ndarray, shape [n_s, d]
+        Posterior draws (input units).
+    bounds : ndarray, shape [d, 2]
+        The design box.
+
+    Returns
+    -------
+    dict
+        The fields of :data:`FIT_FIELDS` but ``extensions``/``converged``; ``status`` is
+        ``misfit``, ``edge`` or ``ok``.
+    """
+    from scipy import stats
+
+    from .diagnose.stats import ljung_box
+    cc = cfg.calibrate
+    d = draws.shape[1]
+    pred = surrogate.predict(draws.mean(axis=0)[None, :])[0]
+    z = (np.asarray(y, float) - pred) / np.sqrt(total_var)
+    ok = np.isfinite(z)
+    n = int(ok.sum())
+    chi2 = float(np.sum(z[ok] ** 2))
+    rms = float(np.sqrt(chi2 / max(n, 1)))
+    p_chi2 = float(stats.chi2.sf(chi2, max(n - d, 1)))
+    p_lb = ljung_box(z, cfg.diagnose.ljung_box_lags)
+    t = surrogate.time
+    wins = list(cfg.diagnose_windows().values())
+    w_rms = np.array([np.sqrt(np.mean(z[(t >= w.start) & (t < w.stop) & ok] ** 2))
+                      if np.any((t >= w.start) & (t < w.stop) & ok) else 0.0 for w in wins])
+    width = bounds[:, 1] - bounds[:, 0]
+    near = (draws <= bounds[:, 0] + cc.edge_margin * width) | \
+           (draws >= bounds[:, 1] - cc.edge_margin * width)
+    edge = near.mean(axis=0)
+    misfit = rms > cc.fit_min_rms and min(p_chi2, p_lb) < cc.fit_alpha
+    status = STATUS_MISFIT if misfit else STATUS_EDGE if edge.max() > cc.edge_share \
+        else STATUS_OK
+    return {"rms": rms, "p_chi2": p_chi2, "p_ljung_box": p_lb,
+            "window": int(np.argmax(w_rms)), "window_rms": float(w_rms.max()),
+            "edge_share": edge, "status": status}
 
 
 def calibrate_unit(surrogate, cfg: Config, years, flows, noise_std, rng_seed: int,
@@ -668,6 +783,8 @@ class CalibrateSummary:
     warnings: list[str]
     output: str
     truth_check: Optional[dict] = None
+    #: Names of the windows the fit's ``window`` indexes.
+    windows: list = field(default_factory=list)
 
     def as_dict(self) -> dict:
         units = {}
@@ -675,7 +792,16 @@ class CalibrateSummary:
             params = {name: {stat: getattr(p, stat)[:, j].tolist()
                              for stat in ("mean", "median", "q05", "q95")}
                       for j, name in enumerate(self.input_names)}
-            units[u] = {"years": p.years.tolist(), "params": params}
+            f = p.fit
+            fit = {"status": [str(v) for v in p.status],
+                   "rms": np.round(f["rms"], 3).tolist(),
+                   "p_chi2": [float(f"{v:.3g}") for v in f["p_chi2"]],
+                   "p_ljung_box": [float(f"{v:.3g}") for v in f["p_ljung_box"]],
+                   "worst_window": [self.windows[i] for i in f["window"]],
+                   "worst_window_rms": np.round(f["window_rms"], 3).tolist(),
+                   "edge_share": np.round(f["edge_share"], 3).tolist(),
+                   "extensions": f["extensions"].tolist()} if f else {}
+            units[u] = {"years": p.years.tolist(), "params": params, "fit": fit}
         out = {
             "units": units,
             "noise": {u: {"std": float(p.noise_std[0]), "source": p.noise_source}
@@ -826,13 +952,11 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
     n_tasks = len(runs) * cfg.calibrate.chains
     workers = min(cfg.calibrate.workers or len(os.sched_getaffinity(0)), n_tasks)
     if workers <= 1:
-        done = 0
         for run in runs.values():
             while not run.done:
                 run.finish([_run_task(surrogate, t) for t in run.plan()])
-                done += 1
                 if progress:
-                    progress(done, total)
+                    progress(sum(r.k for r in runs.values()), total)
     else:
         # Years of one unit are sequential (each prior is centred on the previous estimate),
         # so the parallel grain is the chain: every unit's chains of the same year at once.
@@ -844,17 +968,18 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
     posterior = {unit: run.result() for unit, run in runs.items()}
 
     names = cfg.model.input_names
-    warnings = diagnostics_warnings(posterior, names, cfg)
+    windows = list(cfg.diagnose_windows())
+    warnings = fit_warnings(posterior, names, windows, cfg) + \
+        diagnostics_warnings(posterior, names, cfg)
     # The truth only feeds the summary, but it is recorded so that `twinmon run` re-runs
     # the stage (and its truth check) when it changes.
     inputs = [surrogate_path, observations_path] + ([truth_path] if truth_path else [])
     write_posterior(output, posterior, names, cfg, inputs)
     check = truth_check(posterior, truth, names) if truth is not None else None
-    return CalibrateSummary(names, posterior, warnings, str(output), check)
+    return CalibrateSummary(names, posterior, warnings, str(output), check, windows)
 
 
 def _run_parallel(pool, runs: dict[str, "_UnitRun"], total: int, progress) -> None:
-    done = 0
     while True:
         active = [r for r in runs.values() if not r.done]
         if not active:
@@ -865,9 +990,32 @@ def _run_parallel(pool, runs: dict[str, "_UnitRun"], total: int, progress) -> No
         for run, plan in zip(active, plans):
             run.finish(results[i:i + len(plan)])
             i += len(plan)
-        done += len(active)
         if progress:
-            progress(done, total)
+            progress(sum(r.k for r in runs.values()), total)
+
+
+def fit_warnings(posterior: dict[str, UnitPosterior], names: list[str], windows: list,
+                 cfg: Config) -> list[str]:
+    """One line per unit-year whose twin misses the plant, sits on the box edge, or did not
+    converge even with longer chains."""
+    out = []
+    for unit, p in posterior.items():
+        f = p.fit
+        for k, year in enumerate(p.years):
+            st = p.status[k]
+            if st == STATUS_MISFIT:
+                out.append(f"{unit} year {int(year)}: the twin misses the plant: residual RMS "
+                           f"{f['rms'][k]:.1f} x noise (worst in the {windows[f['window'][k]]} "
+                           f"window, {f['window_rms'][k]:.1f} x), chi-square p = "
+                           f"{f['p_chi2'][k]:.2g}, Ljung-Box p = {f['p_ljung_box'][k]:.2g}")
+            elif st == STATUS_EDGE:
+                j = int(np.argmax(f["edge_share"][k]))
+                out.append(f"{unit} year {int(year)}: {100 * f['edge_share'][k][j]:.0f} % of "
+                           f"the posterior of {names[j]} sits on the design box's edge")
+            if not f["converged"][k]:
+                out.append(f"{unit} year {int(year)}: not converged after "
+                           f"{f['extensions'][k]} longer run(s): unreliable")
+    return out
 
 
 def diagnostics_warnings(posterior: dict[str, UnitPosterior], names: list[str],
@@ -928,6 +1076,8 @@ class Posterior:
     input_names: list[str]
     units: dict[str, UnitPosterior]
     path: Path = Path("<memory>")
+    #: Names of the windows ``fit/window`` indexes.
+    fit_windows: list = field(default_factory=list)
 
 
 _DATASETS = {
@@ -960,6 +1110,14 @@ def write_posterior(path, posterior: dict[str, UnitPosterior], input_names: list
                 units = cfg.model.output.units if units == "output units" else units
                 artifacts.put(g, name, np.asarray(getattr(p, name)), units, desc)
             g.attrs["noise_source"] = p.noise_source
+            for key, (units, desc) in (FIT_FIELDS.items() if p.fit else ()):
+                data = np.asarray(p.fit[key])
+                if key == "status":
+                    data = np.array([str(v) for v in data], dtype=h5py.string_dtype())
+                elif data.dtype == bool:
+                    data = data.astype(np.int8)
+                artifacts.put(g, f"fit/{key}", data, units, desc)
+        f.attrs["fit_windows"] = json.dumps(list(cfg.diagnose_windows()))
 
 
 def read_posterior(path: str | os.PathLike) -> Posterior:
@@ -990,6 +1148,14 @@ def read_posterior(path: str | os.PathLike) -> Posterior:
                 raise ArtifactError(f"{path}: /units/{unit}/samples has shape "
                                     f"{arrs['samples'].shape}, expected ({n_y}, n_s, {d})")
             src = g.attrs.get("noise_source", "")
+            fit = {}
+            if "fit" in g:
+                fit = {key: artifacts.get(g["fit"], key, path) for key in FIT_FIELDS}
+                fit["converged"] = fit["converged"].astype(bool)
+                if len(fit["status"]) != n_y:
+                    raise ArtifactError(f"{path}: /units/{unit}/fit/status has "
+                                        f"{len(fit['status'])} years, expected {n_y}")
             units[unit] = UnitPosterior(noise_source=src.decode() if isinstance(src, bytes)
-                                        else str(src), **arrs)
-        return Posterior(names, units, path)
+                                        else str(src), fit=fit, **arrs)
+        windows = json.loads(f.attrs["fit_windows"]) if "fit_windows" in f.attrs else []
+        return Posterior(names, units, path, windows)

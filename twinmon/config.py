@@ -401,6 +401,19 @@ class CalibrateConfig:
     prior_carry_variance: bool = True
     rhat_warn: float = 1.05
     ess_warn: float = 400.0
+    #: A year whose R-hat or ESS misses the marks above is sampled again with chains twice
+    #: as long (thinned to the same number of kept draws), at most this many times; still
+    #: poor after that, the year is "unconverged" and its unit's prognosis "unreliable".
+    max_extensions: int = 2
+    #: Goodness of fit (docs/calibration.md): a year "misses the plant" when the RMS of its
+    #: standardised residual at the posterior mean exceeds ``fit_min_rms`` (in noise standard
+    #: deviations) AND the chi-square or Ljung-Box test rejects at ``fit_alpha``.
+    fit_alpha: float = 1e-3
+    fit_min_rms: float = 1.5
+    #: A year sits "on the box edge" when more than ``edge_share`` of its posterior draws lie
+    #: within ``edge_margin`` (fraction of the input's range) of a bound of the design box.
+    edge_margin: float = 0.02
+    edge_share: float = 0.25
     #: Worker processes (units run in parallel); 0 means one per core, 1 runs in-process.
     workers: int = 0
 
@@ -421,6 +434,17 @@ class CalibrateConfig:
             yield "ess_warn", "must be >= 0", self.ess_warn
         if self.workers < 0:
             yield "workers", "must be >= 0", self.workers
+        if self.max_extensions < 0:
+            yield "max_extensions", "must be >= 0", self.max_extensions
+        if not 0 < self.fit_alpha < 1:
+            yield "fit_alpha", "must lie in (0, 1)", self.fit_alpha
+        if self.fit_min_rms < 1:
+            yield "fit_min_rms", "must be >= 1 (a residual at the noise level fits)", \
+                self.fit_min_rms
+        if not 0 <= self.edge_margin < 0.5:
+            yield "edge_margin", "must lie in [0, 0.5)", self.edge_margin
+        if not 0 < self.edge_share <= 1:
+            yield "edge_share", "must lie in (0, 1]", self.edge_share
 
 
 @dataclass(frozen=True)
@@ -433,8 +457,14 @@ class ForecastConfig:
     #: Draw the inputs of a future year jointly, correlated as their regression residuals
     #: (a multivariate Student t); false: independent Student t marginals.
     correlate: bool = True
-    #: Posterior samples per observed year run through the twin (P(unsafe) and t90 history).
+    #: Posterior samples per observed year run through the twin (P(unsafe) and the
+    #: indicator's history).
     observed_samples: int = 500
+    #: A unit's prognosis is withheld when at least this many of its years miss the plant or
+    #: sit on the box edge (or its last year does): a twin that misses the data gives none.
+    withhold_years: int = 2
+    #: Give the prognosis of such units anyway (experts; labelled "forced" everywhere).
+    force_prognosis: bool = False
 
     def _check(self):
         if self.horizon < 1:
@@ -447,6 +477,8 @@ class ForecastConfig:
             yield "alpha", "must lie in (0, 1)", self.alpha
         if self.observed_samples < 1:
             yield "observed_samples", "must be >= 1", self.observed_samples
+        if self.withhold_years < 1:
+            yield "withhold_years", "must be >= 1", self.withhold_years
 
 
 @dataclass(frozen=True)

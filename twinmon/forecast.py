@@ -50,6 +50,8 @@ SECTIONS = ("model", "forecast", "safety", "seed")
 SEED_OFFSET = 5000
 #: Confidence of the slope interval reported as ``slope_ci90``.
 SLOPE_CI = 0.90
+#: Prognosis status of a unit.
+STATUS_OK, STATUS_WITHHELD, STATUS_UNRELIABLE = "ok", "withheld", "unreliable"
 #: Where a Monte Carlo point was evaluated.
 SOURCE_SURROGATE, SOURCE_FMU, SOURCE_FAILED = 0, 1, 2
 
@@ -492,6 +494,12 @@ class UnitForecast:
     true_inputs: Optional[dict] = None
     true_unsafe: Optional[np.ndarray] = None
     has_truth: bool = False
+    #: ``ok``, ``withheld`` (the twin misses the plant: no failure year, no root cause) or
+    #: ``unreliable`` (a calibrated year did not converge); see :func:`prognosis_status`.
+    status: str = STATUS_OK
+    status_reason: str = ""
+    #: The prognosis of a withheld unit was given anyway (``forecast.force_prognosis``).
+    forced: bool = False
 
     @property
     def fmu_fraction(self) -> float:
@@ -508,6 +516,9 @@ class UnitForecast:
     def as_dict(self) -> dict:
         q05, med, q95 = self.indicator_quantiles([0.05, 0.5, 0.95])
         d = {
+            "status": self.status,
+            "status_reason": self.status_reason,
+            "forced": self.forced,
             "root_cause": self.root_cause,
             "failure_year": self.failure_year,
             "years": [int(y) for y in self.years_future],
@@ -554,6 +565,51 @@ class ForecastSummary:
 def _unit_rng(cfg: Config, unit: str, stream: int) -> np.random.Generator:
     # Keyed by the unit's name, so a unit's forecast does not depend on the other units.
     return np.random.default_rng([cfg.seed + SEED_OFFSET, zlib.crc32(unit.encode()), stream])
+
+
+def prognosis_status(up, cfg: Config, windows: list) -> tuple[str, str]:
+    """Whether a unit's twin fits its data well enough for a prognosis.
+
+    Withheld when at least ``forecast.withhold_years`` calibrated years (or the last one)
+    miss the plant or sit on the design box's edge (calibrate's goodness of fit); else
+    unreliable when a year did not converge; else ok.
+
+    Returns
+    -------
+    status : str
+        ``ok``, ``withheld`` or ``unreliable``.
+    reason : str
+        One sentence with the figures ("" when ok).
+    """
+    from .calibrate import STATUS_EDGE, STATUS_MISFIT, STATUS_UNCONVERGED
+    st = np.asarray(up.status)
+    bad = np.flatnonzero((st == STATUS_MISFIT) | (st == STATUS_EDGE))
+    if bad.size and (bad.size >= cfg.forecast.withhold_years or bad[-1] == st.size - 1):
+        f, k0 = up.fit, int(bad[0])
+        first = int(up.years[k0])
+        misfit = np.flatnonzero(st == STATUS_MISFIT)
+        if misfit.size:
+            k = int(misfit[np.argmax(f["window_rms"][misfit])])
+            win = windows[int(f["window"][k])] if windows else "worst"
+            return STATUS_WITHHELD, (
+                f"prognosis withheld: the twin misses the plant by {f['window_rms'][k]:.1f} "
+                f"noise sd in the {win} window (residual RMS {f['rms'][k]:.1f} sd in year "
+                f"{int(up.years[k])}; {misfit.size} of {st.size} years miss) from year {first}; "
+                "run 'twinmon diagnose'")
+        k = int(bad[-1])
+        j = int(np.argmax(f["edge_share"][k]))
+        name = cfg.model.input_names[j]
+        return STATUS_WITHHELD, (
+            f"prognosis withheld: the estimates of {name} sit on the design box's edge "
+            f"({100 * f['edge_share'][k][j]:.0f} % of the posterior in year {int(up.years[k])}) "
+            f"from year {first}: the plant needs inputs outside the twin's box; widen "
+            f"model.inputs.{name} or run 'twinmon diagnose'")
+    unconv = np.flatnonzero(st == STATUS_UNCONVERGED)
+    if unconv.size:
+        yrs = ", ".join(str(int(up.years[k])) for k in unconv)
+        return STATUS_UNRELIABLE, (f"prognosis unreliable: the posterior of year(s) {yrs} did "
+                                   "not converge even with longer chains")
+    return STATUS_OK, ""
 
 
 def maintenance_plan(trends: dict, years_future: np.ndarray,
@@ -723,6 +779,17 @@ def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
             fmu_failures=int(np.sum(twin.source[sl] == SOURCE_FAILED)))
         uf.plan = maintenance_plan(trends, p["fut"], p_unsafe, fyear,
                                    int(p["years"][-1]), float(p_obs[-1]), cfg.safety)
+        uf.status, uf.status_reason = prognosis_status(post.units[unit], cfg, post.fit_windows)
+        if uf.status == STATUS_WITHHELD:
+            if fc.force_prognosis:
+                uf.forced = True
+                uf.plan = f"FORCED despite: {uf.status_reason}. {uf.plan}"
+            else:
+                # A twin that misses the data predicts nothing about the plant.
+                uf.failure_year, uf.root_cause, uf.plan = None, STATUS_WITHHELD, \
+                    uf.status_reason[0].upper() + uf.status_reason[1:] + "."
+        elif uf.status == STATUS_UNRELIABLE:
+            uf.plan = f"{uf.plan} ({uf.status_reason}.)"
         if truth is not None:
             _add_truth(cfg, uf, unit, truth, truth_path)
         units[unit] = uf
@@ -802,6 +869,8 @@ def _write(path, cfg: Config, units: dict, names: list, directions: dict, box_ok
         f.attrs["box_physical"] = box_ok
         for unit, u in units.items():
             g = f.create_group(f"units/{unit}")
+            g.attrs["status"], g.attrs["status_reason"] = u.status, u.status_reason
+            g.attrs["forced"] = u.forced
             g.attrs["root_cause"] = u.root_cause
             g.attrs["failure_year"] = -1 if u.failure_year is None else u.failure_year
             g.attrs["plan"] = u.plan
@@ -908,6 +977,9 @@ def read_forecast(path: str | os.PathLike) -> Forecast:
                 p_unsafe_observed=get(g, "p_unsafe_observed"),
                 failure_year=None if fy < 0 else fy, root_cause=str(g.attrs["root_cause"]),
                 plan=str(g.attrs["plan"]), fmu_failures=int(g.attrs["fmu_failures"]),
+                status=str(g.attrs.get("status", STATUS_OK)),
+                status_reason=str(g.attrs.get("status_reason", "")),
+                forced=bool(g.attrs.get("forced", False)),
                 has_truth=has_truth, true_failure_year=None if tfy < 0 else tfy,
                 true_indicator=get(g, "truth/indicator") if has_truth else None,
                 true_unsafe=get(g, "truth/unsafe").astype(bool) if has_truth else None,

@@ -127,7 +127,7 @@ def starter_config(fmu_path, base_dir=None) -> str:
     add("#")
     add("# Fill in every <fill in>, uncomment the entries you use, delete the rest. Until then")
     add("# loading this file fails on purpose, naming the first key still missing. Other sections")
-    add("# (simulate, reduce, calibrate, forecast, diagnose) have defaults: see configs/pump.yaml")
+    add("# (simulate, reduce, calibrate, forecast, diagnose) have defaults: see the worked examples in configs/")
     add("# and configs/dcdrive.yaml for complete examples. Paths are relative to this file.")
     add("seed: 1")
     add("")

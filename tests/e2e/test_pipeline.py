@@ -18,7 +18,7 @@ def small(tmp_path_factory, fmu_path):
     cfg = write_yaml(tmp / "small.yaml", {
         "extends": str(CONFIGS / "fleet.yaml"),
         "simulate": {"train_size": 48, "test_size": 8},
-        "calibrate": {"chains": 2, "samples": 300, "burn_in": 100},
+        "calibrate": {"chains": 2, "samples": 300, "burn_in": 100, "ess_warn": 100.0, "max_extensions": 1},
         "forecast": {"samples": 300, "horizon": 4},
         "fabricate": {"years": 5},
     })

@@ -15,7 +15,7 @@ from .test_cli_errors import twinmon
 
 SMALL = {
     "simulate": {"train_size": 40, "test_size": 8},
-    "calibrate": {"chains": 2, "samples": 300, "burn_in": 100},
+    "calibrate": {"chains": 2, "samples": 300, "burn_in": 100, "ess_warn": 100.0, "max_extensions": 1},
     "forecast": {"samples": 200, "observed_samples": 40, "horizon": 5},
 }
 

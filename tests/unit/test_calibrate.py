@@ -183,8 +183,12 @@ def test_posterior_round_trip_and_schema(setup, tmp_path):
         assert np.array_equal(getattr(q, name), getattr(p, name)), name
     assert q.noise_source == "estimated"
     with h5py.File(tmp_path / "post.h5", "r") as f:
-        for ds in f["units/U1"].values():
-            assert ds.attrs["units"] and ds.attrs["description"]
+        def check(name, ds):
+            if isinstance(ds, h5py.Dataset):
+                assert ds.attrs["units"] and ds.attrs["description"], name
+        f["units/U1"].visititems(check)
+    for key in ("rms", "p_chi2", "p_ljung_box", "window", "extensions", "status"):
+        assert np.array_equal(q.fit[key], p.fit[key]), key
     with h5py.File(tmp_path / "wrong.h5", "w") as f:
         f.attrs["schema"] = "twinmon.forecast/1"
     with pytest.raises(ArtifactError, match="expected 'twinmon.posterior/1'"):
@@ -269,3 +273,25 @@ def test_noise_estimated_when_neither_file_nor_config_has_it(setup, tmp_path):
     # 150 samples, 12 fitted parameters: ~6 % relative sd of the estimate.
     assert abs(d["noise"]["A"]["std"] / NOISE - 1) < 0.2
     assert read_posterior(tmp_path / "p.h5").units["A"].noise_source == "estimated"
+
+
+def test_a_year_that_does_not_converge_is_sampled_longer_then_flagged(setup, tmp_path):
+    cfg, cfg_path, tmp, sur = setup
+    obs = _obs_file(tmp_path / "obs.h5", sur.time, _observe(sur, [[10.0, 3.6], [10.3, 3.58]]),
+                    noise=NOISE)
+    quick = ["calibrate.samples=150", "calibrate.burn_in=50", "calibrate.max_extensions=1"]
+    # An ESS mark no chain of this length can reach: each year runs once more, twice as
+    # long (same number of kept draws), and is then flagged.
+    s = calibrate(load_config(cfg_path, quick + ["calibrate.ess_warn=1e6"]), tmp / "sur.h5",
+                  obs, tmp_path / "slow.h5")
+    p = read_posterior(tmp_path / "slow.h5").units["A"]
+    assert list(p.fit["extensions"]) == [1, 1] and not p.fit["converged"].any()
+    assert list(p.status) == ["unconverged"] * 2
+    assert p.samples.shape == (2, 4 * 150, 2)
+    assert sum("not converged after 1 longer run(s)" in w for w in s.warnings) == 2
+    # A reachable mark: no extension, and the fit of a twin that explains the data is ok.
+    calibrate(load_config(cfg_path, quick + ["calibrate.ess_warn=1"]), tmp / "sur.h5", obs,
+              tmp_path / "fast.h5")
+    p = read_posterior(tmp_path / "fast.h5").units["A"]
+    assert list(p.fit["extensions"]) == [0, 0] and list(p.status) == ["ok", "ok"]
+    assert np.all(p.fit["rms"] < 1.5) and np.all(p.fit["edge_share"] < 0.25)

@@ -36,7 +36,7 @@ def pipeline(tmp_path_factory, fmu_path):
     cfg_path = write_yaml(tmp / "c.yaml", {
         "extends": str(CONFIGS / "fleet.yaml"),
         "simulate": {"train_size": 40, "test_size": 8, "executor": "serial"},
-        "calibrate": {"chains": 2, "samples": 300, "burn_in": 150, "workers": 1},
+        "calibrate": {"chains": 2, "samples": 300, "burn_in": 150, "workers": 1, "ess_warn": 100.0, "max_extensions": 1},
         "forecast": {"samples": 300, "horizon": 5},
         "diagnose": {"candidates": ["valve.opening_time", "sensor.tau"], "workers": 1},
         "fabricate": {"years": 4, "units": {
@@ -290,7 +290,7 @@ def test_report_of_another_machine_speaks_its_words(tmp_path):
     cfg = load_config(write_yaml(tmp_path / "dc.yaml", {
         "extends": str(DCDRIVE),
         "simulate": {"train_size": 24, "test_size": 8, "executor": "serial"},
-        "calibrate": {"chains": 2, "samples": 200, "burn_in": 50, "workers": 1},
+        "calibrate": {"chains": 2, "samples": 200, "burn_in": 50, "workers": 1, "ess_warn": 100.0, "max_extensions": 1},
         "forecast": {"samples": 200},
         "fabricate": {"years": 4},
     }))

@@ -17,8 +17,12 @@ from .common import config_options, emit_json, json_option, load, say, warn
               type=click.Path(), help="Forecast artifact to write.")
 @click.option("--truth", "truth", default=None, type=click.Path(),
               help="Truth file of fabricate: also give each unit's true failure year.")
+@click.option("--force-prognosis", is_flag=True,
+              help="Give a failure year and root cause even for units whose twin misses the "
+                   "plant (labelled FORCED).")
 @json_option
-def forecast(config_path, overrides, posterior, surrogate, output, truth, as_json):
+def forecast(config_path, overrides, posterior, surrogate, output, truth, force_prognosis,
+             as_json):
     """Trend of each input, P(unsafe) per future year, failure year, root cause and plan.
 
     Linear trends of the yearly posterior means with Student-t prediction intervals,
@@ -26,6 +30,8 @@ def forecast(config_path, overrides, posterior, surrogate, output, truth, as_jso
     outside it); root cause from t tests of the slopes against normal ageing.
     """
     from ..forecast import forecast as run
+    if force_prognosis:
+        overrides = (*overrides, "forecast.force_prognosis=true")
     cfg = load(config_path, overrides)
     # A few seconds of work: no progress bar (the FMU share is only known once sampled).
     s = run(cfg, posterior, surrogate, output, truth_path=truth)
@@ -41,7 +47,12 @@ def forecast(config_path, overrides, posterior, surrogate, output, truth, as_jso
         if u.has_truth:
             tf = u.true_failure_year
             true = f" (true: {tf if tf is not None else 'none by ' + str(u.years_future[-1])})"
-        say(f"{unit}: {u.root_cause}; failure year (P(unsafe) > {limit:g}) {fy}{true}; "
+        if u.status == "withheld" and not u.forced:
+            say(f"{unit}: WITHHELD; {u.status_reason}")
+            continue
+        label = {"withheld": " [FORCED: the twin misses the plant]",
+                 "unreliable": " [UNRELIABLE]"}.get(u.status, "")
+        say(f"{unit}: {u.root_cause}{label}; failure year (P(unsafe) > {limit:g}) {fy}{true}; "
             f"{tests}; FMU share {100 * u.fmu_fraction:.1f} %")
         say(f"  plan: {u.plan}")
         if u.fmu_failures:

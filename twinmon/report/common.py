@@ -120,9 +120,12 @@ class Words:
 
 
 def state_words(root_cause: Optional[str]) -> str:
-    """``healthy``, ``<component> fault``, ``several faults`` (root cause ``both``)."""
+    """``healthy``, ``<component> fault``, ``several faults`` (root cause ``both``), or
+    ``prognosis withheld`` (the twin misses the plant)."""
     if root_cause is None:
         return "unknown"
+    if root_cause == "withheld":
+        return "prognosis withheld: the twin misses the plant"
     if root_cause == "healthy":
         return "healthy"
     if root_cause == "both":

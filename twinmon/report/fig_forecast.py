@@ -83,7 +83,7 @@ def fig_marginals(figs: Figures, inp: Inputs, colours: dict) -> list[str]:
     import matplotlib
     fc, cfg, w = inp.forecast, inp.cfg, inp.words
     names = list(fc.input_names)
-    faulty = [u for u, f in fc.units.items() if f.root_cause != "healthy"]
+    faulty = [u for u, f in fc.units.items() if f.root_cause not in ("healthy", "withheld")]
     shown = faulty or list(fc.units)
     fig = figs.new(4.6 * len(names) + 0.6, 2.9 * len(shown) + 0.7)
     axes = np.atleast_2d(fig.subplots(len(shown), len(names), squeeze=False))

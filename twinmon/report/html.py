@@ -114,10 +114,11 @@ def page(cfg: Config, words: Words, summary: ReportSummary, figs: list[dict],
            f"<code>{e(cfg.source)}</code>.</p>", _what_is_monitored(cfg, words)]
     out.append("<h2>Summary per unit</h2>")
     if summary.units:
-        out.append("<table><tr><th>Unit</th><th>Health</th><th>Time to failure</th>"
-                   "<th>What to do</th><th>What this rests on</th></tr>")
+        out.append("<table><tr><th>Unit</th><th>Status</th><th>Health</th>"
+                   "<th>Time to failure</th><th>What to do</th><th>What this rests on</th></tr>")
         for u, s in summary.units.items():
-            cls = ("ok" if s.root_cause == "healthy" else "bad" if s.failure_year is not None
+            cls = ("warn" if s.status in ("withheld", "unreliable")
+                   else "ok" if s.root_cause == "healthy" else "bad" if s.failure_year is not None
                    else "warn" if s.root_cause else "")
             ttf = s.time_to_failure
             if s.failure_year is not None and s.last_year is not None:
@@ -125,7 +126,10 @@ def page(cfg: Config, words: Words, summary: ReportSummary, figs: list[dict],
                 ttf = (f"year {s.failure_year} of service: {n} year{'s' if n != 1 else ''} "
                        f"after the last observation (year {s.last_year}); P(unsafe) "
                        f"{pct(s.p_unsafe)} in year {s.failure_year}")
-            out.append(f'<tr><td class="unit">{e(u)}</td><td class="{cls}">{e(s.health)}</td>'
+            st_cls = {"ok": "ok", "none": ""}.get(s.status, "warn")
+            out.append(f'<tr><td class="unit">{e(u)}</td>'
+                       f'<td class="{st_cls}">{e(s.status_words)}</td>'
+                       f'<td class="{cls}">{e(s.health)}</td>'
                        f"<td>{e(ttf)}</td><td>{e(s.action)}</td><td>{e(s.confidence)}</td></tr>")
         out.append("</table>")
         plans = [(u, s.plan) for u, s in summary.units.items() if s.plan]

@@ -69,14 +69,34 @@ class UnitSummary:
     confidence: str = ""
     diagnose: Optional[dict] = None
     true_failure_year: Optional[int] = None
+    #: The prognosis status (``ok``, ``withheld``, ``unreliable``; ``none`` without a
+    #: forecast), why, and whether a withheld prognosis was forced.
+    status: str = "none"
+    status_reason: str = ""
+    forced: bool = False
+
+    @property
+    def status_words(self) -> str:
+        """The status as a maintenance engineer reads it at a glance."""
+        return {"ok": "prognosis given: the twin fits the data",
+                "withheld": ("FORCED prognosis: the twin misses the plant" if self.forced
+                             else "prognosis withheld: the twin misses the plant"),
+                "unreliable": "prognosis unreliable: calibration did not converge",
+                "none": "no forecast"}.get(self.status, self.status)
 
     @property
     def short_health(self) -> str:
-        return state_words(self.root_cause)
+        if self.status == "withheld" and not self.forced:
+            return "prognosis withheld"
+        words = state_words(self.root_cause)
+        return f"{words} (forced)" if self.forced else \
+            f"{words} (unreliable)" if self.status == "unreliable" else words
 
     @property
     def time_to_failure(self) -> str:
         """e.g. ``"fails in year 14 (P(unsafe) 12 % in 14)"``."""
+        if self.status == "withheld" and not self.forced:
+            return "withheld: the twin misses the plant"
         if self.root_cause is None:
             if self.last_indicator is None:
                 return "no forecast"
@@ -98,6 +118,8 @@ class UnitSummary:
             "time_to_failure": self.time_to_failure, "action": self.action, "plan": self.plan,
             "estimates": self.estimates, "confidence": self.confidence,
             "diagnose": self.diagnose, "true_failure_year": self.true_failure_year,
+            "status": self.status, "status_reason": self.status_reason or None,
+            "status_words": self.status_words, "forced": self.forced,
         }
 
 
@@ -234,9 +256,27 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
     why: list[str] = []
 
     if uf is not None:
+        s.status, s.status_reason, s.forced = uf.status, uf.status_reason, uf.forced
+    if uf is not None and uf.status == "withheld" and not uf.forced:
+        # No failure year and no root cause from a twin that misses the data: say so, and
+        # what would settle it.
+        s.root_cause = uf.root_cause
+        s.health = "not judged (see status)"
+        s.horizon_end = int(uf.years_future[-1])
+        s.last_year = s.last_year or int(uf.years_observed[-1])
+        s.plan = uf.plan
+        s.action = "run `twinmon diagnose` to find what the twin lacks; no prognosis until it fits"
+        why.append(uf.status_reason)
+    elif uf is not None:
         comps = faulty_components(cfg, uf)
         s.root_cause = uf.root_cause
         s.health = "healthy" if not comps else "degrading: " + " and ".join(comps)
+        if uf.forced:
+            s.health += " (FORCED: the twin misses the plant)"
+            why.append("FORCED: " + uf.status_reason)
+        elif uf.status == "unreliable":
+            s.health += " (unreliable)"
+            why.append(uf.status_reason)
         s.failure_year = uf.failure_year
         s.horizon_end = int(uf.years_future[-1])
         s.last_year = s.last_year or int(uf.years_observed[-1])
@@ -280,6 +320,12 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
     if post is not None:
         cc = cfg.calibrate
         rmax, emin = float(np.nanmax(post.rhat)), float(np.nanmin(post.ess))
+        if post.fit and s.status != "withheld":
+            why.append(f"the twin fits every calibrated year (residual RMS <= "
+                       f"{float(np.max(post.fit['rms'])):.2f} noise sd)"
+                       if np.all(post.status != "misfit") else
+                       f"the twin misses the plant in {int(np.sum(post.status == 'misfit'))} "
+                       "year(s)")
         if rmax <= cc.rhat_warn and emin >= cc.ess_warn:
             why.append(f"calibration converged (R-hat <= {rmax:.3f}, ESS >= {emin:.0f})")
         else:
@@ -301,11 +347,33 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
             "estimate": {k: {"mean": plain(float(v[0])), "q05": plain(float(v[1])),
                              "q95": plain(float(v[2]))} for k, v in gap.estimate.items()},
         }
+        withheld = s.status == "withheld" and not s.forced
+        if gap.verdict == "unexplained" and withheld:
+            s.action = ("revise the model: the twin misses the plant and no candidate effect of "
+                        "model.effects explains the gap (diagnose)")
+        elif gap.verdict == "none" and withheld:
+            # The two stages disagree: say it rather than let one silently win.
+            why.append("diagnose found no significant gap although calibration finds the twin "
+                       "missing the plant; compare their settings (noise, windows, alpha)")
         if gap.verdict == "effect":
             group = gap.group if len(gap.group) > 1 else gap.effects
             eff = " or ".join(group)
-            s.action += (f"; the twin misses the plant from year {gap.onset}: check {eff}"
-                         if gap.onset is not None else f"; the twin misses the plant: check {eff}")
+            if s.status == "withheld" and not s.forced:
+                s.action = (f"check {eff} (diagnose: the twin misses the plant from year "
+                            f"{gap.onset}); with it in the twin, diagnose projects "
+                            + (f"failure in year {gap.failure_year_after}"
+                               if gap.failure_year_after is not None
+                               else "no failure within the horizon"))
+            else:
+                s.action += (f"; the twin misses the plant from year {gap.onset}: check {eff}"
+                             if gap.onset is not None
+                             else f"; the twin misses the plant: check {eff}")
+            if s.status != "withheld" or s.forced:
+                why.append("the failure year shown is the forecast's (the calibrated twin, "
+                           f"without {eff}); diagnose's projection with it is "
+                           + (f"year {gap.failure_year_after}"
+                              if gap.failure_year_after is not None
+                              else "no failure within the horizon"))
             eff_units = {k: (cfg.model.effects[k].units if k in cfg.model.effects else "")
                          for k in gap.estimate}
             est = "; ".join(f"{k} = {v[0]:.3g} (90 % interval {v[1]:.3g} to {v[2]:.3g}) "
@@ -320,7 +388,7 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
                        + (f"; {gap.separating_channel} would tell the group apart"
                           if len(gap.group) > 1 and gap.separating_channel else ""))
             share = float(gap.absorbed_share)
-            if uf is not None and np.isfinite(share) and share > 0.1:
+            if uf is not None and np.isfinite(share) and share > 0.1 and s.status != "withheld":
                 why.append(f"the calibrated twin lacks this effect and its degradation inputs "
                            f"absorb {100 * share:.0f} % of its signature, so the root cause and "
                            "time to failure above may be biased")
