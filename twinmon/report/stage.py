@@ -62,16 +62,19 @@ def report(cfg: Config, output_dir: str | os.PathLike, *,
 
     out = Path(output_dir)
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.parent / f".{out.name}.{os.getpid()}.tmp"
-    shutil.rmtree(tmp, ignore_errors=True)
-    (tmp / "figures").mkdir(parents=True)
-    try:
-        with matplotlib.rc_context({"font.size": 10, "axes.titlesize": 11,
-                                    "figure.titlesize": 12, "legend.framealpha": 0.85}):
-            summary = _render(cfg, inp, tmp, out, provenance)
-        _install(tmp, out)
-    finally:
+    # One writer per report folder; folders left by a killed report are removed first.
+    with artifacts.output_lock(out, "twinmon report"):
+        artifacts.remove_stale_temporaries(out)
+        tmp = out.parent / f".{out.name}.{os.getpid()}.tmp"
         shutil.rmtree(tmp, ignore_errors=True)
+        (tmp / "figures").mkdir(parents=True)
+        try:
+            with matplotlib.rc_context({"font.size": 10, "axes.titlesize": 11,
+                                        "figure.titlesize": 12, "legend.framealpha": 0.85}):
+                summary = _render(cfg, inp, tmp, out, provenance)
+            _install(tmp, out)
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
     return summary
 
 
