@@ -55,7 +55,7 @@ def _units():
 
 def _cfg(units, seed=101, **fab):
     raw = copy.deepcopy(dict(load_config(PUMP).raw))
-    raw["fabricate"] = {"years": YEARS, "noise_fraction": 0.01, "seed": seed, "units": units,
+    raw["fabricate"] = {"years": YEARS, "noise_std": SIGMA, "seed": seed, "units": units,
                         **fab}
     return config_from_mapping(raw, PUMP)
 
@@ -78,7 +78,7 @@ def test_magnitudes_give_a_3_sigma_gap():
         for name, value in EFFECTS.items():
             d = (m.run({**theta, name: value})["sensor.m_flow"] - base) / SIGMA
             gap = max(np.sqrt(np.mean(d[(t >= w.start) & (t < w.stop)] ** 2))
-                      for w in cfg.diagnose.windows.values())
+                      for w in cfg.diagnose_windows().values())
             assert gap >= 3.0, (name, gap)
 
 
