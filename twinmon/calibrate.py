@@ -848,17 +848,9 @@ def _work(task: _ChainTask):
 
 
 def _check_inputs(cfg: Config, surrogate, surrogate_path, obs) -> None:
-    if list(surrogate.input_names) != cfg.model.input_names:
-        raise ArtifactError(f"{surrogate_path}: inputs are {surrogate.input_names}, the "
-                            f"config's are {cfg.model.input_names}")
-    times = cfg.model.output.times.times
-    if surrogate.time.shape != times.shape or not np.allclose(surrogate.time, times):
-        raise ArtifactError(f"{surrogate_path}: made for a time grid of {surrogate.time.size} "
-                            f"samples, the config's model.output.times has {times.size}; "
-                            "re-run simulate and reduce")
-    if not np.allclose(surrogate.bounds, cfg.model.bounds):
-        raise ArtifactError(f"{surrogate_path}: trained on the box {surrogate.bounds.tolist()}, "
-                            f"the config's is {cfg.model.bounds.tolist()} (re-run reduce)")
+    from .reduce import check_made_for
+    check_made_for(cfg, surrogate_path, surrogate.input_names, surrogate.time,
+                   surrogate.bounds, "simulate and reduce")
     t_s, t_o = np.asarray(surrogate.time), np.asarray(obs.time)
     if t_s.shape != t_o.shape or not np.allclose(t_s, t_o, rtol=0, atol=1e-6):
         raise InputDataError(

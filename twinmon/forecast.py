@@ -678,7 +678,7 @@ def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
     import openturns as ot
     from .calibrate import read_posterior
     from .executors import make_executor
-    from .reduce import read_surrogate
+    from .reduce import check_made_for, read_surrogate
     from .safety import failure_year as first_failure
 
     start = _time.perf_counter()
@@ -690,13 +690,8 @@ def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
         raise ArtifactError(f"{posterior_path}: posterior inputs {list(post.input_names)} "
                             f"differ from the config's inputs {names}")
     sur = read_surrogate(surrogate_path)
-    if list(sur.input_names) != names:
-        raise ArtifactError(f"{surrogate_path}: surrogate inputs {list(sur.input_names)} "
-                            f"differ from the config's inputs {names}")
-    times = cfg.model.output.times.times
-    if sur.time.shape != times.shape or not np.allclose(sur.time, times):
-        raise ArtifactError(f"{surrogate_path}: surrogate time grid ({sur.time.size} samples) "
-                            f"differs from the config's output times ({times.size} samples)")
+    check_made_for(cfg, surrogate_path, sur.input_names, sur.time, sur.bounds,
+                   "simulate and reduce")
     if not post.units:
         raise ArtifactError(f"{posterior_path}: no units in the posterior")
     made_from = [r.get("sha256") for r in artifacts.read_provenance(posterior_path).get("inputs", [])]

@@ -343,7 +343,7 @@ class ReduceSummary:
 def reduce(cfg: Config, simulations: str | os.PathLike, output: str | os.PathLike) -> ReduceSummary:
     """Fit the surrogate on the training runs, validate it on the test runs, write it."""
     sims = read_simulations(simulations)
-    check_simulations_match(cfg, sims)
+    check_made_for(cfg, simulations, sims.input_names, sims.time, sims.bounds, "simulate")
     ok = sims.ok["train"]
     if ok.sum() < 2 * len(sims.input_names) + 2:
         raise CalibrationError(f"{simulations}: only {int(ok.sum())} successful training runs")
@@ -356,25 +356,35 @@ def reduce(cfg: Config, simulations: str | os.PathLike, output: str | os.PathLik
     return ReduceSummary(s.n_modes, s.variance_ratio, val, int(ok.sum()), str(output))
 
 
-def check_simulations_match(cfg: Config, sims) -> None:
-    """The simulations must come from this config's inputs, box and time grid.
+def check_made_for(cfg: Config, path, input_names, time, bounds, rerun: str) -> None:
+    """An artifact (simulations or surrogate) must come from this config's inputs, design box
+    and time grid; else one line naming what differs and the stage(s) to re-run.
+
+    Parameters
+    ----------
+    input_names : list of str
+    time : ndarray, shape [n_t], s
+    bounds : ndarray, shape [d, 2]
+    rerun : str
+        What to re-run, e.g. ``"simulate"`` or ``"simulate and reduce"``.
 
     Raises
     ------
     ArtifactError
-        Naming what differs and that ``simulate`` must be re-run."""
-    where = sims.path
-    if sims.input_names != cfg.model.input_names:
-        raise ArtifactError(f"{where}: inputs are {sims.input_names}, the config's are "
-                            f"{cfg.model.input_names}; re-run 'twinmon simulate'")
+    """
+    if list(input_names) != cfg.model.input_names:
+        raise ArtifactError(f"{path}: inputs are {list(input_names)}, the config's are "
+                            f"{cfg.model.input_names}; re-run {rerun}")
     times = cfg.model.output.times.times
-    if sims.time.shape != times.shape or not np.allclose(sims.time, times):
-        raise ArtifactError(f"{where}: time grid of {sims.time.size} samples "
-                            f"({sims.time[0]:g}-{sims.time[-1]:g} s) differs from the config's "
-                            f"model.output.times ({times.size} samples); re-run 'twinmon simulate'")
-    if sims.bounds.shape != cfg.model.bounds.shape or not np.allclose(sims.bounds, cfg.model.bounds):
-        raise ArtifactError(f"{where}: design box {sims.bounds.tolist()} differs from the config's "
-                            f"input ranges {cfg.model.bounds.tolist()}; re-run 'twinmon simulate'")
+    time = np.asarray(time)
+    if time.shape != times.shape or not np.allclose(time, times):
+        raise ArtifactError(f"{path}: made for a time grid of {time.size} samples "
+                            f"({time[0]:g}-{time[-1]:g} s), the config's model.output.times "
+                            f"has {times.size}; re-run {rerun}")
+    bounds = np.asarray(bounds)
+    if bounds.shape != cfg.model.bounds.shape or not np.allclose(bounds, cfg.model.bounds):
+        raise ArtifactError(f"{path}: made for the design box {bounds.tolist()}, the config's "
+                            f"input ranges are {cfg.model.bounds.tolist()}; re-run {rerun}")
 
 
 def write_surrogate(path, s: Surrogate, val: Validation, cfg: Config, inputs) -> None:

@@ -241,7 +241,7 @@ def test_surrogate_of_other_inputs_is_rejected(setup, tmp_path):
     cfg, cfg_path, tmp, sur = setup
     obs = _obs_file(tmp_path / "obs.h5", sur.time, _observe(sur, [10.0, 3.6]), noise=NOISE)
     other = load_config(cfg_path, ["model.inputs.motor_damping.high=40"])
-    with pytest.raises(ArtifactError, match="sur.h5: trained on the box"):
+    with pytest.raises(ArtifactError, match="sur.h5: made for the design box"):
         calibrate(other, tmp / "sur.h5", obs, tmp_path / "post.h5")
 
 
