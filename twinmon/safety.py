@@ -78,6 +78,9 @@ class _quiet_nan:
 def _time_to_reach(t: np.ndarray, v: np.ndarray, spec: IndicatorSpec) -> np.ndarray:
     level = float(spec.level)
     sign = 1.0 if spec.direction == "up" else -1.0
+    # A transient without one usable sample (a failed run) has no indicator, whatever the
+    # known value at t = 0 says.
+    empty = ~np.isfinite(v).any(axis=-1) if v.shape[-1] else np.ones(v.shape[:-1], bool)
     if spec.initial is not None:
         # A start from rest: the value at t = 0 is known, so an early crossing is
         # interpolated from it instead of being reported at the first sample.
@@ -106,12 +109,13 @@ def _time_to_reach(t: np.ndarray, v: np.ndarray, spec: IndicatorSpec) -> np.ndar
         res[full] = np.where(reached, tc, np.inf)
     for i in np.flatnonzero(has_nan):
         ok = ~np.isnan(flat[i])
-        if not ok.any():
-            res[i] = np.nan
-            continue
-        sub = IndicatorSpec(kind="time_to_reach", level=level, direction=spec.direction)
-        res[i] = _time_to_reach(t[ok], flat[i, ok], sub)
-    return res.reshape(v.shape[:-1])
+        if ok.sum() == 1:
+            res[i] = t[ok][0] if sign * flat[i, ok][0] >= sign * level else np.inf
+        elif ok.any():
+            sub = IndicatorSpec(kind="time_to_reach", level=level, direction=spec.direction)
+            res[i] = _time_to_reach(t[ok], flat[i, ok], sub)
+    res = res.reshape(v.shape[:-1])
+    return np.where(empty, np.nan, res)
 
 
 def _value_at(t: np.ndarray, v: np.ndarray, at: float) -> np.ndarray:
