@@ -42,7 +42,6 @@ poor, it is "unconverged". ``forecast`` withholds or flags a prognosis on these 
 from __future__ import annotations
 
 import json
-import multiprocessing as mp
 import os
 import zlib
 from dataclasses import dataclass, field
@@ -54,7 +53,7 @@ import numpy as np
 
 from . import artifacts
 from .config import Config
-from .errors import ArtifactError, CalibrationError, InputDataError
+from .errors import ArtifactError, CalibrationError, InputDataError, Interrupted
 from .observations import read_observations
 
 #: Per-year verdicts of the fit, in order of precedence.
@@ -834,9 +833,6 @@ _worker = {}
 
 
 def _init_worker(surrogate, surrogate_path) -> None:
-    import signal
-    # Ctrl-C is the parent's: a worker that caught it too would print a traceback each.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
     if surrogate is None:  # spawned, not forked: rebuild from the file
         from .reduce import read_surrogate
         surrogate = read_surrogate(surrogate_path)
@@ -952,11 +948,28 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
     else:
         # Years of one unit are sequential (each prior is centred on the previous estimate),
         # so the parallel grain is the chain: every unit's chains of the same year at once.
+        from concurrent.futures.process import BrokenProcessPool
+
+        from .executors import InterruptGuard, start_pool, stop_pool
         fork = hasattr(os, "fork")
-        ctx = mp.get_context("fork" if fork else "spawn")
-        with ctx.Pool(workers, initializer=_init_worker,
-                      initargs=(surrogate if fork else None, str(surrogate_path))) as pool:
-            _run_parallel(pool, runs, total, progress)
+        pool = start_pool(workers, _init_worker, (surrogate if fork else None,
+                                                  str(surrogate_path)))
+        ok = False
+        try:
+            with InterruptGuard() as guard:
+                _run_parallel(pool, runs, total, progress, guard)
+            ok = True
+        except KeyboardInterrupt:
+            raise Interrupted(f"{output}: interrupted; nothing was written") from None
+        except BrokenProcessPool:
+            raise CalibrationError(f"{output}: a worker process died while sampling; nothing "
+                                   "was written; re-run with calibrate.workers=1 to see "
+                                   "why") from None
+        finally:
+            if ok:
+                pool.shutdown(wait=True)
+            else:
+                stop_pool(pool)
     posterior = {unit: run.result() for unit, run in runs.items()}
 
     names = cfg.model.input_names
@@ -966,18 +979,24 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
     # The truth only feeds the summary, but it is recorded so that `twinmon run` re-runs
     # the stage (and its truth check) when it changes.
     inputs = [surrogate_path, observations_path] + ([truth_path] if truth_path else [])
-    write_posterior(output, posterior, names, cfg, inputs)
+    write_posterior(output, posterior, names, cfg, inputs, surrogate_id=surrogate.fingerprint())
     check = truth_check(posterior, truth, names) if truth is not None else None
     return CalibrateSummary(names, posterior, warnings, str(output), check, windows)
 
 
-def _run_parallel(pool, runs: dict[str, "_UnitRun"], total: int, progress) -> None:
+def _run_parallel(pool, runs: dict[str, "_UnitRun"], total: int, progress, guard) -> None:
+    from concurrent.futures import wait
     while True:
         active = [r for r in runs.values() if not r.done]
         if not active:
             return
         plans = [r.plan() for r in active]
-        results = pool.map(_work, [t for p in plans for t in p], chunksize=1)
+        futures = [pool.submit(_work, t) for p in plans for t in p]
+        # Poll, so that a Ctrl-C stops long chains within a fraction of a second.
+        while wait(futures, timeout=0.2).not_done:
+            guard.check()
+        guard.check()
+        results = [f.result() for f in futures]
         i = 0
         for run, plan in zip(active, plans):
             run.finish(results[i:i + len(plan)])
@@ -1090,10 +1109,15 @@ _DATASETS = {
 
 
 def write_posterior(path, posterior: dict[str, UnitPosterior], input_names: list[str],
-                    cfg: Config, inputs) -> None:
-    """Write ``posterior.h5`` atomically (layout in the module docstring)."""
+                    cfg: Config, inputs, surrogate_id: str = "") -> None:
+    """Write ``posterior.h5`` atomically (layout in the module docstring).
+
+    ``surrogate_id`` is the :meth:`~twinmon.reduce.Surrogate.fingerprint` of the surrogate
+    the posterior was sampled through."""
     with artifacts.write_artifact(path, "posterior", config=cfg.section_yaml(*SECTIONS),
                                   inputs=inputs, seed=cfg.seed + SEED_OFFSET) as f:
+        if surrogate_id:
+            f.attrs["surrogate_id"] = surrogate_id
         f.attrs["input_names"] = json.dumps(list(input_names))
         f.attrs["input_units"] = json.dumps([cfg.model.inputs[n].units for n in input_names])
         for unit, p in posterior.items():

@@ -694,11 +694,11 @@ def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
                    "simulate and reduce")
     if not post.units:
         raise ArtifactError(f"{posterior_path}: no units in the posterior")
-    made_from = [r.get("sha256") for r in artifacts.read_provenance(posterior_path).get("inputs", [])]
-    if made_from and artifacts.file_sha256(surrogate_path) not in made_from:
-        raise ArtifactError(f"{posterior_path}: calibrated with another surrogate than "
-                            f"{surrogate_path} (its recorded inputs do not include that file's "
-                            "hash); re-run calibrate, or pass the surrogate it was made with")
+    made_with = artifacts.read_provenance(posterior_path).get("surrogate_id", "")
+    if made_with and made_with != sur.fingerprint():
+        raise ArtifactError(f"{posterior_path}: calibrated through another surrogate than "
+                            f"{surrogate_path} (their fingerprints differ); re-run calibrate, "
+                            "or pass the surrogate it was made with")
     ot.RandomGenerator.SetSeed(cfg.seed + SEED_OFFSET)
     directions = degrading_directions(cfg, sur)
     box_ok = box_is_physical(cfg)
@@ -807,7 +807,7 @@ def _check_plausible(path, unit: str, samples: np.ndarray, cfg: Config) -> None:
         k, j, i = np.argwhere(bad)[0]
         name = cfg.model.input_names[i]
         raise ArtifactError(f"{path}: /units/{unit}/samples[{k}, {j}, {i}] ({name}) is "
-                            f"{samples[k, j, i]!r}, outside the design box "
+                            f"{float(samples[k, j, i]):g}, outside the design box "
                             f"[{box[i, 0]:g}, {box[i, 1]:g}] widened by the fit margin: "
                             "a damaged or foreign posterior; re-run calibrate")
 

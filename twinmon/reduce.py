@@ -121,6 +121,8 @@ class Surrogate:
     #: error on what they compute from it (the health indicator).
     X_test: np.ndarray = field(default_factory=lambda: np.empty((0, 0)))
     Y_test: np.ndarray = field(default_factory=lambda: np.empty((0, 0)))
+    #: Hash of what the surrogate predicts from (see :meth:`fingerprint`); set on reading.
+    content_id: str = ""
     _results: list = field(default_factory=list, repr=False)
     _meta = None
     _covs: list = field(default_factory=list, repr=False)
@@ -159,6 +161,18 @@ class Surrogate:
 
     def _untransform(self, z: np.ndarray) -> np.ndarray:
         return np.exp(z) if self.transform == "log" else z
+
+    def fingerprint(self) -> str:
+        """SHA-256 of the arrays and settings the predictions depend on. Two surrogates with
+        the same fingerprint predict the same, whatever file (and creation time) holds them;
+        calibrate records it so forecast can tell whether a posterior belongs to a surrogate."""
+        import hashlib
+        h = hashlib.sha256(f"{self.kernel}|{self.trend}|{self.transform}|"
+                           f"{json.dumps(list(self.input_names))}".encode())
+        for a in (self.bounds, self.time, self.mean, self.basis, self.truncation_var,
+                  self.X_train, self.xi_train, self.scales, self.amplitudes, *self.trend_coefs):
+            h.update(np.ascontiguousarray(a, dtype=float).tobytes())
+        return h.hexdigest()
 
     def training_outputs(self) -> np.ndarray:
         """The training transients as the kept modes reproduce them, shape [n, n_t], output
@@ -347,8 +361,11 @@ def reduce(cfg: Config, simulations: str | os.PathLike, output: str | os.PathLik
     ok = sims.ok["train"]
     if ok.sum() < 2 * len(sims.input_names) + 2:
         raise CalibrationError(f"{simulations}: only {int(ok.sum())} successful training runs")
-    s = fit_surrogate(sims.X["train"][ok], sims.Y["train"][ok], sims.time, sims.bounds,
-                      sims.input_names, cfg.reduce, cfg.model.output.units)
+    try:
+        s = fit_surrogate(sims.X["train"][ok], sims.Y["train"][ok], sims.time, sims.bounds,
+                          sims.input_names, cfg.reduce, cfg.model.output.units)
+    except CalibrationError as exc:
+        raise CalibrationError(f"{simulations}: {exc.message}") from None
     okt = sims.ok["test"]
     s.X_test, s.Y_test = sims.X["test"][okt], sims.Y["test"][okt]
     val = validate_surrogate(s, s.X_test, s.Y_test)
@@ -396,6 +413,7 @@ def write_surrogate(path, s: Surrogate, val: Validation, cfg: Config, inputs) ->
         f.attrs["transform"] = s.transform
         f.attrs["output_units"] = s.units
         f.attrs["validation"] = artifacts.json_attr(val.as_dict())
+        f.attrs["content_id"] = s.fingerprint()
         put = artifacts.put
         put(f, "time", s.time, "s", "sample times")
         put(f, "bounds", s.bounds, "input units", "training box, rows (low, high) per input")
@@ -432,7 +450,8 @@ def read_surrogate(path: str | os.PathLike) -> Surrogate:
                          trend_coefs=coefs, transform=str(f.attrs["transform"]),
                          units=str(f.attrs["output_units"]),
                          X_test=get("X_test") if "X_test" in f else np.empty((0, 0)),
-                         Y_test=get("Y_test") if "Y_test" in f else np.empty((0, 0)))
+                         Y_test=get("Y_test") if "Y_test" in f else np.empty((0, 0)),
+                         content_id=str(f.attrs.get("content_id", "")))
 
 
 def read_validation(path: str | os.PathLike) -> dict:

@@ -20,7 +20,7 @@ import numpy as np
 from . import artifacts
 from .config import Config
 from .errors import ArtifactError, Interrupted, SimulationError
-from .executors import Executor, SimulationSpec, make_executor
+from .executors import Executor, InterruptGuard, SimulationSpec, make_executor
 
 SPLITS = ("train", "test")
 #: Config sections recorded in the artifact (and compared by ``twinmon run``).
@@ -88,8 +88,11 @@ def check_model(cfg: Config) -> None:
         FMU has).
     """
     from .fmu import closest_names, describe_fmu
-    info = describe_fmu(cfg.model.fmu)
     src = cfg.source
+    try:
+        info = describe_fmu(cfg.model.fmu)
+    except SimulationError as exc:
+        raise SimulationError(f"{src}: model.fmu: {exc.message}") from None
     kind_ok = info.co_simulation if cfg.model.fmi_type == "CoSimulation" else info.model_exchange
     if not kind_ok:
         raise SimulationError(f"{src}: model.fmi_type: {info.path} does not support "
@@ -278,9 +281,11 @@ def _simulate_locked(cfg: Config, output: Path, workers, progress) -> SimulateSu
                              cfg.simulate.workers if workers is None else workers)
     total = sum(len(x) for x in designs.values())
     start = _time.perf_counter()
+    done = resumed
     try:
-        with h5py.File(partial, "a") as f:
-            done = resumed
+        # One pool for the whole design (workers fork once, not once per chunk); Ctrl-C is
+        # taken between runs, where the partial file is consistent.
+        with InterruptGuard() as guard, executor, h5py.File(partial, "a") as f:
             for split in SPLITS:
                 g = f[split]
                 pending = np.flatnonzero(g["status"][()] == STATUS_PENDING)
@@ -288,8 +293,12 @@ def _simulate_locked(cfg: Config, output: Path, workers, progress) -> SimulateSu
                     idx = pending[lo:lo + cfg.simulate.chunk_size]
                     params = as_parameters(cfg, designs[split][idx])
                     base = done
-                    batch = run_batch(spec, params, executor,
-                                      (lambda k, b=base: progress(b + k, total)) if progress else None)
+
+                    def on_result(k, b=base):
+                        guard.check()
+                        if progress:
+                            progress(b + k, total)
+                    batch = run_batch(spec, params, executor, on_result)
                     _store_chunk(g, idx, batch, spec, cfg)
                     done += len(idx)
                     f.flush()
@@ -307,6 +316,10 @@ def _simulate_locked(cfg: Config, output: Path, workers, progress) -> SimulateSu
     except KeyboardInterrupt:
         raise Interrupted(f"{output}: interrupted; {partial} keeps the finished runs and "
                           "the next 'twinmon simulate' resumes from it") from None
+    except SimulationError:
+        if done == 0 and partial.exists():
+            partial.unlink()          # nothing to resume: leave no empty partial file behind
+        raise
     wall = _time.perf_counter() - start
     warnings = criterion_warnings(cfg, read_simulations(output))
     if failures:

@@ -4,7 +4,7 @@
 A distributed backend only has to implement :meth:`Executor.map`.
 """
 from .base import Executor, RunResult, SimulationSpec
-from .local import ProcessExecutor, SerialExecutor
+from .local import InterruptGuard, ProcessExecutor, SerialExecutor, start_pool, stop_pool
 
 
 def make_executor(kind: str, workers: int = 0) -> Executor:
@@ -20,4 +20,4 @@ def make_executor(kind: str, workers: int = 0) -> Executor:
 
 
 __all__ = ["Executor", "RunResult", "SimulationSpec", "SerialExecutor", "ProcessExecutor",
-           "make_executor"]
+           "make_executor", "start_pool", "stop_pool", "InterruptGuard"]

@@ -59,6 +59,17 @@ class Executor(abc.ABC):
     def workers(self) -> int:
         return 1
 
+    # An executor may keep resources (a process pool) open between ``map`` calls while used
+    # as a context manager; outside one, each ``map`` call cleans up after itself.
+    def __enter__(self) -> "Executor":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Release what :meth:`map` kept open (nothing, by default)."""
+
 
 def run_one(model, index: int, params: Mapping[str, float]) -> RunResult:
     """Run one parameter set on an open model; a simulation failure becomes a result."""

@@ -28,17 +28,135 @@ class SerialExecutor(Executor):
                 yield run_one(model, index, p)
 
 
+# ---------------------------------------------------------------------------------------
+# Worker processes shared by every stage that fans out (simulate, calibrate, diagnose)
+# ---------------------------------------------------------------------------------------
+def detach_worker() -> None:
+    """First thing in every worker process: leave the terminal's process group and ignore
+    SIGINT. Ctrl-C is then the parent's alone: it stops the pool and says so in one line,
+    instead of every worker printing a traceback (or dying inside native code, which leaves a
+    pool waiting forever)."""
+    try:
+        os.setpgrp()
+    except OSError:
+        pass
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # stop_pool() terminates workers with SIGTERM: leave through SystemExit so that
+    # multiprocessing's finalizers (the extracted FMU folder) still run.
+    signal.signal(signal.SIGTERM, _exit_on_term)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+
+
+def _exit_on_term(signum, frame):
+    raise SystemExit(0)
+
+
+class sigint_deferred:
+    """Hold SIGINT back while worker processes are forked, so that no child starts life with
+    Python's default handler, and no Ctrl-C lands inside the fork machinery. A Ctrl-C
+    pressed meanwhile is delivered when the block ends."""
+
+    def __enter__(self):
+        self._old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        return self
+
+    def __exit__(self, *exc):
+        signal.pthread_sigmask(signal.SIG_SETMASK, self._old)
+        return False
+
+
+class InterruptGuard:
+    """Ctrl-C as a flag, raised as ``KeyboardInterrupt`` only where the code asks
+    (:meth:`check`) and on leaving the block.
+
+    Python raises ``KeyboardInterrupt`` wherever the main thread happens to be; inside a
+    weakref callback or a ``__del__`` (the pool and h5py run many) it is printed as "Exception
+    ignored" and lost, and the command goes on to exit 0. Outside the main thread (no signal
+    handlers there) the guard does nothing."""
+
+    def __enter__(self) -> "InterruptGuard":
+        self.hit = False
+        try:
+            self._old = signal.signal(signal.SIGINT, self._on_sigint)
+        except ValueError:              # not the main thread
+            self._old = None
+        return self
+
+    def _on_sigint(self, signum, frame) -> None:
+        self.hit = True
+
+    def check(self) -> None:
+        if self.hit:
+            raise KeyboardInterrupt
+
+    def __exit__(self, typ, exc, tb) -> bool:
+        if self._old is not None:
+            signal.signal(signal.SIGINT, self._old)
+        if self.hit and typ is None:
+            raise KeyboardInterrupt
+        return False
+
+
+def start_pool(workers: int, initializer=None, initargs=()):
+    """A ``ProcessPoolExecutor`` of ``workers`` detached processes, all started now.
+
+    A worker that dies makes the pool raise ``BrokenProcessPool`` (a ``multiprocessing.Pool``
+    would wait forever for its task)."""
+    from concurrent.futures import ProcessPoolExecutor, wait
+    ctx = mp.get_context("fork" if hasattr(os, "fork") else "spawn")
+    with sigint_deferred():
+        pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_detached,
+                                   initargs=(initializer, initargs))
+        # Start every worker inside the block (a fork context starts them all at the first
+        # submit) and let each finish its initializer.
+        wait([pool.submit(_noop) for _ in range(workers)])
+    return pool
+
+
+def stop_pool(pool) -> None:
+    """Stop a pool at once: queued work cancelled, running workers terminated (after an
+    error or a Ctrl-C nobody wants their results)."""
+    procs = list(getattr(pool, "_processes", {}).values())   # no public API for this
+    pool.shutdown(wait=False, cancel_futures=True)
+    for p in procs:
+        if p.is_alive():
+            p.terminate()
+    import time
+    deadline = time.monotonic() + 2.0
+    for p in procs:
+        p.join(max(0.0, deadline - time.monotonic()))
+    for p in procs:
+        if p.is_alive():          # inside native code (a long sampler call): no cleanup there
+            p.kill()
+            p.join(1)
+
+
+def _init_detached(initializer, initargs) -> None:
+    detach_worker()
+    if initializer is not None:
+        initializer(*initargs)
+
+
+def _noop() -> None:
+    return None
+
+
+# ---------------------------------------------------------------------------------------
+# Simulation workers
+# ---------------------------------------------------------------------------------------
 _worker_model = None
 _worker_error = ""
 
 
 def _init_worker(spec: SimulationSpec) -> None:
-    # Ctrl-C is the parent's to handle: a worker that also caught it would print its own
-    # traceback for every interrupted run.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
     global _worker_model, _worker_error
+    from multiprocessing.util import Finalize
     try:
         _worker_model = _open(spec)
+        # Pool workers leave by os._exit: atexit handlers and weakref finalizers do not run,
+        # but multiprocessing's own finalizers do. Without this, every worker would leave its
+        # extracted FMU folder behind in $TMPDIR.
+        Finalize(_worker_model, _worker_model.close, exitpriority=10)
     except BaseException as exc:  # noqa: BLE001 -- reported to the parent, which fails fast
         # An initializer that raises makes a pool respawn workers forever (multiprocessing)
         # or break without the reason (concurrent.futures): keep the reason and hand it to
@@ -59,9 +177,11 @@ class WorkerStartError(Exception):
 class ProcessExecutor(Executor):
     """A pool of worker processes, one FMU instance each.
 
-    A worker that cannot open the FMU, or that dies (a crash inside the FMU's C code), ends
-    the batch at once with a :class:`~twinmon.errors.SimulationError` naming the reason:
-    never a hang or an endless respawn.
+    Used as a context manager, the pool (and each worker's FMU instance) is kept across
+    ``map`` calls of the same spec: ``simulate`` forks once, not once per chunk. A worker that
+    cannot open the FMU, or that dies (a crash inside the FMU's C code), ends the batch at once
+    with a :class:`~twinmon.errors.SimulationError` naming the reason: never a hang or an
+    endless respawn. Workers are detached from the terminal (:func:`detach_worker`).
 
     Parameters
     ----------
@@ -73,29 +193,52 @@ class ProcessExecutor(Executor):
         if workers < 0:
             raise ValueError(f"workers must be >= 0, got {workers}")
         self._workers = workers or len(os.sched_getaffinity(0))
+        self._pool = None
+        self._spec = None
+        self._open = False
 
     @property
     def workers(self) -> int:
         return self._workers
 
+    def __enter__(self) -> "ProcessExecutor":
+        self._open = True
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._open = False
+        self.close()
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool, self._spec = None, None
+
+    def _pool_for(self, spec: SimulationSpec):
+        if self._pool is not None and self._spec is not spec:
+            self.close()
+        if self._pool is None:
+            self._pool = start_pool(self._workers, _init_worker, (spec,))
+            self._spec = spec
+        return self._pool
+
     def map(self, spec: SimulationSpec,
             params: Sequence[tuple[int, Mapping[str, float]]]) -> Iterator[RunResult]:
-        from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+        from concurrent.futures import FIRST_COMPLETED, wait
         from concurrent.futures.process import BrokenProcessPool
 
         from ..errors import SimulationError
 
         params = list(params)
-        if self._workers <= 1 or len(params) < 2 * self._workers:
+        if self._pool is None and (self._workers <= 1 or len(params) < 2 * self._workers):
             # A pool costs ~0.1 s to start: not worth it for a handful of runs.
             yield from SerialExecutor().map(spec, params)
             return
-        ctx = mp.get_context("fork" if hasattr(os, "fork") else "spawn")
         size = max(1, min(16, len(params) // (4 * self._workers)))
         chunks = [params[i:i + size] for i in range(0, len(params), size)]
-        pool = ProcessPoolExecutor(self._workers, mp_context=ctx, initializer=_init_worker,
-                                   initargs=(spec,))
+        ok = False
         try:
+            pool = self._pool_for(spec)
             pending = {pool.submit(_work_chunk, c) for c in chunks}
             while pending:
                 done, pending = wait(pending, return_when=FIRST_COMPLETED)
@@ -110,6 +253,11 @@ class ProcessExecutor(Executor):
                             "in its native code?); re-run with simulate.executor=serial to see "
                             "which input") from None
                     yield from results
+            ok = True
         finally:
-            # Do not wait for queued chunks after an error or an interrupt.
-            pool.shutdown(wait=True, cancel_futures=True)
+            if not ok and self._pool is not None:
+                # An error or a Ctrl-C: nobody waits for the queued chunks.
+                stop_pool(self._pool)
+                self._pool, self._spec = None, None
+            elif not self._open:
+                self.close()
