@@ -117,7 +117,8 @@ def stop_pool(pool) -> None:
     """Stop a pool at once: queued work cancelled, running workers terminated (after an
     error or a Ctrl-C nobody wants their results)."""
     procs = list(getattr(pool, "_processes", {}).values())   # no public API for this
-    pool.shutdown(wait=False, cancel_futures=True)
+    # Workers first (SIGTERM: a quiet SystemExit), then the queues: closed under a reading
+    # worker, they would make it print an EOFError traceback.
     for p in procs:
         if p.is_alive():
             p.terminate()
@@ -129,6 +130,7 @@ def stop_pool(pool) -> None:
         if p.is_alive():          # inside native code (a long sampler call): no cleanup there
             p.kill()
             p.join(1)
+    pool.shutdown(wait=False, cancel_futures=True)
 
 
 def _init_detached(initializer, initargs) -> None:
