@@ -135,7 +135,9 @@ def test_cli_init(tmp_path, monkeypatch):
     r = runner.invoke(main, ["init", str(DCDRIVE3), "-o", "dc3.yaml", "--json"])
     assert r.exit_code == 0, r.output
     assert "dc3.yaml" in r.output and "winding.R" in r.output
-    assert yaml.safe_load((tmp_path / "dc3.yaml").read_text())["model"]["fmu"] == str(DCDRIVE3)
+    # Written relative to the YAML's folder when they share more than the root.
+    fmu = yaml.safe_load((tmp_path / "dc3.yaml").read_text())["model"]["fmu"]
+    assert (tmp_path / fmu).resolve() == DCDRIVE3.resolve()
     r = runner.invoke(main, ["init", str(DCDRIVE3), "-o", "dc3.yaml"])
     assert r.exit_code == 3 and "already exists" in r.output
     r = runner.invoke(main, ["init", str(DCDRIVE3), "-o", "dc3.yaml", "--force"])

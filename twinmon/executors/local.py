@@ -8,6 +8,7 @@ from __future__ import annotations
 import multiprocessing as mp
 import os
 import signal
+import sys
 from typing import Iterator, Mapping, Sequence
 
 from .base import Executor, RunResult, SimulationSpec, run_one
@@ -45,6 +46,14 @@ def detach_worker() -> None:
     # multiprocessing's finalizers (the extracted FMU folder) still run.
     signal.signal(signal.SIGTERM, _exit_on_term)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    # A worker's errors reach the parent through its results, which reports them in one
+    # line; what a worker would print itself when a pool is torn down (multiprocessing's
+    # EOFError from a closed queue, a native solver's complaint about an interrupted
+    # callback) is noise on the user's terminal. Both Python's and the C library's stderr go.
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, 2)
+    os.close(devnull)
+    sys.stderr = open(os.devnull, "w")
 
 
 def _exit_on_term(signum, frame):
