@@ -39,7 +39,9 @@ class TwinmonGroup(click.Group):
                 import traceback
                 traceback.print_exc()
             where = f"{exc.filename}: " if exc.filename else ""
-            click.echo(f"twinmon: I/O error: {where}{exc.strerror or exc}", err=True)
+            # HDF5's errors span several lines of internals: the first says what happened.
+            what = exc.strerror or (str(exc).splitlines() or [type(exc).__name__])[0]
+            click.echo(f"twinmon: I/O error: {where}{what}", err=True)
             ctx.exit(8)
 
 
