@@ -48,7 +48,6 @@ Layout: each step has its file, over one small state object.
 from __future__ import annotations
 
 import os
-import signal
 import time as _time
 from dataclasses import dataclass
 
@@ -153,33 +152,33 @@ def _job(args):
     return diagnose_unit(*args)
 
 
-def _init_worker() -> None:
-    # Ctrl-C is the parent's to handle: a worker that also caught it would print its own
-    # traceback for every unit in progress.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-
 def _map_units(jobs: list, n_workers: int, fmu, progress) -> dict:
     """Diagnose the units of ``jobs`` on ``n_workers`` processes: ``{unit: UnitGap}`` in the
-    order of ``jobs``. A worker that dies (a crash in the FMU's native code) ends the stage
-    at once with a one-line :class:`~twinmon.errors.SimulationError`."""
-    from concurrent.futures import ProcessPoolExecutor
+    order of ``jobs``. The workers are the project's detached pool workers (they ignore
+    Ctrl-C, which the parent handles); a worker that dies (a crash in the FMU's native code)
+    ends the stage at once with a one-line :class:`~twinmon.errors.SimulationError`."""
     from concurrent.futures.process import BrokenProcessPool
 
+    from ..executors import start_pool, stop_pool
+
     results = {}
-    pool = ProcessPoolExecutor(n_workers, initializer=_init_worker)
+    pool = start_pool(n_workers)
+    ok = False
     try:
         for i, (j, g) in enumerate(zip(jobs, pool.map(_job, jobs)), 1):
             results[j[2]] = g
             if progress:
                 progress(i)
+        ok = True
     except BrokenProcessPool:
         raise SimulationError(f"{fmu}: a worker process died while diagnosing (a crash in the "
                               "FMU's native code?); nothing was written; re-run with -j 1 to "
                               "see which unit") from None
     finally:
-        # Start no queued unit after an error or an interrupt.
-        pool.shutdown(wait=True, cancel_futures=True)
+        if ok:
+            pool.shutdown(wait=True)
+        else:
+            stop_pool(pool)        # start no queued unit after an error or an interrupt
     return results
 
 

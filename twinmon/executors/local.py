@@ -206,18 +206,18 @@ class ProcessExecutor(Executor):
         self._workers = workers or len(os.sched_getaffinity(0))
         self._pool = None
         self._spec = None
-        self._open = False
+        self._in_context = False
 
     @property
     def workers(self) -> int:
         return self._workers
 
     def __enter__(self) -> "ProcessExecutor":
-        self._open = True
+        self._in_context = True
         return self
 
     def __exit__(self, *exc) -> None:
-        self._open = False
+        self._in_context = False
         self.close()
 
     def close(self) -> None:
@@ -270,5 +270,5 @@ class ProcessExecutor(Executor):
                 # An error or a Ctrl-C: nobody waits for the queued chunks.
                 stop_pool(self._pool)
                 self._pool, self._spec = None, None
-            elif not self._open:
+            elif not self._in_context:
                 self.close()
