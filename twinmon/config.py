@@ -170,12 +170,14 @@ class ModelConfig:
         return {self.output.name: self.output.units,
                 **{k: c.units for k, c in self.channels.items()}}
 
-    def channel_label(self, channel: str) -> str:
-        """Words for an observation channel (the output's label, or a channel's)."""
-        if channel == self.output.name:
-            return self.output.label
-        spec = self.channels.get(channel)
-        return (spec.label if spec is not None and spec.label else channel)
+    def variable_words(self, variable: str) -> tuple[str, str]:
+        """``(label, units)`` of an FMU variable: the output's, a channel's, or the bare
+        name with no units for a variable the config does not describe."""
+        if variable == self.output.variable:
+            return self.output.label, self.output.units
+        ch = self.channels.get(variable)
+        return (ch.label if ch is not None and ch.label else variable,
+                ch.units if ch is not None else "")
 
     @property
     def input_names(self) -> list[str]:

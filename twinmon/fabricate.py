@@ -186,7 +186,7 @@ def _write_truth(path, cfg, inputs, truth_rows, batch, spec, time, years, out_st
                           f"noise-free {out.label} (with effects and disturbance)")
             for var in fab.truth_variables:
                 artifacts.put(g, f"clean/{var}", batch.outputs[var][rows],
-                              cfg.model.channel_units.get(var, ""), f"noise-free {var}")
+                              cfg.model.variable_words(var)[1], f"noise-free {var}")
 
 
 @dataclass

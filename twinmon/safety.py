@@ -183,12 +183,7 @@ class Indicator:
     def from_config(cls, cfg: Config) -> "Indicator":
         spec = cfg.safety.indicator
         var = cfg.indicator_variable
-        if var == cfg.model.output.variable:
-            vlabel, vunits = cfg.model.output.label, cfg.model.output.units
-        else:
-            ch = cfg.model.channels.get(var)
-            vlabel = ch.label if ch is not None and ch.label else var
-            vunits = ch.units if ch is not None else ""
+        vlabel, vunits = cfg.model.variable_words(var)
         units = spec.units or ("s" if spec.kind == "time_to_reach" else vunits)
         words = _KIND_WORDS[spec.kind].format(var=vlabel, level=spec.level or 0.0,
                                               at=spec.at or 0.0, vunits=vunits).strip()

@@ -370,7 +370,7 @@ def _open_partial(partial: Path, section: str, spec: SimulationSpec, cfg: Config
                           f"{cfg.model.output.variable} at the sample times; NaN if the run failed")
             if cfg.indicator_variable != cfg.model.output.variable:
                 artifacts.put(g, "Y_indicator", np.full((len(X), times.size), np.nan),
-                              cfg.model.channel_units.get(cfg.indicator_variable, ""),
+                              cfg.model.variable_words(cfg.indicator_variable)[1],
                               f"{cfg.indicator_variable} (the health indicator's variable) at "
                               "the sample times; NaN if the run failed")
             artifacts.put(g, "nonphysical", np.zeros(len(X), np.int8), "1",

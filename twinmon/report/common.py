@@ -88,12 +88,7 @@ class Words:
         out = cfg.model.output
         ind = Indicator.from_config(cfg)
         on_output = ind.variable == out.variable
-        if on_output:
-            vlabel, vunits = out.label, out.units
-        else:
-            ch = cfg.model.channels.get(ind.variable)
-            vlabel = ch.label if ch is not None and ch.label else ind.variable
-            vunits = ch.units if ch is not None else ""
+        vlabel, vunits = cfg.model.variable_words(ind.variable)
         return cls(out.label, out.units, axis_label(out.label, out.units), ind,
                    axis_label(ind.name, ind.units), vlabel, vunits, on_output,
                    bool(cfg.model.nonphysical))
