@@ -1,0 +1,386 @@
+"""Stage ``calibrate``: posterior of the degradation inputs per unit and year.
+
+For each unit, each year's start-up transient is inverted through the surrogate by Bayesian
+inference, as in the paper (section V):
+
+* prior: year 1 uniform on the design box; year k > 1 Gaussian (independent per input,
+  truncated to the box) centred on year k-1's posterior mean, standard deviation
+  ``sqrt((prior_width * (high - low))^2 + previous posterior variance)`` per input (the
+  second term with ``prior_carry_variance``, the default; see docs/calibration.md);
+* likelihood: Gaussian, independent per time step, variance = measurement noise variance +
+  surrogate predictive variance; missing (NaN) samples are left out;
+* sampling: OpenTURNS' random-walk Metropolis-Hastings, several chains started around the
+  maximum a posteriori (MAP) point with a proposal shaped on the Laplace (Gauss-Newton)
+  covariance there; OpenTURNS returns the burn-in with the chain, so it is cut here; the
+  chains of all units' same year run in parallel processes;
+* diagnostics: rank-normalised split R-hat and bulk effective sample size (Vehtari et al.
+  2021) and the acceptance rate per chain, with warnings when they are poor.
+
+The result is ``posterior.h5`` (``twinmon.posterior/1``)::
+
+    attrs input_names (JSON list), input_units (JSON list)
+    /units/<U>/years        int64   [n_y]             year of service
+    /units/<U>/samples      float64 [n_y, n_s, d]     pooled post-burn-in draws (input units)
+    /units/<U>/mean, median, q05, q95  float64 [n_y, d]
+    /units/<U>/rhat, ess    float64 [n_y, d]
+    /units/<U>/acceptance   float64 [n_y, chains]
+    /units/<U>/noise_std    float64 [n_y]             output units (noise used in the likelihood)
+    /units/<U>/surrogate_var_ratio float64 [n_y]      mean surrogate variance / noise variance
+    /units/<U>/fit/<field>  [n_y] or [n_y, d]         goodness of fit per year (FIT_FIELDS):
+                            rms, p_chi2, p_ljung_box, window, window_rms, edge_share,
+                            extensions, converged, status (ok|misfit|edge|unconverged)
+    /units/<U>.attrs noise_source  "file" | "config" | "estimated"
+    attrs fit_windows (JSON list: the window names fit/window indexes)
+
+Goodness of fit: each year's residual at the posterior mean, standardised by the likelihood's
+variance, is tested for size and structure; a year whose residual is well above the noise
+(``calibrate.fit_min_rms``) and significant (``fit_alpha``) is "misfit" -- the twin misses the
+plant -- and one whose draws pile against a bound of the design box is "edge". A year whose
+R-hat or ESS is poor is sampled again with longer chains (``max_extensions`` times); still
+poor, it is "unconverged". ``forecast`` withholds or flags a prognosis on these verdicts.
+
+Modules: ``density`` (prior, log-posterior, MAP), ``diagnostics`` (R-hat, ESS), ``sequential``
+(the paper's year-by-year method), ``posterior`` (per-unit results, goodness of fit, the
+artifact); this module is the stage's entry point.
+"""
+from __future__ import annotations
+
+from __future__ import annotations
+
+import os
+import zlib
+from dataclasses import dataclass, field
+from typing import Callable, Optional
+
+import numpy as np
+
+from ..config import Config
+from ..errors import ArtifactError, CalibrationError, InputDataError, Interrupted
+from ..observations import read_observations
+from .density import LogDensity, Prior, find_map, make_log_density
+from .diagnostics import ess, split_rhat
+from .posterior import (FIT_FIELDS, SECTIONS, SEED_OFFSET, STATUS_EDGE, STATUS_MISFIT,
+                        STATUS_OK, STATUS_UNCONVERGED, Posterior, UnitPosterior, read_posterior,
+                        write_posterior, year_fit)
+from .sequential import (_ChainTask, _run_task, _UnitRun, calibrate_unit, estimate_noise,
+                         plan_chains, run_chain, sample_posterior, year_prior)
+
+#: Acceptance rates outside this range make a warning (random-walk MH is efficient near
+#: 0.2-0.4 in low dimension; far outside, the proposal scale was badly adapted).
+__all__ = [
+    "ACCEPTANCE_RANGE", "FIT_FIELDS", "SECTIONS", "SEED_OFFSET", "STATUS_EDGE", "STATUS_MISFIT",
+    "STATUS_OK", "STATUS_UNCONVERGED", "CalibrateSummary", "LogDensity", "Posterior", "Prior",
+    "UnitPosterior", "calibrate", "calibrate_unit", "diagnostics_warnings", "ess",
+    "estimate_noise", "find_map", "fit_warnings", "make_log_density", "plan_chains",
+    "read_posterior", "run_chain", "sample_posterior", "split_rhat", "truth_check",
+    "write_posterior", "year_fit", "year_prior",
+]
+
+ACCEPTANCE_RANGE = (0.1, 0.7)
+
+
+# ---------------------------------------------------------------------------------------
+# Stage entry point
+# ---------------------------------------------------------------------------------------
+@dataclass
+class CalibrateSummary:
+    """What :func:`calibrate` did; ``as_dict`` is the ``--json`` output."""
+
+    input_names: list[str]
+    posterior: dict[str, UnitPosterior]
+    warnings: list[str]
+    output: str
+    truth_check: Optional[dict] = None
+    #: Names of the windows the fit's ``window`` indexes.
+    windows: list = field(default_factory=list)
+
+    def as_dict(self) -> dict:
+        units = {}
+        for u, p in self.posterior.items():
+            params = {name: {stat: getattr(p, stat)[:, j].tolist()
+                             for stat in ("mean", "median", "q05", "q95")}
+                      for j, name in enumerate(self.input_names)}
+            f = p.fit
+            fit = {"status": [str(v) for v in p.status],
+                   "rms": np.round(f["rms"], 3).tolist(),
+                   "p_chi2": [float(f"{v:.3g}") for v in f["p_chi2"]],
+                   "p_ljung_box": [float(f"{v:.3g}") for v in f["p_ljung_box"]],
+                   "worst_window": [self.windows[i] for i in f["window"]],
+                   "worst_window_rms": np.round(f["window_rms"], 3).tolist(),
+                   "edge_share": np.round(f["edge_share"], 3).tolist(),
+                   "extensions": f["extensions"].tolist()} if f else {}
+            units[u] = {"years": p.years.tolist(), "params": params, "fit": fit}
+        out = {
+            "units": units,
+            "noise": {u: {"std": float(p.noise_std[0]), "source": p.noise_source}
+                      for u, p in self.posterior.items()},
+            "diagnostics": {u: {"rhat": p.rhat.tolist(), "ess": p.ess.tolist(),
+                                "acceptance": p.acceptance.tolist()}
+                            for u, p in self.posterior.items()},
+            "warnings": list(self.warnings),
+            "output": self.output,
+        }
+        if self.truth_check is not None:
+            out["truth_check"] = self.truth_check
+        return out
+
+
+def _unit_seed(cfg: Config, unit: str) -> int:
+    # From the unit's name, not its position: adding a unit does not change the others.
+    return (cfg.seed + SEED_OFFSET + zlib.crc32(unit.encode())) % (2 ** 31 - 10 ** 6)
+
+
+def _noise_for(cfg: Config, u) -> tuple[Optional[float], str]:
+    if cfg.model.output.name in u.noise_std:
+        return float(u.noise_std[cfg.model.output.name]), "file"
+    if cfg.calibrate.noise_std is not None:
+        return float(cfg.calibrate.noise_std), "config"
+    return None, "estimated"
+
+
+_worker = {}
+
+
+def _init_worker(surrogate, surrogate_path) -> None:
+    if surrogate is None:  # spawned, not forked: rebuild from the file
+        from ..reduce import read_surrogate
+        surrogate = read_surrogate(surrogate_path)
+    _worker["surrogate"] = surrogate
+
+
+def _work(task: _ChainTask):
+    return _run_task(_worker["surrogate"], task)
+
+
+def _check_inputs(cfg: Config, surrogate, surrogate_path, obs) -> None:
+    from ..reduce import check_made_for
+    check_made_for(cfg, surrogate_path, surrogate.input_names, surrogate.time,
+                   surrogate.bounds, "simulate and reduce")
+    t_s, t_o = np.asarray(surrogate.time), np.asarray(obs.time)
+    if t_s.shape != t_o.shape or not np.allclose(t_s, t_o, rtol=0, atol=1e-6):
+        raise InputDataError(
+            f"{obs.path}: time grid ({t_o.size} samples, {t_o[0]:g}..{t_o[-1]:g} s) differs "
+            f"from the surrogate's in {surrogate_path} ({t_s.size} samples, "
+            f"{t_s[0]:g}..{t_s[-1]:g} s)")
+    check_observed_range(cfg, surrogate, obs)
+
+
+#: Observed values beyond the simulated range by more than this many times its width are
+#: taken for a unit or scale mistake (or a broken sensor), not for a degraded machine.
+RANGE_FACTOR = 1.0
+
+
+def check_observed_range(cfg: Config, surrogate, obs) -> None:
+    """Observed output values must lie near what the design's simulations produced.
+
+    Raises
+    ------
+    InputDataError
+        A value further than ``RANGE_FACTOR`` times the simulated range from it, naming the
+        unit, year, time and value."""
+    train = surrogate.training_outputs()
+    lo, hi = float(np.min(train)), float(np.max(train))
+    width = max(hi - lo, abs(hi), 1e-300)
+    low, high = lo - RANGE_FACTOR * width, hi + RANGE_FACTOR * width
+    name, units = cfg.model.output.name, cfg.model.output.units
+    for unit in obs.units:
+        y = obs.output_of(unit)
+        with np.errstate(invalid="ignore"):
+            bad = (y < low) | (y > high)
+        if bad.any():
+            k, j = np.argwhere(bad)[0]
+            raise InputDataError(
+                f"{obs.path}: /units/{unit}/{name} year {obs.units[unit].years[k]} at "
+                f"t = {obs.time[j]:g} s is {y[k, j]:g} {units}, far outside anything the "
+                f"design's simulations produced ({lo:.4g} to {hi:.4g} {units}); check the "
+                "units and the channel")
+
+
+def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
+              observations_path: str | os.PathLike, output: str | os.PathLike,
+              truth_path: str | os.PathLike | None = None,
+              progress: Optional[Callable[[int, int], None]] = None) -> CalibrateSummary:
+    """Calibrate every unit of an observations file and write ``posterior.h5``.
+
+    Years within a unit run in order (each year's prior is centred on the previous estimate);
+    the chains of every unit's same year run in parallel worker processes
+    (``calibrate.workers``; 0 = one per core, 1 = in this process). Results do not depend on
+    the number of workers.
+
+    Parameters
+    ----------
+    cfg : Config
+    surrogate_path, observations_path : path-like
+        ``twinmon.surrogate/1`` and ``twinmon.observations/1`` artifacts.
+    output : path-like
+        ``posterior.h5`` to write.
+    truth_path : path-like, optional
+        A ``twinmon.truth/1`` file: adds the relative errors and 90 % interval coverage.
+    progress : callable(done, total), optional
+        Called as unit-years complete.
+
+    Raises
+    ------
+    ArtifactError
+        Surrogate inputs or box unlike the config's.
+    InputDataError
+        Observations on another time grid than the surrogate.
+    """
+    from ..reduce import read_surrogate
+    surrogate = read_surrogate(surrogate_path)
+    obs = read_observations(observations_path, cfg.model.output.name)
+    _check_inputs(cfg, surrogate, surrogate_path, obs)
+    truth = None
+    if truth_path is not None:
+        from ..fabricate import read_truth
+        truth = read_truth(truth_path)
+        missing = [u for u in obs.units if u not in truth.inputs]
+        if missing:
+            raise ArtifactError(f"{truth_path}: no truth for unit {missing[0]!r}")
+
+    runs = {}
+    for unit, u in obs.units.items():
+        noise, source = _noise_for(cfg, u)
+        y = obs.output_of(unit)
+        if noise is None:
+            noise = estimate_noise(surrogate, cfg, y)
+        runs[unit] = _UnitRun(surrogate, cfg, u.years, y, noise, _unit_seed(cfg, unit), source)
+    total = sum(len(r.years) for r in runs.values())
+    n_tasks = len(runs) * cfg.calibrate.chains
+    workers = min(cfg.calibrate.workers or len(os.sched_getaffinity(0)), n_tasks)
+    if workers <= 1:
+        for run in runs.values():
+            while not run.done:
+                run.finish([_run_task(surrogate, t) for t in run.plan()])
+                if progress:
+                    progress(sum(r.k for r in runs.values()), total)
+    else:
+        # Years of one unit are sequential (each prior is centred on the previous estimate),
+        # so the parallel grain is the chain: every unit's chains of the same year at once.
+        from concurrent.futures.process import BrokenProcessPool
+
+        from ..executors import InterruptGuard, start_pool, stop_pool
+        fork = hasattr(os, "fork")
+        pool = start_pool(workers, _init_worker, (surrogate if fork else None,
+                                                  str(surrogate_path)))
+        ok = False
+        try:
+            with InterruptGuard() as guard:
+                _run_parallel(pool, runs, total, progress, guard)
+            ok = True
+        except KeyboardInterrupt:
+            raise Interrupted(f"{output}: interrupted; nothing was written") from None
+        except BrokenProcessPool:
+            raise CalibrationError(f"{output}: a worker process died while sampling; nothing "
+                                   "was written; re-run with calibrate.workers=1 to see "
+                                   "why") from None
+        finally:
+            if ok:
+                pool.shutdown(wait=True)
+            else:
+                stop_pool(pool)
+    posterior = {unit: run.result() for unit, run in runs.items()}
+
+    names = cfg.model.input_names
+    windows = list(cfg.diagnose_windows())
+    warnings = fit_warnings(posterior, names, windows, cfg) + \
+        diagnostics_warnings(posterior, names, cfg)
+    # The truth only feeds the summary, but it is recorded so that `twinmon run` re-runs
+    # the stage (and its truth check) when it changes.
+    inputs = [surrogate_path, observations_path] + ([truth_path] if truth_path else [])
+    write_posterior(output, posterior, names, cfg, inputs, surrogate_id=surrogate.fingerprint())
+    check = truth_check(posterior, truth, names) if truth is not None else None
+    return CalibrateSummary(names, posterior, warnings, str(output), check, windows)
+
+
+def _run_parallel(pool, runs: dict[str, "_UnitRun"], total: int, progress, guard) -> None:
+    from concurrent.futures import wait
+    while True:
+        active = [r for r in runs.values() if not r.done]
+        if not active:
+            return
+        plans = [r.plan() for r in active]
+        futures = [pool.submit(_work, t) for p in plans for t in p]
+        # Poll, so that a Ctrl-C stops long chains within a fraction of a second.
+        while wait(futures, timeout=0.2).not_done:
+            guard.check()
+        guard.check()
+        results = [f.result() for f in futures]
+        i = 0
+        for run, plan in zip(active, plans):
+            run.finish(results[i:i + len(plan)])
+            i += len(plan)
+        if progress:
+            progress(sum(r.k for r in runs.values()), total)
+
+
+def fit_warnings(posterior: dict[str, UnitPosterior], names: list[str], windows: list,
+                 cfg: Config) -> list[str]:
+    """One line per unit-year whose twin misses the plant, sits on the box edge, or did not
+    converge even with longer chains."""
+    out = []
+    for unit, p in posterior.items():
+        f = p.fit
+        for k, year in enumerate(p.years):
+            st = p.status[k]
+            if st == STATUS_MISFIT:
+                out.append(f"{unit} year {int(year)}: the twin misses the plant: residual RMS "
+                           f"{f['rms'][k]:.1f} x noise (worst in the {windows[f['window'][k]]} "
+                           f"window, {f['window_rms'][k]:.1f} x), chi-square p = "
+                           f"{f['p_chi2'][k]:.2g}, Ljung-Box p = {f['p_ljung_box'][k]:.2g}")
+            elif st == STATUS_EDGE:
+                j = int(np.argmax(f["edge_share"][k]))
+                out.append(f"{unit} year {int(year)}: {100 * f['edge_share'][k][j]:.0f} % of "
+                           f"the posterior of {names[j]} sits on the design box's edge")
+            if not f["converged"][k]:
+                out.append(f"{unit} year {int(year)}: not converged after "
+                           f"{f['extensions'][k]} longer run(s): unreliable")
+    return out
+
+
+def diagnostics_warnings(posterior: dict[str, UnitPosterior], names: list[str],
+                         cfg: Config) -> list[str]:
+    """One line per unit-year whose R-hat, ESS or acceptance rate is poor."""
+    cc = cfg.calibrate
+    out = []
+    for unit, p in posterior.items():
+        for k, year in enumerate(p.years):
+            bad = []
+            for j, name in enumerate(names):
+                if not p.rhat[k, j] <= cc.rhat_warn:
+                    bad.append(f"R-hat {p.rhat[k, j]:.3f} > {cc.rhat_warn:g} for {name}")
+                if not p.ess[k, j] >= cc.ess_warn:
+                    bad.append(f"ESS {p.ess[k, j]:.0f} < {cc.ess_warn:g} for {name}")
+            lo, hi = ACCEPTANCE_RANGE
+            a = p.acceptance[k]
+            if np.any((a < lo) | (a > hi)):
+                bad.append(f"acceptance {a.min():.2f}..{a.max():.2f} outside [{lo:g}, {hi:g}]")
+            if bad:
+                out.append(f"{unit} year {int(year)}: " + "; ".join(bad))
+    return out
+
+
+def truth_check(posterior: dict[str, UnitPosterior], truth, names: list[str]) -> dict:
+    """Relative error of the posterior mean and 90 % interval coverage against a truth file.
+
+    Returns
+    -------
+    dict name -> {"max_rel_error", "mean_rel_error", "coverage_90"}
+        Ratios (not percent), over all units and years.
+    """
+    out = {}
+    for j, name in enumerate(names):
+        rel, cover = [], []
+        for unit, p in posterior.items():
+            ty = np.asarray(truth.years[unit])
+            tv = np.asarray(truth.inputs[unit][name])
+            idx = np.searchsorted(ty, p.years)
+            if np.any(idx >= len(ty)) or np.any(ty[np.minimum(idx, len(ty) - 1)] != p.years):
+                raise ArtifactError(f"truth file: unit {unit!r} lacks some observed years")
+            t = tv[idx]
+            rel.append(np.abs(p.mean[:, j] - t) / np.abs(t))
+            cover.append((p.q05[:, j] <= t) & (t <= p.q95[:, j]))
+        rel, cover = np.concatenate(rel), np.concatenate(cover)
+        out[name] = {"max_rel_error": float(rel.max()), "mean_rel_error": float(rel.mean()),
+                     "coverage_90": float(cover.mean())}
+    return out

@@ -1,0 +1,238 @@
+"""Per-unit posteriors, per-year goodness of fit, and the ``posterior.h5`` artifact."""
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from .. import artifacts
+from ..config import Config
+from ..errors import ArtifactError
+
+#: Per-year verdicts of the fit, in order of precedence.
+STATUS_OK, STATUS_MISFIT, STATUS_EDGE, STATUS_UNCONVERGED = "ok", "misfit", "edge", "unconverged"
+
+#: Config sections recorded as the posterior's provenance (and compared by ``twinmon run``).
+SECTIONS = ("model", "calibrate", "seed")
+#: Added to ``cfg.seed`` so that calibrate's random streams differ from other stages'.
+SEED_OFFSET = 3000
+
+
+@dataclass
+class UnitPosterior:
+    """Posterior of one unit's inputs, year by year.
+
+    Attributes
+    ----------
+    years : ndarray of int, shape [n_y]
+    samples : ndarray, shape [n_y, n_s, d]
+        Pooled post-burn-in draws of all chains (chain-major), input units.
+    mean, median, q05, q95 : ndarray, shape [n_y, d]
+    rhat, ess : ndarray, shape [n_y, d]
+        Rank-normalised split R-hat and bulk effective sample size per input.
+    acceptance : ndarray, shape [n_y, chains]
+    noise_std : ndarray, shape [n_y]
+        Output noise standard deviation used in the likelihood (output units).
+    noise_source : str
+        ``"file"``, ``"config"`` or ``"estimated"``.
+    surrogate_var_ratio : ndarray, shape [n_y]
+        Mean over time steps of surrogate predictive variance / noise variance.
+    """
+
+    years: np.ndarray
+    samples: np.ndarray
+    mean: np.ndarray
+    median: np.ndarray
+    q05: np.ndarray
+    q95: np.ndarray
+    rhat: np.ndarray
+    ess: np.ndarray
+    acceptance: np.ndarray
+    noise_std: np.ndarray
+    noise_source: str
+    surrogate_var_ratio: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    #: Goodness of fit per year (see :func:`year_fit`); empty for posteriors written before.
+    fit: dict = field(default_factory=dict)
+
+    @property
+    def chains(self) -> int:
+        return self.acceptance.shape[1]
+
+    @property
+    def status(self) -> np.ndarray:
+        """Per year: ``ok``, ``misfit`` (the twin misses the plant), ``edge`` (the posterior
+        sits on the design box's edge) or ``unconverged``; all ``ok`` when not recorded."""
+        st = self.fit.get("status")
+        return np.asarray(st) if st is not None else np.full(len(self.years), STATUS_OK)
+
+
+#: Per-year goodness-of-fit fields: (units, description). ``window`` indexes the
+#: config's diagnose windows (recorded as the posterior's ``fit_windows`` attribute).
+FIT_FIELDS = {
+    "rms": ("1", "RMS of the standardised residual at the posterior mean, in noise sd [year]"),
+    "p_chi2": ("1", "p-value of the residual's chi-square (n - d dof) [year]"),
+    "p_ljung_box": ("1", "Ljung-Box p-value of the residual (structure) [year]"),
+    "window": ("1", "index of the window where the residual RMS is largest [year]"),
+    "window_rms": ("1", "residual RMS in that window, in noise sd [year]"),
+    "edge_share": ("1", "share of draws within edge_margin of a box bound [year, input]"),
+    "extensions": ("1", "times the year's chains were lengthened for convergence [year]"),
+    "converged": ("1", "1 when R-hat and ESS met calibrate.rhat_warn/ess_warn [year]"),
+    "status": ("1", "ok | misfit | edge | unconverged [year]"),
+}
+
+
+def year_fit(surrogate, cfg: Config, y: np.ndarray, total_var: np.ndarray,
+             draws: np.ndarray, bounds: np.ndarray) -> dict:
+    """Goodness of fit of one calibrated year.
+
+    The residual of the observation against the twin at the posterior mean, standardised
+    by the likelihood's own variance (noise + surrogate), is tested for size (chi-square,
+    n - d degrees of freedom) and for structure (Ljung-Box, ``diagnose.ljung_box_lags``);
+    its RMS per diagnose window says where the twin misses. The draws' share near a box
+    bound says whether the plant needs inputs outside the twin's box.
+
+    Parameters
+    ----------
+    y : ndarray, shape [n_t]
+        The observation (output units); NaN = missing.
+    total_var : ndarray, shape [n_t]
+        Likelihood variance per time step (output units squared).
+    draws : ndarray, shape [n_s, d]
+        Posterior draws (input units).
+    bounds : ndarray, shape [d, 2]
+        The design box.
+
+    Returns
+    -------
+    dict
+        The fields of :data:`FIT_FIELDS` but ``extensions``/``converged``; ``status`` is
+        ``misfit``, ``edge`` or ``ok``.
+    """
+    from scipy import stats
+
+    from ..diagnose.stats import ljung_box
+    cc = cfg.calibrate
+    d = draws.shape[1]
+    pred = surrogate.predict(draws.mean(axis=0)[None, :])[0]
+    z = (np.asarray(y, float) - pred) / np.sqrt(total_var)
+    ok = np.isfinite(z)
+    n = int(ok.sum())
+    chi2 = float(np.sum(z[ok] ** 2))
+    rms = float(np.sqrt(chi2 / max(n, 1)))
+    p_chi2 = float(stats.chi2.sf(chi2, max(n - d, 1)))
+    p_lb = ljung_box(z, cfg.diagnose.ljung_box_lags)
+    t = surrogate.time
+    wins = list(cfg.diagnose_windows().values())
+    w_rms = np.array([np.sqrt(np.mean(z[(t >= w.start) & (t < w.stop) & ok] ** 2))
+                      if np.any((t >= w.start) & (t < w.stop) & ok) else 0.0 for w in wins])
+    width = bounds[:, 1] - bounds[:, 0]
+    near = (draws <= bounds[:, 0] + cc.edge_margin * width) | \
+           (draws >= bounds[:, 1] - cc.edge_margin * width)
+    edge = near.mean(axis=0)
+    misfit = rms > cc.fit_min_rms and min(p_chi2, p_lb) < cc.fit_alpha
+    status = STATUS_MISFIT if misfit else STATUS_EDGE if edge.max() > cc.edge_share \
+        else STATUS_OK
+    return {"rms": rms, "p_chi2": p_chi2, "p_ljung_box": p_lb,
+            "window": int(np.argmax(w_rms)), "window_rms": float(w_rms.max()),
+            "edge_share": edge, "status": status}
+
+
+@dataclass
+class Posterior:
+    """A loaded ``posterior.h5``: ``input_names`` and per unit a :class:`UnitPosterior`."""
+
+    input_names: list[str]
+    units: dict[str, UnitPosterior]
+    path: Path = Path("<memory>")
+    #: Names of the windows ``fit/window`` indexes.
+    fit_windows: list = field(default_factory=list)
+
+
+_DATASETS = {
+    # name: (units, description); "in" = input units (listed per input in the attrs)
+    "years": ("year", "year of service of each calibration"),
+    "samples": ("input units", "pooled post-burn-in MCMC draws [year, draw, input]"),
+    "mean": ("input units", "posterior mean [year, input]"),
+    "median": ("input units", "posterior median [year, input]"),
+    "q05": ("input units", "posterior 5 % quantile [year, input]"),
+    "q95": ("input units", "posterior 95 % quantile [year, input]"),
+    "rhat": ("1", "rank-normalised split R-hat [year, input]"),
+    "ess": ("1", "bulk effective sample size [year, input]"),
+    "acceptance": ("1", "Metropolis-Hastings acceptance rate after burn-in [year, chain]"),
+    "noise_std": ("output units", "output noise standard deviation used in the likelihood "
+                  "[year]"),
+    "surrogate_var_ratio": ("1", "mean surrogate predictive variance / noise variance [year]"),
+}
+
+
+def write_posterior(path, posterior: dict[str, UnitPosterior], input_names: list[str],
+                    cfg: Config, inputs, surrogate_id: str = "") -> None:
+    """Write ``posterior.h5`` atomically (layout in the module docstring).
+
+    ``surrogate_id`` is the :meth:`~twinmon.reduce.Surrogate.fingerprint` of the surrogate
+    the posterior was sampled through."""
+    with artifacts.write_artifact(path, "posterior", config=cfg.section_yaml(*SECTIONS),
+                                  inputs=inputs, seed=cfg.seed + SEED_OFFSET) as f:
+        if surrogate_id:
+            f.attrs["surrogate_id"] = surrogate_id
+        f.attrs["input_names"] = json.dumps(list(input_names))
+        f.attrs["input_units"] = json.dumps([cfg.model.inputs[n].units for n in input_names])
+        for unit, p in posterior.items():
+            g = f.create_group(f"units/{unit}")
+            for name, (units, desc) in _DATASETS.items():
+                units = cfg.model.output.units if units == "output units" else units
+                artifacts.put(g, name, np.asarray(getattr(p, name)), units, desc)
+            g.attrs["noise_source"] = p.noise_source
+            for key, (units, desc) in (FIT_FIELDS.items() if p.fit else ()):
+                data = np.asarray(p.fit[key])
+                if key == "status":
+                    data = np.array([str(v) for v in data], dtype=h5py.string_dtype())
+                elif data.dtype == bool:
+                    data = data.astype(np.int8)
+                artifacts.put(g, f"fit/{key}", data, units, desc)
+        f.attrs["fit_windows"] = json.dumps(list(cfg.diagnose_windows()))
+
+
+def read_posterior(path: str | os.PathLike) -> Posterior:
+    """Load ``posterior.h5`` (schema checked).
+
+    Raises
+    ------
+    ArtifactError
+        Missing file, wrong schema, missing datasets or inconsistent shapes.
+    """
+    path = Path(path)
+    with artifacts.open_artifact(path, "posterior") as f:
+        if "input_names" not in f.attrs:
+            raise ArtifactError(f"{path}: root attribute input_names is missing")
+        names = json.loads(f.attrs["input_names"])
+        if "units" not in f or len(f["units"]) == 0:
+            raise ArtifactError(f"{path}: group /units is missing or empty")
+        units = {}
+        for unit, g in f["units"].items():
+            arrs = {n: artifacts.get(g, n, path) for n in _DATASETS
+                    if n != "surrogate_var_ratio" or n in g}
+            n_y, d = len(arrs["years"]), len(names)
+            for n in ("mean", "median", "q05", "q95", "rhat", "ess"):
+                if arrs[n].shape != (n_y, d):
+                    raise ArtifactError(f"{path}: /units/{unit}/{n} has shape {arrs[n].shape}, "
+                                        f"expected ({n_y}, {d})")
+            if arrs["samples"].ndim != 3 or arrs["samples"].shape[::2] != (n_y, d):
+                raise ArtifactError(f"{path}: /units/{unit}/samples has shape "
+                                    f"{arrs['samples'].shape}, expected ({n_y}, n_s, {d})")
+            src = g.attrs.get("noise_source", "")
+            fit = {}
+            if "fit" in g:
+                fit = {key: artifacts.get(g["fit"], key, path) for key in FIT_FIELDS}
+                fit["converged"] = fit["converged"].astype(bool)
+                if len(fit["status"]) != n_y:
+                    raise ArtifactError(f"{path}: /units/{unit}/fit/status has "
+                                        f"{len(fit['status'])} years, expected {n_y}")
+            units[unit] = UnitPosterior(noise_source=src.decode() if isinstance(src, bytes)
+                                        else str(src), fit=fit, **arrs)
+        windows = json.loads(f.attrs["fit_windows"]) if "fit_windows" in f.attrs else []
+        return Posterior(names, units, path, windows)
