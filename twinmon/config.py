@@ -184,6 +184,16 @@ class ModelConfig:
         return list(self.inputs)
 
     @property
+    def components(self) -> dict[str, tuple[str, ...]]:
+        """Input names per component word (an input's ``component``, or its own name when
+        it has none), in config order: what a maintenance event may name."""
+        out: dict[str, tuple[str, ...]] = {}
+        for name, spec in self.inputs.items():
+            key = spec.component or name
+            out[key] = out.get(key, ()) + (name,)
+        return out
+
+    @property
     def bounds(self) -> np.ndarray:
         """Design box, shape [n_inputs, 2] (low, high), in each input's units."""
         return np.array([[s.low, s.high] for s in self.inputs.values()])
@@ -324,10 +334,25 @@ class Disturbance:
 
 
 @dataclass(frozen=True)
+class FabricateEvent:
+    """A maintenance event of a fabricated unit: from ``year`` on, the inputs of
+    ``component`` (``model.inputs[*].component``) follow their trajectory again from its
+    ``start``, as a new part would. Written into the observations as a plant records it."""
+
+    year: int
+    component: str
+    #: Only a replacement can be fabricated (the part is as new).
+    action: Literal["replaced"] = "replaced"
+    note: str = ""
+
+
+@dataclass(frozen=True)
 class UnitSpec:
     trajectories: dict[str, TrajectorySpec]
     effects: dict[str, InjectedEffect] = field(default_factory=dict)
     disturbance: Optional[Disturbance] = None
+    #: Maintenance events, ``[{year, component[, action, note]}]``.
+    events: tuple[FabricateEvent, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -361,6 +386,18 @@ class FabricateConfig:
             yield "noise_fraction", "must be >= 0", self.noise_fraction
         if self.noise_std is not None and self.noise_std < 0:
             yield "noise_std", "must be >= 0", self.noise_std
+        for unit, spec in self.units.items():
+            seen = set()
+            for i, ev in enumerate(spec.events):
+                # Year 1 is the first recording: an event then has no "before" to end.
+                if not 2 <= ev.year <= self.years:
+                    yield f"units.{unit}.events.{i}.year", \
+                        f"must lie in [2, {self.years}] (after the first year, within years)", \
+                        ev.year
+                if (ev.year, ev.component) in seen:
+                    yield f"units.{unit}.events.{i}", \
+                        f"a second event for {ev.component!r} in year {ev.year}", to_plain(ev)
+                seen.add((ev.year, ev.component))
 
 
 @dataclass(frozen=True)
@@ -598,6 +635,13 @@ class Config:
     def _check(self):
         if not 0 <= self.seed < 2 ** 32:
             yield "seed", "must lie in [0, 2**32 - 1] (OpenTURNS and numpy seeds)", self.seed
+        comps = self.model.components
+        for unit, spec in (self.fabricate.units if self.fabricate else {}).items():
+            for i, ev in enumerate(spec.events):
+                if ev.component not in comps:
+                    yield f"fabricate.units.{unit}.events.{i}.component", \
+                        f"not a component of model.inputs (components: {', '.join(comps)})", \
+                        ev.component
 
     def section_yaml(self, *names: str) -> str:
         """The resolved YAML of the named sections, recorded in artifacts as provenance.

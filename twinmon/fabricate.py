@@ -3,14 +3,16 @@
 Each unit follows true yearly trajectories of the degradation inputs (linear trend, optional
 curvature, year-to-year jitter); optionally an unmodelled effect (an FMU parameter outside the
 calibrated inputs) is switched on from an onset year, or an additive disturbance outside the
-candidate list is added. Every unit-year is simulated through the real FMU and measurement
+candidate list is added. A maintenance event (``events: [{year, component}]``) puts
+that component's inputs back on their trajectory from its ``start``, as a new part, and is
+recorded in both files. Every unit-year is simulated through the real FMU and measurement
 noise is added. The observations file carries only what a plant would record; the truth file
 (``twinmon.truth/1``) holds the true inputs and effects and is read by evaluation only.
 """
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +20,8 @@ import numpy as np
 from . import artifacts
 from .config import Config, Disturbance
 from .errors import ConfigError, SimulationError
-from .observations import Observations, UnitObservations, write_observations
+from .observations import (Event, Observations, UnitObservations, put_events, read_events,
+                           write_observations)
 from .simulate import run_batch, spec_for
 
 
@@ -41,18 +44,29 @@ def true_inputs(cfg: Config, rng: np.random.Generator) -> dict[str, dict[str, np
     -------
     dict unit -> dict input name -> ndarray, shape [years]
         Values in each input's units.
+
+    Notes
+    -----
+    The trajectory is a function of the part's age, ``year - 1`` for the original part and
+    ``year - event year`` after a replacement of its component, so a replaced part starts
+    again from ``start`` and ages as the first did. The jitter draws do not depend on the
+    events: a unit without events is the same as before events existed.
     """
     fab = cfg.fabricate
     year = np.arange(fab.years, dtype=float)
     out = {}
     for unit, spec in fab.units.items():
         vals = {}
-        for name in cfg.model.inputs:
+        for name, ispec in cfg.model.inputs.items():
             tr = spec.trajectories.get(name)
             if tr is None:
                 raise ConfigError(f"{cfg.source}: fabricate.units.{unit}.trajectories.{name}: "
                                   "required key is missing")
-            vals[name] = (tr.start + tr.slope * year + tr.curvature * year ** 2
+            age = year.copy()
+            for ev in sorted(spec.events, key=lambda e: e.year):
+                if ev.component == (ispec.component or name):
+                    age = np.where(year >= ev.year - 1, year - (ev.year - 1), age)
+            vals[name] = (tr.start + tr.slope * age + tr.curvature * age ** 2
                           + tr.jitter * rng.standard_normal(fab.years))
         extra = set(spec.trajectories) - set(cfg.model.inputs)
         if extra:
@@ -143,7 +157,7 @@ def fabricate(cfg: Config, observations: str | os.PathLike, truth: str | os.Path
         # Noise-free data (noise_fraction 0) record no level: zero is not a usable std.
         noise = ({k: v for k, v in {out_name: out_std, **ch_std}.items() if v > 0}
                  if fab.record_noise else {})
-        obs_units[unit] = UnitObservations(years.copy(), chans, noise)
+        obs_units[unit] = UnitObservations(years.copy(), chans, noise, unit_events(spec_u))
         truth_rows[unit] = (rows, clean)
 
     section = cfg.section_yaml("model", "fabricate")
@@ -155,6 +169,12 @@ def fabricate(cfg: Config, observations: str | os.PathLike, truth: str | os.Path
     _write_truth(truth, cfg, inputs, truth_rows, batch, spec, time, years, out_std,
                  section, fmu_inputs)
     return FabricateSummary(len(fab.units), fab.years, str(observations), str(truth))
+
+
+def unit_events(spec_u) -> list[Event]:
+    """A fabricated unit's events as the plant records them, sorted by year."""
+    return sorted((Event(e.year, e.component, e.action, e.note) for e in spec_u.events),
+                  key=lambda e: e.year)
 
 
 def _write_truth(path, cfg, inputs, truth_rows, batch, spec, time, years, out_std, section,
@@ -180,6 +200,8 @@ def _write_truth(path, cfg, inputs, truth_rows, batch, spec, time, years, out_st
                 g.attrs["disturbance"] = artifacts.json_attr(
                     {"amplitude": d.amplitude, "period": d.period, "onset": d.onset,
                      "shape": d.shape})
+            if spec_u.events:
+                put_events(g, unit_events(spec_u))
             rows, clean = truth_rows[unit]
             out = cfg.model.output
             artifacts.put(g, f"{out.name}_clean", clean, out.units,
@@ -191,13 +213,15 @@ def _write_truth(path, cfg, inputs, truth_rows, batch, spec, time, years, out_st
 
 @dataclass
 class Truth:
-    """A loaded truth file: per unit, years [n_y], inputs {name: [n_y]}, effects {var: [n_y]}."""
+    """A loaded truth file: per unit, years [n_y], inputs {name: [n_y]}, effects {var: [n_y]},
+    maintenance events (sorted by year; ``[]`` when none)."""
 
     years: dict[str, np.ndarray]
     inputs: dict[str, dict[str, np.ndarray]]
     effects: dict[str, dict[str, np.ndarray]]
     disturbance: dict[str, dict]
     noise_std: float
+    events: dict[str, list[Event]] = field(default_factory=dict)
 
 
 def read_truth(path: str | os.PathLike) -> Truth:
@@ -205,11 +229,12 @@ def read_truth(path: str | os.PathLike) -> Truth:
     import json
     path = Path(path)
     with artifacts.open_artifact(path, "truth") as f:
-        years, inputs, effects, dist = {}, {}, {}, {}
+        years, inputs, effects, dist, events = {}, {}, {}, {}, {}
         for unit, g in f["units"].items():
             years[unit] = artifacts.get(g, "years", path)
+            events[unit] = read_events(g, path)
             inputs[unit] = {k: v[()] for k, v in g["inputs"].items()}
             effects[unit] = {k: v[()] for k, v in g["effects"].items()} if "effects" in g else {}
             if "disturbance" in g.attrs:
                 dist[unit] = json.loads(g.attrs["disturbance"])
-        return Truth(years, inputs, effects, dist, float(f.attrs["noise_std"]))
+        return Truth(years, inputs, effects, dist, float(f.attrs["noise_std"]), events)

@@ -7,27 +7,64 @@ measured output, FMU variable names for further channels)::
     /units/<unit>/years      int64   [n_y]       observation year (1 = first year of service)
     /units/<unit>/<output>   float64 [n_y, n_t]  the measured output; NaN = missing sample
     /units/<unit>/<channel>  float64 [n_y, n_t]  optional further channels
+    /units/<unit>/events     compound [n_e]      maintenance events (optional; absent = none):
+                             year int64, component, action, note (UTF-8 strings), by year
     /units/<unit>.attrs      noise_std: JSON {channel: std}, or a bare number (the output's)
     /.attrs                  output: name of the output channel (files written since 0.2)
+                             edits: JSON [{time, command, ...}] of in-place edits (events add)
 
 A user's own measurements reach twinmon through :func:`import_csv`; everything downstream
 reads :func:`read_observations`, which validates shapes and values so a stage never meets a
-malformed array.
+malformed array. Maintenance events (a part replaced in a given year) ride along per unit; the
+file alone can check their years, the config their components (:func:`check_events`).
 """
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Mapping, Sequence
+from typing import TYPE_CHECKING, Mapping, Sequence
 
+import h5py
 import numpy as np
 
 from . import artifacts
+
+if TYPE_CHECKING:
+    from .config import Config
 from .errors import ArtifactError, InputDataError
+
+#: Name of a unit's events dataset: not a channel, so no channel may be called so.
+EVENTS = "events"
+
+
+@dataclass(frozen=True)
+class Event:
+    """A maintenance event of one unit.
+
+    The recording of ``year`` is the first one after the work: from it on, the inputs of
+    ``component`` describe the new (or repaired) part.
+
+    Attributes
+    ----------
+    year : int
+        Year of service of the event (after the unit's first recorded year, at most its last).
+    component : str
+        A component of the config's inputs (``model.inputs[*].component``).
+    action : str
+        What was done, ``"replaced"`` by default.
+    note : str
+        Free text (work order, reason), kept as written.
+    """
+
+    year: int
+    component: str
+    action: str = "replaced"
+    note: str = ""
 
 
 @dataclass
@@ -42,11 +79,14 @@ class UnitObservations:
         units, named by the config); NaN = missing sample.
     noise_std : dict of str to float
         Known measurement noise standard deviation per channel (channel units); may be empty.
+    events : list of Event
+        Maintenance events sorted by year (stable within a year); empty when none.
     """
 
     years: np.ndarray
     channels: dict[str, np.ndarray]
     noise_std: dict[str, float] = field(default_factory=dict)
+    events: list[Event] = field(default_factory=list)
 
 
 @dataclass
@@ -98,6 +138,8 @@ def write_observations(path: str | os.PathLike, obs: Observations, *, config: st
                               units.get(ch, ""), f"measured {ch}; NaN = missing sample")
             if u.noise_std:
                 g.attrs["noise_std"] = json.dumps(u.noise_std)
+            if u.events:
+                put_events(g, u.events)
 
 
 def read_observations(path: str | os.PathLike, output: str | None = None) -> Observations:
@@ -133,7 +175,7 @@ def read_observations(path: str | os.PathLike, output: str | None = None) -> Obs
             years = artifacts.get(g, "years", path).astype(np.int64)
             channels = {}
             for ch, ds in g.items():
-                if ch == "years":
+                if ch in ("years", EVENTS):
                     continue
                 if not hasattr(ds, "dtype") or ds.dtype.kind not in "fiu":
                     raise InputDataError(f"{path}: /units/{name}/{ch} is not a numeric array")
@@ -143,7 +185,8 @@ def read_observations(path: str | os.PathLike, output: str | None = None) -> Obs
                 raise ArtifactError(f"{path}: dataset /units/{name}/{output} (the config's "
                                     f"model.output.name) is missing; channels here: {have}")
             noise = _noise_attr(g.attrs.get("noise_std"), output, path, name)
-            units[name] = UnitObservations(years, channels, noise)
+            events = read_events(g, path) if EVENTS in g else []
+            units[name] = UnitObservations(years, channels, noise, events)
     obs = Observations(time, units, path, output)
     validate_observations(obs)
     return obs
@@ -214,6 +257,115 @@ def validate_observations(obs: Observations) -> None:
                     and math.isfinite(s) and s > 0):
                 raise InputDataError(f"{p}: /units/{name} attribute noise_std[{ch!r}] is {s!r}, "
                                      "expected a positive number")
+        if EVENTS in u.channels:
+            raise InputDataError(f"{p}: /units/{name}: a channel may not be called {EVENTS!r} "
+                                 "(the name of the unit's maintenance events)")
+        _validate_events(u.events, y, f"{p}: /units/{name}/{EVENTS}")
+
+
+# ---------------------------------------------------------------------------------------
+# Maintenance events
+# ---------------------------------------------------------------------------------------
+_EVENT_DTYPE = np.dtype([("year", np.int64), ("component", h5py.string_dtype()),
+                         ("action", h5py.string_dtype()), ("note", h5py.string_dtype())])
+
+
+def _validate_events(events: Sequence[Event], years: np.ndarray, where: str) -> None:
+    """Events need only the unit's years: each lies in (first, last] recorded year, sorted,
+    at most one per (year, component). The components are the config's
+    (:func:`check_events`)."""
+    seen = set()
+    prev = None
+    for e in events:
+        what = f"year {e.year} ({e.component} {e.action})"
+        if isinstance(e.year, bool) or not isinstance(e.year, (int, np.integer)):
+            raise InputDataError(f"{where}: year {e.year!r} is not an integer year of service")
+        if not (isinstance(e.component, str) and e.component.strip()):
+            raise InputDataError(f"{where}: year {e.year}: component is {e.component!r}, "
+                                 "expected a component name")
+        if not (isinstance(e.action, str) and e.action.strip()):
+            raise InputDataError(f"{where}: year {e.year}: action is {e.action!r}, expected "
+                                 "what was done (e.g. replaced)")
+        if e.year <= years[0]:
+            raise InputDataError(f"{where}: {what} is not after the first recorded year "
+                                 f"{years[0]}: an event needs recordings before it (the history "
+                                 "it ends)")
+        if e.year > years[-1]:
+            raise InputDataError(f"{where}: {what} is after the last recorded year "
+                                 f"{years[-1]}: add it with that year's measurements")
+        if prev is not None and e.year < prev:
+            raise InputDataError(f"{where}: {what} comes after year {prev} (events must be "
+                                 "sorted by year)")
+        if (e.year, e.component) in seen:
+            raise InputDataError(f"{where}: {what}: a second event for {e.component!r} in "
+                                 f"year {e.year}")
+        seen.add((e.year, e.component))
+        prev = e.year
+
+
+def check_events(cfg: "Config", obs: Observations) -> None:
+    """Check that every event names a component of the config's inputs.
+
+    The file cannot know the model's components, so :func:`read_observations` checks only
+    the events' years; stages that use events (calibrate, forecast) call this with their
+    config.
+
+    Raises
+    ------
+    InputDataError
+        Naming the file, the unit, the year, the unknown component and the valid ones.
+    """
+    comps = cfg.model.components
+    for name, u in obs.units.items():
+        for e in u.events:
+            if e.component not in comps:
+                raise InputDataError(
+                    f"{obs.path}: /units/{name}/{EVENTS}: year {e.year}: component "
+                    f"{e.component!r} is not a component of the config's model.inputs "
+                    f"(components: {', '.join(comps)})")
+
+
+def put_events(group: h5py.Group, events: Sequence[Event]) -> h5py.Dataset:
+    """Write ``events`` as the compound dataset ``<group>/events`` (year, component, action,
+    note)."""
+    arr = np.array([(int(e.year), e.component, e.action, e.note) for e in events],
+                   dtype=_EVENT_DTYPE)
+    ds = group.create_dataset(EVENTS, data=arr)
+    ds.attrs["units"] = "year"
+    ds.attrs["description"] = ("maintenance events: year of service (its recording is the "
+                               "first after the work), component, action, note")
+    return ds
+
+
+def read_events(group: h5py.Group, path: str | os.PathLike) -> list[Event]:
+    """The events of a unit's group (``[]`` when it has none), sorted by year.
+
+    Accepts a hand-written compound dataset with the fields ``year`` and ``component`` and
+    optionally ``action`` (empty: ``replaced``) and ``note``.
+    """
+    if EVENTS not in group:
+        return []
+    ds = group[EVENTS]
+    where = f"{path}: {group.name}/{EVENTS}"
+    names = (ds.dtype.names or ()) if isinstance(ds, h5py.Dataset) else ()
+    if (not isinstance(ds, h5py.Dataset) or ds.ndim != 1
+            or not {"year", "component"} <= set(names)):
+        found = ", ".join(names) or "none"
+        raise InputDataError(f"{where}: expected a 1-D compound dataset with fields year, "
+                             f"component[, action, note]; found fields {found}")
+    if ds.dtype["year"].kind not in "iu":
+        raise InputDataError(f"{where}: field year has type {ds.dtype['year']}, expected "
+                             "integer years of service")
+
+    def text(row, field: str) -> str:
+        if field not in names:
+            return ""
+        v = row[field]
+        return (v.decode("utf-8", "replace") if isinstance(v, bytes) else str(v)).strip()
+
+    events = [Event(int(row["year"]), text(row, "component"),
+                    text(row, "action") or "replaced", text(row, "note")) for row in ds[()]]
+    return sorted(events, key=lambda e: e.year)
 
 
 # ---------------------------------------------------------------------------------------
@@ -226,7 +378,8 @@ MAX_YEAR = 10_000
 
 def import_csv(csv_path: str | os.PathLike, out_path: str | os.PathLike, output: str,
                noise_std: float | None = None, channels: Sequence[str] | None = None,
-               units: Mapping[str, str] | None = None) -> Observations:
+               units: Mapping[str, str] | None = None, events: str | os.PathLike | None = None,
+               components: Sequence[str] | None = None) -> Observations:
     """Convert long-form CSV measurements into an observations artifact.
 
     The CSV has a header with at least ``unit,year,time,<output>`` and optionally further
@@ -248,23 +401,23 @@ def import_csv(csv_path: str | os.PathLike, out_path: str | os.PathLike, output:
         Further columns allowed (the config's ``model.channels``); None: any.
     units : mapping, optional
         Units per channel, recorded in the file.
+    events : path-like, optional
+        Maintenance events CSV (:func:`read_events_csv`); each names a unit and a year of
+        the measurements.
+    components : sequence of str, optional
+        Components an event may name (the config's, ``model.components``); None: any.
 
     Raises
     ------
     InputDataError
-        Missing columns, non-numeric values, duplicate rows, unequal time grids; the
-        message names the file and line.
+        Missing columns, non-numeric values, duplicate rows, unequal time grids, events of
+        an unknown unit or component or outside the unit's years; the message names the
+        file and line.
     """
     csv_path = Path(csv_path)
     required = KEY_COLUMNS + (output,)
-    if not csv_path.exists():
-        raise InputDataError(f"{csv_path}: file not found")
-    try:
-        text = csv_path.read_bytes().decode("utf-8-sig")
-    except UnicodeDecodeError as exc:
-        line = exc.object[:exc.start].count(b"\n") + 1
-        raise InputDataError(f"{csv_path}: line {line}: not UTF-8 text (byte "
-                             f"0x{exc.object[exc.start]:02x}); save the CSV as UTF-8") from None
+    text = _read_text(csv_path)
+    event_rows = read_events_csv(events, components) if events is not None else []
     import io
     with io.StringIO(text, newline="") as fh:
         reader = csv.reader(fh)
@@ -334,10 +487,200 @@ def import_csv(csv_path: str | os.PathLike, out_path: str | os.PathLike, output:
                     data[c][i, j] = rows[(unit, y)][t][1][k]
         noise = {output: float(noise_std)} if noise_std is not None else {}
         per_unit[unit] = UnitObservations(np.array(years, dtype=np.int64), data, noise)
+    if event_rows:
+        _attach_events(per_unit, event_rows, Path(events), csv_path)
     obs = Observations(time, per_unit, csv_path, output)
     validate_observations(obs)
-    write_observations(out_path, obs, inputs=[csv_path], units=units)
+    write_observations(out_path, obs, units=units,
+                       inputs=[csv_path] + ([events] if events is not None else []))
     obs.path = Path(out_path)
+    return obs
+
+
+def _read_text(path: Path) -> str:
+    """A CSV file's text, UTF-8 with an optional byte-order mark."""
+    if not path.exists():
+        raise InputDataError(f"{path}: file not found")
+    try:
+        return path.read_bytes().decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = exc.object[:exc.start].count(b"\n") + 1
+        raise InputDataError(f"{path}: line {line}: not UTF-8 text (byte "
+                             f"0x{exc.object[exc.start]:02x}); save the CSV as UTF-8") from None
+
+
+EVENT_COLUMNS = ("unit", "year", "component", "action", "note")
+
+
+def read_events_csv(path: str | os.PathLike, components: Sequence[str] | None = None
+                    ) -> list[tuple[int, str, Event]]:
+    """Read maintenance events from a CSV, as a CMMS export trimmed to these columns.
+
+    Header ``unit,year,component`` and optionally ``action`` (empty: ``replaced``) and
+    ``note``; one row per event, e.g. ``U-7,6,<component>,replaced,WO 4711``. UTF-8.
+
+    Parameters
+    ----------
+    path : path-like
+    components : sequence of str, optional
+        Components an event may name; None: any.
+
+    Returns
+    -------
+    list of (line, unit, Event)
+        In file order; the line numbers let later checks name the row.
+
+    Raises
+    ------
+    InputDataError
+        A missing or unknown column, an empty cell, a year that is not an integer, an
+        unknown component; naming the file, line and value.
+    """
+    import io
+    path = Path(path)
+    text = _read_text(path)
+    out = []
+    with io.StringIO(text, newline="") as fh:
+        reader = csv.reader(fh)
+        try:
+            header = [h.strip() for h in next(reader)]
+        except StopIteration:
+            raise InputDataError(f"{path}: line 1: file is empty, expected a header "
+                                 "unit,year,component[,action,note]") from None
+        missing = [c for c in EVENT_COLUMNS[:3] if c not in header]
+        if missing:
+            raise InputDataError(f"{path}: line 1: missing column {missing[0]!r} "
+                                 f"(header is {','.join(header)})")
+        unknown = [h for h in header if h not in EVENT_COLUMNS]
+        if unknown:
+            raise InputDataError(f"{path}: line 1: unknown column {unknown[0]!r} (columns: "
+                                 f"{', '.join(EVENT_COLUMNS)})")
+        if len(set(header)) != len(header):
+            dup = next(h for h in header if header.count(h) > 1)
+            raise InputDataError(f"{path}: line 1: column {dup!r} appears twice")
+        col = {h: i for i, h in enumerate(header)}
+        for lineno, row in enumerate(reader, start=2):
+            if not row or all(not c.strip() for c in row):
+                continue
+            if len(row) != len(header):
+                raise InputDataError(f"{path}: line {lineno}: {len(row)} fields, expected "
+                                     f"{len(header)}")
+            cell = {c: row[col[c]].strip() if c in col else "" for c in EVENT_COLUMNS}
+            for c in EVENT_COLUMNS[:3]:
+                if not cell[c]:
+                    raise InputDataError(f"{path}: line {lineno}: column {c!r} is empty")
+            year = _parse_int(cell["year"], path, lineno, "year")
+            if not 1 <= year <= MAX_YEAR:
+                raise InputDataError(f"{path}: line {lineno}: column 'year' is {year}, "
+                                     f"expected a year of service from 1 to {MAX_YEAR}")
+            if components is not None and cell["component"] not in components:
+                raise InputDataError(f"{path}: line {lineno}: component {cell['component']!r} "
+                                     "is not a component of the config's model.inputs "
+                                     f"(components: {', '.join(components)})")
+            out.append((lineno, cell["unit"], Event(year, cell["component"],
+                                                    cell["action"] or "replaced", cell["note"])))
+    return out
+
+
+def _attach_events(per_unit: dict[str, UnitObservations], rows, path: Path,
+                   data_path: Path) -> None:
+    """Give each unit its events, checking unit and year against the measurements so the
+    error names the events file's line."""
+    seen: dict[tuple[str, int, str], int] = {}
+    for lineno, unit, e in rows:
+        u = per_unit.get(unit)
+        if u is None:
+            raise InputDataError(f"{path}: line {lineno}: unit {unit!r} has no measurements "
+                                 f"in {data_path} (units: {', '.join(per_unit)})")
+        first, last = int(u.years[0]), int(u.years[-1])
+        if not first < e.year <= last:
+            raise InputDataError(f"{path}: line {lineno}: year {e.year} of unit {unit!r} is "
+                                 f"outside its measured years ({first}, {last}]: an event must "
+                                 "come after the first recording and at most in the last")
+        key = (unit, e.year, e.component)
+        if key in seen:
+            raise InputDataError(f"{path}: line {lineno}: a second event for {e.component!r} "
+                                 f"of unit {unit!r} in year {e.year} (first on line {seen[key]})")
+        seen[key] = lineno
+        u.events.append(e)
+    for u in per_unit.values():
+        u.events.sort(key=lambda e: e.year)
+
+
+def add_events(path: str | os.PathLike, events: Mapping[str, Sequence[Event]],
+               components: Sequence[str] | None = None) -> Observations:
+    """Add maintenance events to an existing observations file, in place and atomically.
+
+    The file is copied beside itself, the events written into the copy, the copy read back
+    and validated, and only then renamed over the original: on any error the original is
+    untouched. Everything else in the file (measurements, provenance) is kept byte for
+    byte; the root attribute ``edits`` records the addition.
+
+    Parameters
+    ----------
+    path : path-like
+        A ``twinmon.observations/1`` file.
+    events : mapping of unit to sequence of Event
+    components : sequence of str, optional
+        Components an event may name (the config's); None: any.
+
+    Returns
+    -------
+    Observations
+        The file as it now reads.
+
+    Raises
+    ------
+    InputDataError
+        An unknown unit or component, a year outside the unit's (first, last] recorded
+        years, an event already recorded.
+    """
+    import shutil
+    path = Path(path)
+    with artifacts.output_lock(path, "twinmon events add"):
+        obs = read_observations(path)
+        for unit, evs in events.items():
+            u = obs.units.get(unit)
+            if u is None:
+                raise InputDataError(f"{path}: no unit {unit!r} (units: {', '.join(obs.units)})")
+            for e in evs:
+                if components is not None and e.component not in components:
+                    raise InputDataError(
+                        f"{path}: /units/{unit}/{EVENTS}: year {e.year}: component "
+                        f"{e.component!r} is not a component of the config's model.inputs "
+                        f"(components: {', '.join(components)})")
+                if any((o.year, o.component) == (e.year, e.component) for o in u.events):
+                    raise InputDataError(f"{path}: /units/{unit}/{EVENTS}: year {e.year}: an "
+                                         f"event for {e.component!r} is already recorded")
+            u.events = sorted([*u.events, *evs], key=lambda e: e.year)
+        validate_observations(obs)
+        artifacts.remove_stale_temporaries(path)
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        try:
+            shutil.copyfile(path, tmp)
+            with h5py.File(tmp, "r+") as f:
+                for unit in events:
+                    g = f[f"units/{unit}"]
+                    if EVENTS in g:
+                        del g[EVENTS]
+                    put_events(g, obs.units[unit].events)
+                raw = f.attrs.get("edits", "[]")
+                edits = json.loads(raw.decode() if isinstance(raw, bytes) else raw)
+                added = {u: [dataclasses.asdict(e) for e in evs] for u, evs in events.items()}
+                edits.append({"time": artifacts.utc_now(), "command": "events add",
+                              "events": added})
+                f.attrs["edits"] = json.dumps(edits)
+            back = read_observations(tmp, obs.output or None)
+            if any(back.units[u].events != obs.units[u].events for u in events):
+                raise ArtifactError(f"{path}: the events read back differ from those written")
+            os.replace(tmp, path)
+        except OSError as exc:
+            reason = exc.strerror or str(exc).splitlines()[0]
+            raise OSError(exc.errno, f"cannot write: {reason}", str(path)) from None
+        finally:
+            if tmp.exists():
+                tmp.unlink()
+    obs.path = path
     return obs
 
 

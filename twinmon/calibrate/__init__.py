@@ -56,7 +56,7 @@ import numpy as np
 
 from ..config import Config
 from ..errors import ArtifactError, CalibrationError, InputDataError, Interrupted
-from ..observations import read_observations
+from ..observations import check_events, read_observations
 from .density import LogDensity, Prior, find_map, make_log_density
 from .diagnostics import ess, split_rhat
 from .posterior import (FIT_FIELDS, SECTIONS, SEED_OFFSET, STATUS_EDGE, STATUS_MISFIT,
@@ -224,11 +224,13 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
     ArtifactError
         Surrogate inputs or box unlike the config's.
     InputDataError
-        Observations on another time grid than the surrogate.
+        Observations on another time grid than the surrogate; an event naming a component
+        the config's inputs do not have.
     """
     from ..reduce import read_surrogate
     surrogate = read_surrogate(surrogate_path)
     obs = read_observations(observations_path, cfg.model.output.name)
+    check_events(cfg, obs)
     _check_inputs(cfg, surrogate, surrogate_path, obs)
     truth = None
     if truth_path is not None:

@@ -1,5 +1,7 @@
-"""Commands that make data: ``simulate``, ``fabricate``, ``import-csv``."""
+"""Commands that make data: ``simulate``, ``fabricate``, ``import-csv``, ``events``."""
 from __future__ import annotations
+
+import dataclasses
 
 import click
 
@@ -58,12 +60,15 @@ def fabricate(config_path, overrides, output, truth, as_json):
               help="Observations file to write.")
 @click.option("--noise-std", type=float, default=None,
               help="Known noise standard deviation of the output, in its units.")
+@click.option("--events", "events", default=None, type=click.Path(),
+              help="Maintenance events CSV: unit,year,component[,action,note].")
 @json_option
-def import_csv(csv_file, config_path, overrides, output, noise_std, as_json):
+def import_csv(csv_file, config_path, overrides, output, noise_std, events, as_json):
     """Convert long CSV measurements (unit,year,time,<output>[,<channel>...]) to observations.
 
     Column names are the config's: model.output.name and the FMU variables of
-    model.channels."""
+    model.channels. Events (--events) name a unit, the year whose recording is the first
+    after the work, and a component of model.inputs, e.g. "U-7,6,<component>,replaced,WO 4711"."""
     import math
 
     from ..errors import InputDataError
@@ -72,15 +77,67 @@ def import_csv(csv_file, config_path, overrides, output, noise_std, as_json):
     if noise_std is not None and not (math.isfinite(noise_std) and noise_std > 0):
         raise InputDataError(f"--noise-std: expected a positive number, got {noise_std!r}")
     obs = run(csv_file, output, cfg.model.output.name, noise_std,
-              channels=list(cfg.model.channels), units=cfg.model.channel_units)
-    summary = {"units": {u: {"years": o.years.tolist(), "channels": sorted(o.channels)}
+              channels=list(cfg.model.channels), units=cfg.model.channel_units,
+              events=events, components=list(cfg.model.components))
+    n_events = sum(len(o.events) for o in obs.units.values())
+    summary = {"units": {u: {"years": o.years.tolist(), "channels": sorted(o.channels),
+                             "events": [dataclasses.asdict(e) for e in o.events]}
                          for u, o in obs.units.items()},
                "samples_per_year": int(obs.time.size), "output": output}
     if as_json:
         emit_json(summary)
     else:
-        say(f"import-csv: {len(obs.units)} units, {obs.time.size} samples per start-up "
-            f"-> {output}")
+        say(f"import-csv: {len(obs.units)} units, {obs.time.size} samples per start-up"
+            + (f", {n_events} events" if events is not None else "") + f" -> {output}")
+
+
+@main.group()
+def events():
+    """Maintenance events of an observations file (a part replaced in a given year)."""
+
+
+@events.command("add")
+@click.argument("observations", type=click.Path())
+@config_options
+@click.option("--unit", required=True, help="Unit name, as in the file.")
+@click.option("--year", required=True, type=int,
+              help="Year of service whose recording is the first after the work.")
+@click.option("--component", required=True, help="A component of the config's model.inputs.")
+@click.option("--action", default="replaced", show_default=True, help="What was done.")
+@click.option("--note", default="", help="Free text, e.g. the work order.")
+@json_option
+def events_add(observations, config_path, overrides, unit, year, component, action, note,
+               as_json):
+    """Add one event to OBSERVATIONS in place (atomic: on any error the file is unchanged)."""
+    from ..observations import Event, add_events
+    cfg = load(config_path, overrides)
+    obs = add_events(observations, {unit: [Event(year, component.strip(), action.strip(),
+                                                  note.strip())]},
+                     components=list(cfg.model.components))
+    _print_events(obs, as_json, f"events add: {unit} year {year}: {component} {action} -> "
+                                f"{observations}")
+
+
+@events.command("list")
+@click.argument("observations", type=click.Path())
+@json_option
+def events_list(observations, as_json):
+    """Print the events recorded in OBSERVATIONS, by unit."""
+    from ..observations import read_observations
+    _print_events(read_observations(observations), as_json, None)
+
+
+def _print_events(obs, as_json, headline):
+    if as_json:
+        emit_json({u: [dataclasses.asdict(e) for e in o.events] for u, o in obs.units.items()})
+        return
+    if headline:
+        say(headline)
+        return
+    for u, o in obs.units.items():
+        line = "; ".join(f"year {e.year}: {e.component} {e.action}"
+                         + (f" ({e.note})" if e.note else "") for e in o.events)
+        click.echo(f"{u}: {line or 'no events'}")
 
 
 @main.command("build-fmu")
