@@ -411,6 +411,10 @@ class ReduceConfig:
     max_modes: int = 8
     kernel: Literal["squared_exponential", "matern52", "matern32", "exponential"] = "matern52"
     trend: Literal["constant", "linear", "quadratic"] = "linear"
+    #: Further channels (keys of ``model.channels``) that get a surrogate of their own, built
+    #: like the output's but with transform ``auto``; None: every channel the design
+    #: recorded; []: the output only (each channel costs about one more reduce).
+    channels: Optional[tuple[str, ...]] = None
 
     def _check(self):
         if not 0 < self.variance_threshold <= 1:
@@ -455,6 +459,10 @@ class CalibrateConfig:
     edge_share: float = 0.25
     #: Worker processes (units run in parallel); 0 means one per core, 1 runs in-process.
     workers: int = 0
+    #: Further channels (keys of ``model.channels``) in the likelihood besides the output,
+    #: each with its own noise; None: every channel the observations carry and the surrogate
+    #: models; []: the output only.
+    channels: Optional[tuple[str, ...]] = None
 
     def _check(self):
         if self.chains < 2:
@@ -635,6 +643,11 @@ class Config:
     def _check(self):
         if not 0 <= self.seed < 2 ** 32:
             yield "seed", "must lie in [0, 2**32 - 1] (OpenTURNS and numpy seeds)", self.seed
+        for section in ("reduce", "calibrate"):
+            for i, ch in enumerate(getattr(self, section).channels or ()):
+                if ch not in self.model.channels:
+                    yield f"{section}.channels.{i}", "not a key of model.channels (channels: " \
+                        f"{', '.join(self.model.channels) or 'none'})", ch
         comps = self.model.components
         for unit, spec in (self.fabricate.units if self.fabricate else {}).items():
             for i, ev in enumerate(spec.events):
