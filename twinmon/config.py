@@ -512,8 +512,13 @@ class ForecastConfig:
     withhold_years: int = 2
     #: Give the prognosis of such units anyway (experts; labelled "forced" everywhere).
     force_prognosis: bool = False
+    #: A degrading unit's verdict names components only when the most probable set of
+    #: abnormal components has at least this probability; below, it is "ambiguous".
+    attribution_confidence: float = 0.8
 
     def _check(self):
+        if not 0.5 <= self.attribution_confidence < 1:
+            yield "attribution_confidence", "must lie in [0.5, 1)", self.attribution_confidence
         if self.horizon < 1:
             yield "horizon", "must be >= 1", self.horizon
         if not 0 < self.confidence < 1:
@@ -526,6 +531,27 @@ class ForecastConfig:
             yield "observed_samples", "must be >= 1", self.observed_samples
         if self.withhold_years < 1:
             yield "withhold_years", "must be >= 1", self.withhold_years
+
+
+@dataclass(frozen=True)
+class BacktestConfig:
+    """``twinmon backtest``: forecasts from truncated histories scored on the later years."""
+
+    #: The first cut sees this many years (the trends need at least 3).
+    min_years: int = 5
+    #: alpha-lambda accuracy: the predicted RUL must lie within +- alpha * true RUL ...
+    alpha: float = 0.2
+    #: ... at the cut this fraction of the way from the first cut to the end of life.
+    lambda_value: float = 0.5
+
+    def _check(self):
+        if self.min_years < 3:
+            yield "min_years", "must be >= 3 (a trend with intervals needs 3 years)", \
+                self.min_years
+        if not 0 < self.alpha < 1:
+            yield "alpha", "must lie in (0, 1)", self.alpha
+        if not 0 <= self.lambda_value <= 1:
+            yield "lambda_value", "must lie in [0, 1]", self.lambda_value
 
 
 @dataclass(frozen=True)
@@ -617,6 +643,7 @@ class Config:
     reduce: ReduceConfig = ReduceConfig()
     calibrate: CalibrateConfig = CalibrateConfig()
     forecast: ForecastConfig = ForecastConfig()
+    backtest: BacktestConfig = BacktestConfig()
     diagnose: DiagnoseConfig = DiagnoseConfig()
     fabricate: Optional[FabricateConfig] = None
     #: Where this config came from (not a YAML key).
