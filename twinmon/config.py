@@ -286,7 +286,9 @@ class SimulateConfig:
     design: Literal["lhs", "sobol", "halton"] = "lhs"
     #: Worker processes; 0 means one per core.
     workers: int = 0
-    executor: Literal["process", "serial"] = "process"
+    #: ``dask``: on a Dask cluster (the ``dask`` section; docs/cluster.md). Also used by
+    #: ``forecast``'s FMU runs.
+    executor: Literal["process", "serial", "dask"] = "process"
     #: Runs flushed to the partial artifact at a time (what a crash can lose).
     chunk_size: int = 64
 
@@ -459,6 +461,8 @@ class CalibrateConfig:
     edge_share: float = 0.25
     #: Worker processes (units run in parallel); 0 means one per core, 1 runs in-process.
     workers: int = 0
+    #: ``dask``: the chains run on a Dask cluster (the ``dask`` section; docs/cluster.md).
+    executor: Literal["process", "dask"] = "process"
     #: Further channels (keys of ``model.channels``) in the likelihood besides the output,
     #: each with its own noise; None: every channel the observations carry and the surrogate
     #: models; []: the output only.
@@ -597,6 +601,8 @@ class DiagnoseConfig:
     channel_noise_fraction: float = 0.01
     #: Worker processes over units; 0 means one per core.
     workers: int = 0
+    #: ``dask``: the units run on a Dask cluster (the ``dask`` section; docs/cluster.md).
+    executor: Literal["process", "dask"] = "process"
 
     def _check(self):
         for name, w in self.windows.items():
@@ -632,6 +638,27 @@ class DiagnoseConfig:
 
 
 @dataclass(frozen=True)
+class DaskConfig:
+    """Where the stages whose ``executor`` is ``dask`` run (docs/cluster.md).
+
+    ``address`` null: a ``LocalCluster`` on this machine, as many worker processes as the
+    stage's ``workers`` (0: one per core), one thread each; ``tcp://host:8786``: the running
+    scheduler there (its workers must run one thread each). ``timeout``: seconds allowed to
+    reach the scheduler or start the local workers before the command fails."""
+
+    address: Optional[str] = None
+    timeout: float = 10.0
+
+    def _check(self):
+        if self.address is not None and (not self.address.strip()
+                                         or any(c.isspace() for c in self.address)):
+            yield "address", "expected a scheduler address such as tcp://host:8786, or " \
+                "null for a local cluster", self.address
+        if self.timeout <= 0:
+            yield "timeout", "must be > 0 (seconds)", self.timeout
+
+
+@dataclass(frozen=True)
 class Config:
     """A whole resolved twinmon configuration."""
 
@@ -646,6 +673,8 @@ class Config:
     backtest: BacktestConfig = BacktestConfig()
     diagnose: DiagnoseConfig = DiagnoseConfig()
     fabricate: Optional[FabricateConfig] = None
+    #: The Dask cluster of ``executor: dask`` (never changes a result).
+    dask: DaskConfig = DaskConfig()
     #: Where this config came from (not a YAML key).
     source: Path = field(default=Path("<memory>"), compare=False)
     #: The merged mapping after overrides (not a YAML key): a base for derived configs.
@@ -701,7 +730,8 @@ _NOT_KEYS = {"source", "raw"}
 
 #: Per section, the keys that spread the work over processes without changing any result.
 EXECUTION_ONLY = {"simulate": ("workers", "executor", "chunk_size"),
-                  "calibrate": ("workers",), "diagnose": ("workers",)}
+                  "calibrate": ("workers", "executor"), "diagnose": ("workers", "executor"),
+                  "dask": ("address", "timeout")}
 
 
 # ---------------------------------------------------------------------------------------
