@@ -459,6 +459,9 @@ class CalibrateConfig:
     #: within ``edge_margin`` (fraction of the input's range) of a bound of the design box.
     edge_margin: float = 0.02
     edge_share: float = 0.25
+    #: Pooled draws per year stored in ``posterior.h5`` (evenly thinned); the summary
+    #: statistics use every draw.
+    keep_draws: int = 1000
     #: Worker processes (units run in parallel); 0 means one per core, 1 runs in-process.
     workers: int = 0
     #: ``dask``: the chains run on a Dask cluster (the ``dask`` section; docs/cluster.md).
@@ -485,6 +488,8 @@ class CalibrateConfig:
             yield "ess_warn", "must be >= 0", self.ess_warn
         if self.workers < 0:
             yield "workers", "must be >= 0", self.workers
+        if self.keep_draws < 1:
+            yield "keep_draws", "must be >= 1", self.keep_draws
         if self.max_extensions < 0:
             yield "max_extensions", "must be >= 0", self.max_extensions
         if not 0 < self.fit_alpha < 1:
@@ -638,6 +643,17 @@ class DiagnoseConfig:
 
 
 @dataclass(frozen=True)
+class ReportConfig:
+    #: Above this many units the report opens on a fleet overview and draws figures for
+    #: this many units only (those at risk first).
+    detail_units: int = 12
+
+    def _check(self):
+        if self.detail_units < 1:
+            yield "detail_units", "must be >= 1", self.detail_units
+
+
+@dataclass(frozen=True)
 class DaskConfig:
     """Where the stages whose ``executor`` is ``dask`` run (docs/cluster.md).
 
@@ -673,6 +689,7 @@ class Config:
     backtest: BacktestConfig = BacktestConfig()
     diagnose: DiagnoseConfig = DiagnoseConfig()
     fabricate: Optional[FabricateConfig] = None
+    report: ReportConfig = ReportConfig()
     #: The Dask cluster of ``executor: dask`` (never changes a result).
     dask: DaskConfig = DaskConfig()
     #: Where this config came from (not a YAML key).
