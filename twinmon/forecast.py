@@ -33,6 +33,7 @@ import json
 import os
 import time as _time
 import zlib
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Optional
@@ -42,6 +43,9 @@ import numpy as np
 from . import artifacts
 from .config import Config
 from .errors import ArtifactError, CalibrationError
+from .prognosis import (AMBIGUOUS, HEALTHY, Attribution, IndicatorDrift, attribute, box_test,
+                        gradient_from, gradient_points, indicator_drift, mid_state,
+                        separating_channel, slope_covariance)
 
 #: Config sections recorded in the artifact (and compared by ``twinmon run``).
 SECTIONS = ("model", "forecast", "safety", "seed")
@@ -162,6 +166,43 @@ def fit_trend(years: np.ndarray, values: np.ndarray) -> tuple[Trend, np.ndarray]
                   residual_std=float(np.sqrt(max(s2, 0.0))), n=n, x_mean=float(x.mean()),
                   sxx=float(np.sum((x - x.mean()) ** 2)))
     return trend, resid
+
+
+def repair_years(cfg: Config, up, years: np.ndarray) -> dict:
+    """Per input, the first year of its current trend: the year its component was last
+    repaired or replaced (``events`` of the posterior), else the first observed year."""
+    since = {n: int(years[0]) for n in cfg.model.input_names}
+    for year, component, _action in getattr(up, "events", None) or ():
+        for name in cfg.model.components.get(component, ()):
+            if year <= years[-1]:
+                since[name] = max(since[name], int(year))
+    return since
+
+
+def segment_trend(years: np.ndarray, values: np.ndarray, since: int, spec) -> Trend:
+    """The trend of one input from year ``since`` on (its component's last repair).
+
+    With 3 or more years since, an OLS fit of those years. With fewer, no slope can be
+    estimated: the repaired part is taken to age normally (``normal_rate``) from the level of
+    its post-repair estimates, with the scatter (residual sd, dof) of the whole history's fit
+    -- the year-to-year scatter belongs to the unit's recording, not to the part -- and the
+    test says so (it never rejects)."""
+    seg = years >= since
+    if seg.sum() >= 3:
+        return fit_trend(years[seg], values[seg])[0]
+    full, _ = fit_trend(years, values)
+    x = years[seg].astype(float)
+    level = float(values[seg].mean())
+    x_mean = float(x.mean())
+    return Trend(intercept=level - spec.normal_rate * x_mean, slope=spec.normal_rate,
+                 slope_se=spec.normal_rate_tolerance,
+                 slope_ci=(spec.normal_rate - spec.normal_rate_tolerance,
+                           spec.normal_rate + spec.normal_rate_tolerance),
+                 residual_std=full.residual_std, n=full.n, x_mean=x_mean, sxx=full.sxx,
+                 normal_rate=spec.normal_rate, tolerance=spec.normal_rate_tolerance,
+                 p_value=1.0, rejects=False,
+                 test=f"repaired in year {since}: fewer than 3 years since, normal ageing "
+                      "assumed")
 
 
 def slope_test(trend: Trend, normal_rate: float, tolerance: float, direction: int,
@@ -500,6 +541,10 @@ class UnitForecast:
     status_reason: str = ""
     #: The prognosis of a withheld unit was given anyway (``forecast.force_prognosis``).
     forced: bool = False
+    #: The indicator's trend and its test against normal ageing (detection).
+    drift: Optional[IndicatorDrift] = None
+    #: Which components the drift comes from, with probabilities.
+    attribution: Optional[Attribution] = None
 
     @property
     def fmu_fraction(self) -> float:
@@ -529,12 +574,30 @@ class UnitForecast:
                        for name, t in self.trends.items()},
             "indicator": {"median": _finite(med), "q05": _finite(q05), "q95": _finite(q95)},
             "plan": self.plan,
+            "detection": _drift_dict(self.drift),
+            "attribution": ({"verdict": self.attribution.verdict,
+                             "probabilities": {c: round(v, 3) for c, v in
+                                               self.attribution.probabilities.items()},
+                             "sets": {c: round(v, 3) for c, v in self.attribution.sets.items()},
+                             "separating_channel": self.attribution.separating_channel or None}
+                            if self.attribution is not None else None),
             "fmu_fraction": round(self.fmu_fraction, 4),
             "fmu_failures": self.fmu_failures,
         }
         if self.has_truth:
             d["true_failure_year"] = self.true_failure_year
         return d
+
+
+def _drift_dict(dr: Optional[IndicatorDrift]) -> Optional[dict]:
+    if dr is None:
+        return None
+    f = (lambda v: float(f"{v:.4g}") if np.isfinite(v) else None)
+    return {"slope": f(dr.slope), "slope_se": f(dr.slope_se), "normal_slope": f(dr.normal_slope),
+            "normal_tolerance": f(float(np.sum(dr.normal_halfwidth))),
+            "p_value": f(dr.p_value), "p_inputs": f(dr.p_inputs),
+            "abnormal": bool(dr.abnormal),
+            "years": [int(y) for y in dr.years]}
 
 
 def _finite(a) -> list:
@@ -612,18 +675,90 @@ def prognosis_status(up, cfg: Config, windows: list) -> tuple[str, str]:
     return STATUS_OK, ""
 
 
+def judge(cfg: Config, unit: str, plan: dict, ind_obs: np.ndarray, gradient: np.ndarray,
+          directions: dict, observed: set) -> tuple[IndicatorDrift, Attribution]:
+    """Detection on the health indicator, then attribution (see :mod:`twinmon.prognosis`).
+
+    A unit is degrading when its indicator drifts beyond normal ageing or its inputs' slopes,
+    jointly, leave the normal-ageing box; a unit whose indicator trend cannot be tested
+    (fewer than 3 years with a finite indicator, e.g. a level no longer reached) is judged
+    on its inputs alone."""
+    from .safety import Indicator
+    names = cfg.model.input_names
+    specs = [cfg.model.inputs[n] for n in names]
+    rate = np.array([s.normal_rate for s in specs])
+    tol = np.array([s.normal_rate_tolerance for s in specs])
+    ind = Indicator.from_config(cfg)
+    alpha = cfg.forecast.alpha
+    years = plan["years"]
+    after = years >= plan["since"]     # a repair restarts the trends
+    drift = indicator_drift(years[after], ind_obs[after], gradient, rate, tol,
+                            ind.sense, alpha, _unit_rng(cfg, unit, 2))
+    trends = plan["trends"]
+    tl = [trends[n] for n in names]
+    dirs = [directions[n].sign for n in names]
+    C = slope_covariance(tl, plan["resid"], years[after], plan["post_cov"][after])
+    drift.p_inputs, _ = box_test(np.array([t.slope for t in tl]), C, max(tl[0].dof, 1),
+                                 rate, tol, dirs)
+    # Two views of one question, each at alpha / 2 (Bonferroni): the indicator's drift
+    # (sees a fault the inputs trade off between) and the inputs' slopes jointly (sees a
+    # fault another input's normal ageing hides from the indicator).
+    if np.isfinite(drift.p_value):
+        drift.abnormal = bool(min(drift.p_value, drift.p_inputs) < alpha / 2)
+    else:
+        drift.abnormal = bool(drift.p_inputs < alpha)
+    if not drift.abnormal:
+        return drift, Attribution(HEALTHY)
+    att = attribute(tl, names, [s.component or n for s, n in zip(specs, names)], C, rate, tol,
+                    dirs, cfg.forecast.attribution_confidence, _unit_rng(cfg, unit, 3))
+    if att.verdict == AMBIGUOUS and att.leading_slopes is not None:
+        years = plan["years"]
+        first = np.array([trends[n].intercept + trends[n].slope * years[0] for n in names])
+        observed = observed | {cfg.model.output.variable}
+        att.separating_channel, att.channel_scores = separating_channel(
+            cfg, observed, first, att.leading_slopes, float(years[-1] - years[0]))
+    return drift, att
+
+
 def maintenance_plan(trends: dict, years_future: np.ndarray,
                      p_unsafe: np.ndarray, failure_year: Optional[int], last_year: int,
-                     p_unsafe_now: float, safety) -> str:
-    """A concrete maintenance recommendation: component, deadline year, evidence."""
+                     p_unsafe_now: float, safety, drift: Optional[IndicatorDrift] = None,
+                     attribution: Optional[Attribution] = None, cfg: Optional[Config] = None
+                     ) -> str:
+    """A concrete maintenance recommendation: component, deadline year, evidence.
+
+    With a detection (``drift``, ``attribution``), the components come from the attribution
+    and the evidence is the indicator's drift; otherwise from the inputs' slope tests."""
     comps = {}
     for name, t in trends.items():
         comps.setdefault(t.component or name, []).append((name, t))
-    faulty = sorted(c for c, ts in comps.items() if any(t.rejects for _, t in ts))
-    sound = sorted(c for c in comps if c not in faulty)
-    evidence = "; ".join(
-        f"{name} slope {t.slope:+.3g}/yr vs normal {t.normal_rate:+.3g} +- {t.tolerance:.3g} "
-        f"(p = {t.p_value:.2g})" for c in faulty for name, t in comps[c] if t.rejects)
+    if attribution is not None and drift is not None and np.isfinite(drift.p_value):
+        from .safety import Indicator
+        ind = Indicator.from_config(cfg)
+        probs = attribution.probabilities
+        if attribution.verdict == AMBIGUOUS:
+            faulty = sorted(probs, key=lambda c: -probs[c])
+        elif attribution.verdict == HEALTHY:
+            faulty = []
+        else:       # the most probable set of components
+            faulty = sorted(max(attribution.sets, key=attribution.sets.get).split("+"))
+        evidence = (drift.describe(ind.name, ind.units) if drift.abnormal else "")
+        if attribution.verdict == AMBIGUOUS:
+            evidence += ("; the data cannot tell which component: " +
+                         ", ".join(f"{c} {probs[c]:.2f}" for c in faulty) +
+                         (f"; recording {attribution.separating_channel} would separate them"
+                          if attribution.separating_channel else ""))
+        sound = sorted(c for c in comps if c not in faulty)
+    else:
+        faulty = sorted(c for c, ts in comps.items() if any(t.rejects for _, t in ts))
+        sound = sorted(c for c in comps if c not in faulty)
+        evidence = "; ".join(
+            f"{name} slope {t.slope:+.3g}/yr vs normal {t.normal_rate:+.3g} +- "
+            f"{t.tolerance:.3g} (p = {t.p_value:.2g})"
+            for c in faulty for name, t in comps[c] if t.rejects)
+    # An ambiguous attribution lists the candidates, most probable first.
+    join = " or the " if attribution is not None and attribution.verdict == AMBIGUOUS \
+        else " and the "
     sound_txt = (f"; {' and '.join(sound)} within normal ageing" if sound else "")
     limit = safety.failure_probability
     if failure_year is not None:
@@ -632,14 +767,14 @@ def maintenance_plan(trends: dict, years_future: np.ndarray,
                 f"{p_unsafe_now:.2f} in year {last_year})" if p_unsafe_now > limit
                 else "now" if failure_year <= last_year + 1
                 else f"before year {failure_year - 1} ends")
-        what = (f"Inspect/replace the {' and the '.join(faulty)}" if faulty
+        what = (f"Inspect/replace the {join.join(faulty)}" if faulty
                 else "Overhaul the unit (normal ageing alone reaches the limit)")
         return (f"{what} {when}: P(unsafe) {p_unsafe[k]:.2f} in year {failure_year} "
                 f"(limit {limit:.2f})" + (f" [{evidence}]" if evidence else "") + sound_txt + ".")
     pmax = float(np.max(p_unsafe)) if p_unsafe.size else 0.0
     horizon_end = int(years_future[-1]) if years_future.size else last_year
     if faulty:
-        return (f"Inspect the {' and the '.join(faulty)} at the next planned stop: "
+        return (f"Inspect the {join.join(faulty)} at the next planned stop: "
                 f"degrading faster than normal ageing [{evidence}], though P(unsafe) stays "
                 f"<= {limit:.2f} through year {horizon_end} (max {pmax:.2f}){sound_txt}.")
     return (f"No action: all components within normal ageing; P(unsafe) stays <= {limit:.2f} "
@@ -675,15 +810,11 @@ def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
     CalibrationError
         A unit has fewer than 3 years (no prediction interval is possible).
     """
-    import openturns as ot
     from .calibrate import read_posterior
-    from .executors import make_executor
     from .reduce import check_made_for, read_surrogate
-    from .safety import failure_year as first_failure
 
     start = _time.perf_counter()
     posterior_path, surrogate_path = Path(posterior_path), Path(surrogate_path)
-    fc = cfg.forecast
     names = cfg.model.input_names
     post = read_posterior(posterior_path)
     if list(post.input_names) != names:
@@ -699,9 +830,51 @@ def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
         raise ArtifactError(f"{posterior_path}: calibrated through another surrogate than "
                             f"{surrogate_path} (their fingerprints differ); re-run calibrate, "
                             "or pass the surrogate it was made with")
+    truth = None
+    if truth_path is not None:
+        from .fabricate import read_truth
+        truth = read_truth(truth_path)
+    units, directions, box_ok = forecast_units(
+        cfg, post, sur, posterior_path=posterior_path, truth=truth, truth_path=truth_path,
+        executor=executor, progress=progress)
+
+    _write(output, cfg, units, names, directions, box_ok, seed=cfg.seed + SEED_OFFSET,
+           inputs=[posterior_path, surrogate_path] + ([truth_path] if truth_path else []))
+    return ForecastSummary(units, str(output), _time.perf_counter() - start, box_ok,
+                           [d.note for d in directions.values() if d.note])
+
+
+def forecast_units(cfg: Config, post, sur, *, posterior_path="<memory>", truth=None,
+                   truth_path=None, executor=None, progress=None, directions=None,
+                   box_ok=None) -> tuple[dict, dict, bool]:
+    """The forecast of every unit of a loaded posterior, in memory (no file written).
+
+    ``forecast`` and ``backtest`` (which calls it on truncated histories) share it.
+
+    Parameters
+    ----------
+    post : Posterior
+    sur : Surrogate
+    truth : Truth, optional
+    directions, box_ok : optional
+        Computed once by the caller when it forecasts many times.
+
+    Returns
+    -------
+    units : dict unit -> UnitForecast
+    directions : dict input -> Direction
+    box_ok : bool
+    """
+    import openturns as ot
+    from .executors import make_executor
+    from .safety import failure_year as first_failure
+    fc = cfg.forecast
+    names = cfg.model.input_names
     ot.RandomGenerator.SetSeed(cfg.seed + SEED_OFFSET)
-    directions = degrading_directions(cfg, sur)
-    box_ok = box_is_physical(cfg)
+    if directions is None:
+        directions = degrading_directions(cfg, sur)
+    if box_ok is None:
+        box_ok = box_is_physical(cfg)
     d = len(names)
 
     # 1. Trends, tests and Monte Carlo points of every unit; the twin is then evaluated on
@@ -717,14 +890,23 @@ def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
             raise ArtifactError(f"{posterior_path}: /units/{unit}/mean must be finite with "
                                 f"shape ({years.size}, {d}), got shape {mean.shape}")
         _check_plausible(posterior_path, unit, np.asarray(up.samples, float), cfg)
-        trends, resid = {}, np.empty((years.size, d))
+        since = repair_years(cfg, up, years)
+        trends = {}
         for i, name in enumerate(names):
             spec = cfg.model.inputs[name]
-            t, resid[:, i] = fit_trend(years, mean[:, i])
+            t = segment_trend(years, mean[:, i], since[name], spec)
             t.component = spec.component
-            trends[name] = slope_test(t, spec.normal_rate, spec.normal_rate_tolerance,
-                                      directions[name].sign, fc.alpha)
-        corr = residual_correlation(resid) if fc.correlate else np.eye(d)
+            trends[name] = t if t.test else slope_test(
+                t, spec.normal_rate, spec.normal_rate_tolerance, directions[name].sign, fc.alpha)
+        # The inputs' residuals on the years every trend covers (after the latest repair).
+        common = years >= max(since.values())
+        resid = np.column_stack([mean[common, i] - (trends[n].intercept + trends[n].slope *
+                                                    years[common]) for i, n in enumerate(names)])
+        corr = (residual_correlation(resid) if fc.correlate and common.sum() >= 3
+                else np.eye(d))
+        # Probe points of the indicator's gradient at the unit's mid-history state (the
+        # detection's normal-ageing band), evaluated with every other point below.
+        probe, step = gradient_points(cfg, mid_state(trends, names))
         fut = years[-1] + np.arange(1, fc.horizon + 1)
         X = sample_predictive([trends[n] for n in names], fut, corr, fc.samples,
                               _unit_rng(cfg, unit, 0))
@@ -733,19 +915,16 @@ def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
         pick = np.sort(_unit_rng(cfg, unit, 1).choice(samples_post.shape[1], n_o, replace=False))
         Xo = samples_post[:, pick, :]
         plans[unit] = dict(years=years, mean=mean, trends=trends, fut=fut, X=X, Xo=Xo,
-                           corr=corr)
-        points += [X.reshape(-1, d), Xo.reshape(-1, d)]
+                           corr=corr, resid=resid, step=step, since=max(since.values()),
+                           post_cov=np.array([np.cov(samples_post[k], rowvar=False).reshape(d, d)
+                                              for k in range(years.size)]))
+        points += [X.reshape(-1, d), Xo.reshape(-1, d), probe]
 
     if executor is None:
-        executor = make_executor(cfg.simulate.executor, cfg.simulate.workers)
+        executor = make_executor(cfg.simulate.executor, cfg.simulate.workers, cfg.dask)
     twin = evaluate_twin(cfg, sur, np.concatenate(points), executor,
                          fmu_everywhere=not box_ok, progress=progress)
     unsafe_all = twin.unsafe(cfg.safety)
-
-    truth = None
-    if truth_path is not None:
-        from .fabricate import read_truth
-        truth = read_truth(truth_path)
 
     # 2. Per unit: probabilities, failure year, verdict, plan, truth.
     units, offset = {}, 0
@@ -754,13 +933,18 @@ def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
         n_y, n_o = p["Xo"].shape[:2]
         sl = slice(offset, offset + h * n_s)
         so = slice(sl.stop, sl.stop + n_y * n_o)
-        offset = so.stop
+        sg = slice(so.stop, so.stop + 2 * d)
+        offset = sg.stop
         value = twin.value[sl].reshape(h, n_s)
         p_unsafe = unsafe_all[sl].reshape(h, n_s).mean(axis=1)
         p_obs = unsafe_all[so].reshape(n_y, n_o).mean(axis=1)
         fyear = first_failure(p["fut"], p_unsafe, cfg.safety)
         trends = p["trends"]
-        cause = verdict(trends)
+        ind_obs = twin.value[so].reshape(n_y, n_o)
+        drift, attribution = judge(cfg, unit, p, ind_obs, gradient_from(twin.value[sg], p["step"]),
+                                   directions,
+                                   set(getattr(post.units[unit], "channels", None) or ()))
+        cause = attribution.verdict
         pm, plo, phi = {}, {}, {}
         for name, t in trends.items():
             pm[name], plo[name], phi[name], _ = t.predict(p["fut"], fc.confidence)
@@ -769,11 +953,13 @@ def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
             years_future=p["fut"], trends=trends, pred_mean=pm, pred_lo=plo, pred_hi=phi,
             samples=p["X"], indicator=value, nonphysical=twin.nonphysical[sl].reshape(h, n_s),
             source=twin.source[sl].reshape(h, n_s), p_unsafe=p_unsafe,
-            indicator_observed=twin.value[so].reshape(n_y, n_o), p_unsafe_observed=p_obs,
+            indicator_observed=ind_obs, p_unsafe_observed=p_obs,
             failure_year=fyear, root_cause=cause,
-            fmu_failures=int(np.sum(twin.source[sl] == SOURCE_FAILED)))
+            fmu_failures=int(np.sum(twin.source[sl] == SOURCE_FAILED)),
+            drift=drift, attribution=attribution)
         uf.plan = maintenance_plan(trends, p["fut"], p_unsafe, fyear,
-                                   int(p["years"][-1]), float(p_obs[-1]), cfg.safety)
+                                   int(p["years"][-1]), float(p_obs[-1]), cfg.safety,
+                                   drift=drift, attribution=attribution, cfg=cfg)
         uf.status, uf.status_reason = prognosis_status(post.units[unit], cfg, post.fit_windows)
         if uf.status == STATUS_WITHHELD:
             if fc.force_prognosis:
@@ -788,11 +974,7 @@ def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
         if truth is not None:
             _add_truth(cfg, uf, unit, truth, truth_path)
         units[unit] = uf
-
-    _write(output, cfg, units, names, directions, box_ok, seed=cfg.seed + SEED_OFFSET,
-           inputs=[posterior_path, surrogate_path] + ([truth_path] if truth_path else []))
-    return ForecastSummary(units, str(output), _time.perf_counter() - start, box_ok,
-                           [d.note for d in directions.values() if d.note])
+    return units, directions, box_ok
 
 
 def _check_plausible(path, unit: str, samples: np.ndarray, cfg: Config) -> None:
@@ -848,7 +1030,7 @@ def _write(path, cfg: Config, units: dict, names: list, directions: dict, box_ok
     ind = Indicator.from_config(cfg)
     section = cfg.section_yaml(*SECTIONS)
     with artifacts.write_artifact(path, "forecast", config=section, inputs=inputs,
-                                  seed=seed) as f:
+                                  seed=seed, compact=True) as f:
         f.attrs["input_names"] = artifacts.json_attr(names)
         f.attrs["input_units"] = artifacts.json_attr([cfg.model.inputs[n].units for n in names])
         f.attrs["directions"] = artifacts.json_attr({n: d.sign for n, d in directions.items()})
@@ -892,18 +1074,18 @@ def _write(path, cfg: Config, units: dict, names: list, directions: dict, box_ok
                     f"lower {c} prediction bound (Student t, new observation)")
                 put(tg, "pred_hi", u.pred_hi[name], un,
                     f"upper {c} prediction bound (Student t, new observation)")
-            put(g, "samples", u.samples, "input units",
-                "Monte Carlo input samples [future year, sample, input]", compression="gzip")
-            put(g, "indicator", u.indicator, ind.units, f"{ind.name} per future year and "
-                "sample; inf = level never reached, NaN = FMU run failed", compression="gzip")
-            put(g, "nonphysical", u.nonphysical.astype(np.int8), "1",
-                "1 where the FMU reported the non-physical mode", compression="gzip")
-            put(g, "source", u.source, "1", "0 surrogate, 1 FMU (outside the box), "
-                "2 FMU run failed (counted unsafe)", compression="gzip")
+            # The Monte Carlo arrays: one compressed chunk per year (see _put_per_year).
+            _put_per_year(g, "samples", u.samples, "input units",
+                          "Monte Carlo input samples [future year, sample, input]")
+            _put_per_year(g, "indicator", u.indicator, ind.units, f"{ind.name} per future "
+                          "year and sample; inf = level never reached, NaN = FMU run failed")
+            _put_per_year(g, "nonphysical", u.nonphysical.astype(np.int8), "1",
+                          "1 where the FMU reported the non-physical mode")
+            _put_per_year(g, "source", u.source, "1", "0 surrogate, 1 FMU (outside the box), "
+                          "2 FMU run failed (counted unsafe)")
             put(g, "p_unsafe", u.p_unsafe, "1", "probability of being unsafe per future year")
-            put(g, "indicator_observed", u.indicator_observed, ind.units,
-                f"{ind.name} of posterior samples per observed year [year, sample]",
-                compression="gzip")
+            _put_per_year(g, "indicator_observed", u.indicator_observed, ind.units,
+                          f"{ind.name} of posterior samples per observed year [year, sample]")
             put(g, "p_unsafe_observed", u.p_unsafe_observed, "1",
                 "probability of being unsafe per observed year (posterior samples)")
             if u.has_truth:
@@ -919,14 +1101,27 @@ def _write(path, cfg: Config, units: dict, names: list, directions: dict, box_ok
                         f"true {name} extended linearly over the future years")
 
 
+def _put_per_year(g, name: str, data: np.ndarray, units: str, description: str) -> None:
+    """A [year, sample, ...] array as one chunk per year, shuffled and gzip-compressed
+    (flags and failed-run codes are mostly zeros; draws lose about a fifth), so that a
+    fleet's forecast stays small and a unit-year is read alone."""
+    data = np.asarray(data)
+    opts = ({"chunks": (1,) + data.shape[1:], "compression": "gzip", "compression_opts": 4,
+             "shuffle": True} if data.ndim >= 2 and data.size else {})
+    artifacts.put(g, name, data, units, description, **opts)
+
+
 @dataclass
 class Forecast:
-    """A loaded ``forecast.h5``: ``units`` maps unit -> :class:`UnitForecast`."""
+    """A loaded ``forecast.h5``: ``units`` maps unit -> :class:`UnitForecast`.
+
+    Read from a file, ``units`` is an :class:`~twinmon.artifacts.LazyUnits` mapping: a unit
+    is read when it is looked up, so a fleet's forecast never sits in memory whole."""
 
     path: Path
     input_names: list
     confidence: float
-    units: dict
+    units: Mapping
     directions: dict = field(default_factory=dict)
     #: The health indicator the forecast was made with (name, label, units, limit, sense,
     #: variable, kind); empty for files written before it was recorded.
@@ -934,52 +1129,68 @@ class Forecast:
 
 
 def read_forecast(path: str | os.PathLike) -> Forecast:
-    """Load a forecast artifact (schema checked)."""
+    """Open a forecast artifact (schema checked); its units are read when looked up.
+
+    Raises
+    ------
+    ArtifactError
+        Missing file, wrong schema, no ``/units``; on access: a unit's missing datasets or
+        damaged bytes (naming the file and the dataset).
+    """
     path = Path(path)
     with artifacts.open_artifact(path, "forecast") as f:
         names = json.loads(f.attrs["input_names"])
         if "units" not in f:
             raise ArtifactError(f"{path}: group /units is missing")
-        get = lambda g, n: artifacts.get(g, n, path)  # noqa: E731
-        units = {}
-        for unit, g in f["units"].items():
-            trends, est, pm, plo, phi = {}, {}, {}, {}, {}
-            for name in names:
-                if f"trends/{name}" not in g:
-                    raise ArtifactError(f"{path}: group /units/{unit}/trends/{name} is missing")
-                tg = g[f"trends/{name}"]
-                a = tg.attrs
-                trends[name] = Trend(
-                    intercept=float(a["intercept"]), slope=float(a["slope"]),
-                    slope_se=float(a["slope_se"]), slope_ci=tuple(map(float, a["slope_ci90"])),
-                    residual_std=float(a["residual_std"]), n=int(a["n"]),
-                    x_mean=float(a["x_mean"]), sxx=float(a["sxx"]),
-                    normal_rate=float(a["normal_rate"]), tolerance=float(a["tolerance"]),
-                    direction=int(a["direction"]), p_value=float(a["p_value"]),
-                    test=str(a["test"]), rejects=bool(a["rejects"]),
-                    component=str(a["component"]))
-                est[name], pm[name] = get(tg, "estimate"), get(tg, "pred_mean")
-                plo[name], phi[name] = get(tg, "pred_lo"), get(tg, "pred_hi")
-            fy = int(g.attrs["failure_year"])
-            has_truth = "true_failure_year" in g.attrs
-            tfy = int(g.attrs["true_failure_year"]) if has_truth else -1
-            units[unit] = UnitForecast(
-                years_observed=get(g, "years_observed"), estimates=est,
-                years_future=get(g, "years_future"), trends=trends, pred_mean=pm,
-                pred_lo=plo, pred_hi=phi, samples=get(g, "samples"), indicator=get(g, "indicator"),
-                nonphysical=get(g, "nonphysical").astype(bool), source=get(g, "source"),
-                p_unsafe=get(g, "p_unsafe"), indicator_observed=get(g, "indicator_observed"),
-                p_unsafe_observed=get(g, "p_unsafe_observed"),
-                failure_year=None if fy < 0 else fy, root_cause=str(g.attrs["root_cause"]),
-                plan=str(g.attrs["plan"]), fmu_failures=int(g.attrs["fmu_failures"]),
-                status=str(g.attrs.get("status", STATUS_OK)),
-                status_reason=str(g.attrs.get("status_reason", "")),
-                forced=bool(g.attrs.get("forced", False)),
-                has_truth=has_truth, true_failure_year=None if tfy < 0 else tfy,
-                true_indicator=get(g, "truth/indicator") if has_truth else None,
-                true_unsafe=get(g, "truth/unsafe").astype(bool) if has_truth else None,
-                true_inputs={n: get(g, f"truth/inputs/{n}") for n in names} if has_truth
-                else None)
-        return Forecast(path, names, float(f.attrs["confidence"]), units,
-                        json.loads(f.attrs["directions"]),
-                        json.loads(f.attrs["indicator"]) if "indicator" in f.attrs else {})
+        unit_names = list(f["units"])
+        out = Forecast(path, names, float(f.attrs["confidence"]), {},
+                       json.loads(f.attrs["directions"]),
+                       json.loads(f.attrs["indicator"]) if "indicator" in f.attrs else {})
+    out.units = artifacts.LazyUnits(path, "forecast", unit_names,
+                                    lambda f, unit, p: _read_unit(f, unit, p, names))
+    return out
+
+
+def _read_unit(f, unit: str, path: Path, names: list) -> UnitForecast:
+    """Read one unit of an open forecast artifact."""
+    get = lambda g, n: artifacts.get(g, n, path)  # noqa: E731
+    if f"units/{unit}" not in f:
+        raise ArtifactError(f"{path}: group /units/{unit} is missing")
+    g = f["units"][unit]
+    trends, est, pm, plo, phi = {}, {}, {}, {}, {}
+    for name in names:
+        if f"trends/{name}" not in g:
+            raise ArtifactError(f"{path}: group /units/{unit}/trends/{name} is missing")
+        tg = g[f"trends/{name}"]
+        a = tg.attrs
+        trends[name] = Trend(
+            intercept=float(a["intercept"]), slope=float(a["slope"]),
+            slope_se=float(a["slope_se"]), slope_ci=tuple(map(float, a["slope_ci90"])),
+            residual_std=float(a["residual_std"]), n=int(a["n"]),
+            x_mean=float(a["x_mean"]), sxx=float(a["sxx"]),
+            normal_rate=float(a["normal_rate"]), tolerance=float(a["tolerance"]),
+            direction=int(a["direction"]), p_value=float(a["p_value"]),
+            test=str(a["test"]), rejects=bool(a["rejects"]),
+            component=str(a["component"]))
+        est[name], pm[name] = get(tg, "estimate"), get(tg, "pred_mean")
+        plo[name], phi[name] = get(tg, "pred_lo"), get(tg, "pred_hi")
+    fy = int(g.attrs["failure_year"])
+    has_truth = "true_failure_year" in g.attrs
+    tfy = int(g.attrs["true_failure_year"]) if has_truth else -1
+    return UnitForecast(
+        years_observed=get(g, "years_observed"), estimates=est,
+        years_future=get(g, "years_future"), trends=trends, pred_mean=pm,
+        pred_lo=plo, pred_hi=phi, samples=get(g, "samples"), indicator=get(g, "indicator"),
+        nonphysical=get(g, "nonphysical").astype(bool), source=get(g, "source"),
+        p_unsafe=get(g, "p_unsafe"), indicator_observed=get(g, "indicator_observed"),
+        p_unsafe_observed=get(g, "p_unsafe_observed"),
+        failure_year=None if fy < 0 else fy, root_cause=str(g.attrs["root_cause"]),
+        plan=str(g.attrs["plan"]), fmu_failures=int(g.attrs["fmu_failures"]),
+        status=str(g.attrs.get("status", STATUS_OK)),
+        status_reason=str(g.attrs.get("status_reason", "")),
+        forced=bool(g.attrs.get("forced", False)),
+        has_truth=has_truth, true_failure_year=None if tfy < 0 else tfy,
+        true_indicator=get(g, "truth/indicator") if has_truth else None,
+        true_unsafe=get(g, "truth/unsafe").astype(bool) if has_truth else None,
+        true_inputs={n: get(g, f"truth/inputs/{n}") for n in names} if has_truth
+        else None)

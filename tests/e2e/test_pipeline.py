@@ -54,9 +54,17 @@ def test_stages_chain_through_the_cli(small):
                   "--surrogate", tmp / "surrogate.h5", "-o", tmp / "forecast.h5")
     for u in ("Park", "Colt", "Monk"):
         f = fc["units"][u]
-        assert f["root_cause"] in ("healthy", "pump", "motor", "both")
+        assert f["root_cause"] in ("healthy", "pump", "motor", "both", "ambiguous")
         assert f["years"] == [6, 7, 8, 9] and len(f["p_unsafe"]) == 4
         assert all(0 <= p <= 1 for p in f["p_unsafe"])
+        assert f["detection"]["abnormal"] == (f["root_cause"] != "healthy")
+    # back-test on the user's own history (no truth): cuts at years 3 and 4 (min_years 3)
+    bt = run_json("backtest", "-c", cfg, "--set", "backtest.min_years=3", "--posterior",
+                  tmp / "posterior.h5", "--surrogate", tmp / "surrogate.h5",
+                  "-o", tmp / "backtest.h5")
+    assert bt["units"]["Colt"]["cuts"] == [3, 4]
+    # cut 3 sees years 4, 5; cut 4 sees year 5: three later observations per unit
+    assert bt["pairs"] == 9 and 0 <= bt["coverage"] <= 1
     gap = run_json("diagnose", "-c", cfg, "--observations", obs, "-o", tmp / "gap.h5")
     assert {u["verdict"] for u in gap["units"].values()} <= {"none", "effect", "unexplained"}
     rep = twinmon("report", "-c", cfg, "--workdir", tmp, "--observations", obs,

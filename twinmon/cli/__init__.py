@@ -62,7 +62,7 @@ def main(ctx, verbose, quiet):
 
 
 def _register() -> None:
-    from . import calibrate_cmd, data, diagnose_cmd, forecast_cmd, init_cmd, pipeline, report_cmd  # noqa: F401  (modules attach their commands to main)
+    from . import backtest_cmd, calibrate_cmd, data, diagnose_cmd, forecast_cmd, init_cmd, pipeline, report_cmd  # noqa: F401  (modules attach their commands to main)
 
 
 _register()

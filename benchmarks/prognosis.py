@@ -1,0 +1,248 @@
+"""Prognosis benchmark (issue 9): detection, attribution, intervals and time to failure.
+
+A seeded fleet of pump units (configs/pump.yaml's model) over ten years: healthy units whose
+inputs age anywhere inside their normal band, pump faults, motor faults and both, with excess
+rates from barely above the tolerance (1.25x) to fast. Each unit-year goes through the real
+FMU; the flow carries 1 % noise, the motor speed its own. Every configuration -- calibration
+method x channels (flow only / flow + motor speed) -- is calibrated, forecast and scored
+against the truth, which only this script reads:
+
+* confusion matrix of verdict vs truth;
+* detection of faulty units whose excess rate is at least twice the tolerance; false alarms
+  on healthy units; wrong component named; ambiguous share;
+* coverage of the 90 % prediction intervals of the true future indicator and inputs;
+* failure year within +-1 of the truth, for units that fail within the horizon;
+* alpha-lambda accuracy (alpha 0.2, lambda 0.5) of the time to failure over cut years.
+
+Usage: ``python benchmarks/prognosis.py [--seed 11] [--methods sequential,joint]
+[--channels flow,speed] [--workdir DIR]``; runs for tens of minutes on 2 cores.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from twinmon.backtest import truncate, ttf_scores  # noqa: E402
+from twinmon.calibrate import Posterior, calibrate, read_posterior  # noqa: E402
+from twinmon.config import load_config  # noqa: E402
+from twinmon.fabricate import fabricate, read_truth  # noqa: E402
+from twinmon.forecast import forecast, forecast_units  # noqa: E402
+from twinmon.reduce import read_surrogate, reduce  # noqa: E402
+from twinmon.simulate import simulate  # noqa: E402
+
+TOL = {"motor_damping": 0.25, "pump_coef": 0.03}
+NORMAL = {"motor_damping": 0.0, "pump_coef": -0.02}
+SIGN = {"motor_damping": 1, "pump_coef": -1}
+COMPONENT = {"motor_damping": "motor", "pump_coef": "pump"}
+#: Excess rates, in tolerances, of the single-component faults (the pump's box allows less).
+MULT = {"pump_coef": [1.25, 1.5, 2.0, 2.0, 2.25, 2.5, 2.75, 3.0, 3.0, 3.25, 3.5, 3.75],
+        "motor_damping": [1.25, 1.5, 2.0, 2.0, 2.5, 3.0, 3.5, 4.0, 4.5, 5.0, 6.0, 7.0]}
+CHANNELS = {"flow": [], "speed": ["motor.w"]}
+
+
+def fleet(seed: int, n_healthy: int = 12, n_both: int = 8) -> tuple[dict, dict]:
+    """Fabricate specs of the fleet and each unit's (kind, excess multiple)."""
+    rng = np.random.default_rng(seed)
+    units, kinds = {}, {}
+
+    def add(name, kind, rates, excess):
+        start = {"motor_damping": rng.uniform(9.5, 10.5), "pump_coef": rng.uniform(3.55, 3.75)}
+        units[name] = {"trajectories": {
+            n: {"start": round(float(start[n]), 4), "slope": round(float(rates[n]), 5),
+                "jitter": 0.15 if n == "motor_damping" else 0.01} for n in TOL}}
+        kinds[name] = (kind, float(excess))
+
+    def normal(n):
+        return NORMAL[n] + TOL[n] * rng.uniform(-1, 1)
+
+    for i in range(n_healthy):
+        add(f"H{i:02d}", "healthy", {n: normal(n) for n in TOL}, 0.0)
+    for inp, mults in MULT.items():
+        other = next(n for n in TOL if n != inp)
+        for i, m in enumerate(mults):
+            add(f"{COMPONENT[inp][0].upper()}{i:02d}", COMPONENT[inp],
+                {other: normal(other), inp: NORMAL[inp] + SIGN[inp] * TOL[inp] * m}, m)
+    for i in range(n_both):
+        mm, mp = rng.uniform(1.5, 4.0), rng.uniform(1.5, 3.0)
+        add(f"B{i:02d}", "both", {"motor_damping": TOL["motor_damping"] * mm,
+                                  "pump_coef": NORMAL["pump_coef"] - TOL["pump_coef"] * mp},
+            min(mm, mp))
+    return units, kinds
+
+
+def true_end_of_life(cfg, uf, truth, unit) -> int | None:
+    """First year the true (noise-free) unit is unsafe: observed years from the truth file's
+    clean output, later years from the forecast's extended true trajectories."""
+    from twinmon.safety import Indicator, is_unsafe
+    ind = Indicator.from_config(cfg)
+    clean = truth_clean[unit]
+    v = ind(truth_time, clean)
+    bad = is_unsafe(v, cfg.safety, None)
+    if bad.any():
+        return int(truth.years[unit][np.argmax(bad)])
+    return uf.true_failure_year
+
+
+def alpha_lambda(cfg, post, sur, truth_eol: dict, cuts) -> dict:
+    """Per unit failing after the first cut: TTF scores of forecasts made at each cut."""
+    preds = {u: {} for u in post.units}
+    for k in cuts:
+        sub = {u: truncate(post.units[u], k) for u in post.units}
+        res, _, _ = forecast_units(cfg, Posterior(post.input_names, sub, post.path,
+                                                  post.fit_windows), sur)
+        for u, uf in res.items():
+            preds[u][k] = -1 if uf.failure_year is None else int(uf.failure_year)
+    out = {}
+    for u, eol in truth_eol.items():
+        if eol is None:
+            continue
+        ks = np.array(sorted(preds[u]))
+        s = ttf_scores(ks, np.array([preds[u][k] for k in ks]), eol, cfg.forecast.horizon,
+                       cfg.backtest.alpha, cfg.backtest.lambda_value)
+        if s is not None:
+            out[u] = s
+    return out
+
+
+truth_clean, truth_time = {}, None
+
+
+def score(cfg, summary, kinds, truth) -> dict:
+    labels = ["healthy", "pump", "motor", "both", "ambiguous", "withheld"]
+    conf = {k: dict.fromkeys(labels, 0) for k in ("healthy", "pump", "motor", "both")}
+    rows = {}
+    for u, f in summary.units.items():
+        kind, m = kinds[u]
+        v = f.root_cause if f.root_cause in labels else "withheld"
+        conf[kind][v] += 1
+        rows[u] = (kind, m, v, f)
+    faulty = [r for r in rows.values() if r[0] != "healthy"]
+    strong = [r for r in faulty if r[1] >= 2]
+    ci, cx = [], []
+    for u, f in summary.units.items():
+        q05, q95 = f.indicator_quantiles([0.05, 0.95])
+        ci += list((q05 <= f.true_indicator) & (f.true_indicator <= q95))
+        for n in f.trends:
+            cx += list((f.pred_lo[n] <= f.true_inputs[n]) & (f.true_inputs[n] <= f.pred_hi[n]))
+    eol = {u: true_end_of_life(cfg, f, truth, u) for u, f in summary.units.items()}
+    horizon_end = {u: int(f.years_future[-1]) for u, f in summary.units.items()}
+    last = {u: int(f.years_observed[-1]) for u, f in summary.units.items()}
+    fails = [u for u in rows if eol[u] is not None and last[u] < eol[u] <= horizon_end[u]]
+    within = [rows[u][3].failure_year is not None and abs(rows[u][3].failure_year - eol[u]) <= 1
+              for u in fails]
+    return {"confusion": conf, "labels": labels,
+            "detected": float(np.mean([r[2] != "healthy" for r in strong])),
+            "n_strong": len(strong),
+            "false_alarm": float(np.mean([r[2] != "healthy" for r in rows.values()
+                                          if r[0] == "healthy"])),
+            "wrong": float(np.mean([r[2] not in ("healthy", "ambiguous", r[0])
+                                    for r in faulty])),
+            "ambiguous": float(np.mean([r[2] == "ambiguous" for r in faulty])),
+            "cover_indicator": float(np.mean(ci)), "cover_inputs": float(np.mean(cx)),
+            "fail_within1": float(np.mean(within)) if within else float("nan"),
+            "n_fail": len(fails), "eol": eol,
+            "misses": [(u, rows[u][0], round(rows[u][1], 2), rows[u][2]) for u in rows
+                       if (rows[u][0] == "healthy") != (rows[u][2] == "healthy")
+                       or rows[u][2] not in ("healthy", "ambiguous", rows[u][0])]}
+
+
+def main() -> int:
+    global truth_time
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seed", type=int, default=11)
+    ap.add_argument("--methods", default="sequential")
+    ap.add_argument("--channels", default="flow,speed")
+    ap.add_argument("--workdir", default=None)
+    ap.add_argument("--no-alpha-lambda", action="store_true")
+    a = ap.parse_args()
+    work = Path(a.workdir or tempfile.mkdtemp(prefix="twinmon-prognosis-"))
+    work.mkdir(parents=True, exist_ok=True)
+    units, kinds = fleet(a.seed)
+    cfg_path = work / "bench.yaml"
+    cfg_path.write_text(yaml.safe_dump({
+        "extends": str(ROOT / "configs" / "pump.yaml"),
+        "reduce": {"channels": ["motor.w"]},
+        "fabricate": {"years": 10, "noise_std": 4.0, "record_channels": True,
+                      "channel_noise_fraction": 0.01, "truth_variables": ["pump.m_flow"],
+                      "seed": a.seed + 4231, "units": units}}, sort_keys=False))
+    cfg = load_config(cfg_path)
+    t0 = time.perf_counter()
+    obs, tru = work / "obs.h5", work / "truth.h5"
+    if not obs.exists():
+        fabricate(cfg, obs, tru)
+    if not (work / "sur.h5").exists():
+        simulate(cfg, work / "sim.h5")
+        reduce(cfg, work / "sim.h5", work / "sur.h5")
+    print(f"fleet: {len(units)} units x 10 years; fabricate+simulate+reduce "
+          f"{time.perf_counter() - t0:.0f} s; workdir {work}")
+    truth = read_truth(tru)
+    import h5py
+    with h5py.File(tru) as f:
+        truth_time = f["time"][()]
+        for u in f["units"]:
+            truth_clean[u] = f[f"units/{u}/{cfg.model.output.name}_clean"][()]
+    sur = read_surrogate(work / "sur.h5")
+    results = {}
+    for method in a.methods.split(","):
+        for ch in a.channels.split(","):
+            over = [f"calibrate.channels={CHANNELS[ch]}"]
+            if method != "sequential":
+                over.append(f"calibrate.method={method}")
+            c = load_config(cfg_path, over)
+            tag = f"{method}/{ch}"
+            post = work / f"post_{method}_{ch}.h5"
+            t1 = time.perf_counter()
+            cal = calibrate(c, work / "sur.h5", obs, post, truth_path=tru)
+            t_cal = time.perf_counter() - t1
+            s = forecast(c, post, work / "sur.h5", work / f"fc_{method}_{ch}.h5", truth_path=tru)
+            r = score(c, s, kinds, truth)
+            r["t_cal"] = t_cal
+            r["truth_check"] = cal.truth_check
+            if not a.no_alpha_lambda:
+                p = read_posterior(post)
+                al = alpha_lambda(c, p, sur, r["eol"], cuts=range(5, 10))
+                r["alpha_lambda"] = float(np.mean([v.alpha_lambda for v in al.values()])) \
+                    if al else float("nan")
+                r["n_al"] = len(al)
+            results[tag] = r
+            report(tag, r)
+    print("\nsummary (targets: detect >= 0.95, false alarm <= 0.05, wrong <= 0.05, ambiguous "
+          "<= 0.25 flow / 0.05 speed, coverage 0.85-0.95, failure +-1 >= 0.90, "
+          "alpha-lambda >= 0.80)")
+    print(f"{'config':22s} detect  falsealm wrong  ambig  cov_ind cov_inp fail+-1 a-l    "
+          "damp_err pump_err t_cal")
+    for tag, r in results.items():
+        tc = r["truth_check"] or {}
+        print(f"{tag:22s} {r['detected']:.3f}  {r['false_alarm']:.3f}    {r['wrong']:.3f}  "
+              f"{r['ambiguous']:.3f}  {r['cover_indicator']:.3f}   {r['cover_inputs']:.3f}   "
+              f"{r['fail_within1']:.3f}   {r.get('alpha_lambda', float('nan')):.3f}  "
+              f"{100 * tc.get('motor_damping', {}).get('mean_rel_error', np.nan):.2f} %   "
+              f"{100 * tc.get('pump_coef', {}).get('mean_rel_error', np.nan):.2f} %   "
+              f"{r['t_cal']:.0f} s")
+    return 0
+
+
+def report(tag: str, r: dict) -> None:
+    print(f"\n== {tag}: confusion (rows truth, columns verdict)")
+    print(f"{'':9s}" + " ".join(f"{lab:>9s}" for lab in r["labels"]))
+    for k, row in r["confusion"].items():
+        print(f"{k:9s}" + " ".join(f"{row[lab]:9d}" for lab in r["labels"]))
+    print(f"detected {r['detected']:.3f} of {r['n_strong']} (excess >= 2 tol); false alarms "
+          f"{r['false_alarm']:.3f}; wrong component {r['wrong']:.3f}; ambiguous "
+          f"{r['ambiguous']:.3f}; coverage indicator {r['cover_indicator']:.3f} inputs "
+          f"{r['cover_inputs']:.3f}; failure year +-1 {r['fail_within1']:.3f} of {r['n_fail']}")
+    if r["misses"]:
+        print("  not right:", r["misses"])
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,119 @@
+"""Detection on the health indicator, the joint box test and attribution (twinmon.prognosis),
+and the time-to-failure scores of the back-test."""
+from __future__ import annotations
+
+import numpy as np
+
+from twinmon.backtest import ttf_scores
+from twinmon.forecast import fit_trend
+from twinmon.prognosis import (AMBIGUOUS, attribute, box_test, indicator_drift,
+                               slope_covariance)
+
+RATE, TOL = np.array([0.0, -0.02]), np.array([0.25, 0.03])
+GRAD = np.array([1.0, -4.0])        # indicator units per input unit
+YEARS = np.arange(1, 11)
+
+
+def _indicator(slope, noise, rng, n_o=200, base=15.0):
+    """Yearly indicator draws: a line plus year-to-year scatter, posterior spread 0.05."""
+    centre = base + slope * (YEARS - 1) + noise * rng.standard_normal(YEARS.size)
+    return centre[:, None] + 0.05 * rng.standard_normal((YEARS.size, n_o))
+
+
+def test_indicator_drift_rejects_only_beyond_what_normal_ageing_produces():
+    rng = np.random.default_rng(0)
+    normal = float(GRAD @ RATE)                 # 0.08 per year
+    band = float(np.sum(np.abs(GRAD) * TOL))    # 0.37 per year either way
+    p = []
+    for slope in (normal, normal + 0.5 * band, normal + 2.5 * band):
+        d = indicator_drift(YEARS, _indicator(slope, 0.1, rng), GRAD, RATE, TOL, +1, 0.01,
+                            np.random.default_rng(1))
+        p.append(d.p_value)
+        assert abs(d.slope - slope) < 0.1
+    assert p[0] > 0.3 and p[1] > 0.01 and p[2] < 1e-4
+    # the unsafe side only: a falling indicator is not a fault when unsafe is above
+    d = indicator_drift(YEARS, _indicator(-1.0, 0.1, rng), GRAD, RATE, TOL, +1, 0.01,
+                        np.random.default_rng(1))
+    assert d.p_value > 0.99 and not d.abnormal
+    # sense -1 (unsafe below): the same falling indicator is abnormal
+    d = indicator_drift(YEARS, _indicator(-1.0, 0.1, rng), GRAD, RATE, TOL, -1, 0.01,
+                        np.random.default_rng(1))
+    assert d.abnormal
+
+
+def test_indicator_drift_skips_years_where_the_level_is_never_reached():
+    rng = np.random.default_rng(2)
+    v = _indicator(0.5, 0.1, rng)
+    v[-3:] = np.inf
+    d = indicator_drift(YEARS, v, GRAD, RATE, TOL, +1, 0.01, rng)
+    assert d.years.tolist() == list(range(1, 8))
+    v[2:] = np.inf
+    d = indicator_drift(YEARS, v, GRAD, RATE, TOL, +1, 0.01, rng)
+    assert np.isnan(d.p_value) and not d.abnormal
+
+
+def _trends(slopes, scatter, rng, corr=0.0):
+    """OLS trends of two inputs with correlated year-to-year scatter [n, 2]."""
+    L = np.linalg.cholesky(np.array([[1, corr], [corr, 1]]))
+    e = (rng.standard_normal((YEARS.size, 2)) @ L.T) * scatter
+    vals = np.array([10.0, 3.6]) + np.outer(YEARS, slopes) + e
+    out = [fit_trend(YEARS, vals[:, i]) for i in range(2)]
+    return [t for t, _ in out], np.column_stack([r for _, r in out])
+
+
+def test_box_test_is_calibrated_inside_and_powerful_outside():
+    rng = np.random.default_rng(3)
+    scatter = np.array([0.3, 0.02])
+    p_in = []
+    for _ in range(200):   # slopes on the box's degrading corner: the least favourable null
+        tr, res = _trends(RATE + np.array([1, -1]) * TOL, scatter, rng)
+        C = slope_covariance(tr, res)
+        p_in.append(box_test(np.array([t.slope for t in tr]), C, 8, RATE, TOL, [1, -1])[0])
+    assert np.mean(np.array(p_in) < 0.05) <= 0.06
+    tr, res = _trends(RATE + np.array([0.0, -3.0]) * TOL, scatter, rng)
+    p, b0 = box_test(np.array([t.slope for t in tr]), slope_covariance(tr, res), 8, RATE, TOL,
+                     [1, -1])
+    assert p < 1e-3 and np.isclose(b0[1], RATE[1] - TOL[1], atol=1e-6)
+    # improving faster than normal is not a fault (one-sided)
+    tr, res = _trends(RATE + np.array([0.0, 3.0]) * TOL, scatter, rng)
+    assert box_test(np.array([t.slope for t in tr]), slope_covariance(tr, res), 8, RATE, TOL,
+                    [1, -1])[0] == 1.0
+
+
+def test_attribution_names_a_clear_fault_and_says_ambiguous_on_a_ridge():
+    rng = np.random.default_rng(4)
+    tr, res = _trends(np.array([0.0, -0.12]), np.array([0.1, 0.005]), rng)
+    a = attribute(tr, ["d", "b"], ["motor", "pump"], slope_covariance(tr, res), RATE, TOL,
+                  [1, -1], 0.8, rng)
+    assert a.verdict == "pump" and a.probabilities["pump"] > 0.95
+    assert abs(sum(a.sets.values()) - 1) < 1e-9
+    # Strongly correlated estimates whose slopes sit between "motor" and "pump": the joint
+    # distribution straddles both explanations.
+    tr, res = _trends(np.array([0.3, -0.06]), np.array([0.8, 0.2]), rng, corr=0.97)
+    a = attribute(tr, ["d", "b"], ["motor", "pump"], slope_covariance(tr, res), RATE, TOL,
+                  [1, -1], 0.8, np.random.default_rng(5))
+    assert a.verdict == AMBIGUOUS
+    assert 0.1 < a.probabilities["motor"] < 0.95 and 0.1 < a.probabilities["pump"] < 0.95
+
+
+def test_posterior_covariance_widens_the_slopes_along_the_ridge():
+    rng = np.random.default_rng(6)
+    tr, res = _trends(np.array([0.0, -0.02]), np.array([0.05, 0.005]), rng)
+    P = np.array([[0.25, 0.0045], [0.0045, 0.0001]])      # per-year posterior, corr 0.9
+    C0 = slope_covariance(tr, res)
+    C1 = slope_covariance(tr, res, YEARS, np.repeat(P[None], YEARS.size, axis=0))
+    assert np.all(np.diag(C1) > np.diag(C0))
+    assert C1[0, 1] / np.sqrt(C1[0, 0] * C1[1, 1]) > 0.5
+
+
+def test_ttf_scores_follow_the_alpha_lambda_definition():
+    cuts = np.array([5, 6, 7, 8, 9])
+    # end of life 12: true RUL 7..3; the prediction is right from cut 7 on
+    s = ttf_scores(cuts, np.array([15, 14, 12, 12, 12]), 12, 7, alpha=0.2, lam=0.5)
+    assert s.cut_lambda == 8 or s.cut_lambda == 9        # 5 + 0.5 * 7 = 8.5
+    assert s.alpha_lambda and s.relative_accuracy == 1.0
+    assert s.prognostic_horizon == 12 - 7
+    # censored predictions (none within the horizon) count as horizon + 1
+    s = ttf_scores(cuts, np.array([-1, -1, -1, -1, -1]), 12, 1)
+    assert not s.alpha_lambda and s.prognostic_horizon == 0.0
+    assert ttf_scores(cuts, np.zeros(5, int), 4, 7) is None

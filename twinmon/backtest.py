@@ -1,0 +1,331 @@
+"""``twinmon backtest``: how good the forecasts have been on the user's own history.
+
+No truth file is needed. For each cut year ``k`` (from the ``backtest.min_years``-th year of a
+unit to its last but one), the forecast is made from the years up to ``k`` only and scored
+against what was later observed: the health indicator of each later year, i.e. the median
+of the indicator over that year's posterior draws (the calibrated twin's reading of that
+year's recording), and the first year whose recording was unsafe (P(unsafe) of that year's
+posterior above ``safety.failure_probability``).
+
+Scores (Saxena et al., "Metrics for offline evaluation of prognostic performance", 2010; the
+metrics NASA's ProgPy implements):
+
+* **coverage**: share of (unit, cut, later year) whose observed indicator lies inside the
+  forecast's ``forecast.confidence`` interval of the indicator;
+* **indicator error**: median absolute error of the forecast's median indicator;
+* **time to failure**, for units whose history reaches unsafe in year ``F`` (end of life),
+  with RUL ``F - k`` at cut ``k``:
+
+  - **alpha-lambda accuracy**: at the cut ``k_lambda = k_0 + lambda (F - k_0)`` (the nearest
+    cut; ``k_0`` the first cut), is the predicted RUL within ``+- alpha`` times the true RUL?
+    (``backtest.alpha`` 0.2, ``backtest.lambda`` 0.5);
+  - **relative accuracy** at that cut: ``1 - |RUL - RUL_pred| / RUL``;
+  - **prognostic horizon**: ``F - k*``, with ``k*`` the first cut from which every
+    prediction stays within the alpha cone.
+
+  A forecast that sees no failure within its horizon predicts RUL = horizon + 1 (censored).
+
+The per-cut posteriors are the stored yearly posteriors truncated at the cut: exact for the
+sequential method (each year's posterior uses only earlier years); for the joint method the
+truncated years were calibrated knowing later years, so its back-test is optimistic (the
+trend draws are not used; the forecast refits the trends from the per-year estimates).
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Optional
+
+import numpy as np
+
+from . import artifacts
+from .config import Config
+from .errors import ArtifactError
+
+#: Config sections recorded in the artifact.
+SECTIONS = ("model", "forecast", "safety", "seed", "backtest")
+
+
+@dataclass
+class UnitBacktest:
+    """One unit's back-test.
+
+    Attributes
+    ----------
+    years : ndarray of int, shape [n_y]
+    observed : ndarray, shape [n_y]
+        Observed indicator per year (posterior median; inf = level not reached).
+    observed_unsafe : ndarray of bool, shape [n_y]
+    cuts : ndarray of int, shape [n_c]
+    pred_lo, pred_med, pred_hi : ndarray, shape [n_c, h]
+        Forecast interval and median of the indicator for cut + 1 .. cut + h.
+    failure_pred : ndarray of int, shape [n_c]
+        Predicted failure year per cut (-1: none within the horizon).
+    end_of_life : int or None
+        First observed unsafe year.
+    """
+
+    years: np.ndarray
+    observed: np.ndarray
+    observed_unsafe: np.ndarray
+    cuts: np.ndarray
+    pred_lo: np.ndarray
+    pred_med: np.ndarray
+    pred_hi: np.ndarray
+    failure_pred: np.ndarray
+    end_of_life: Optional[int]
+    horizon: int
+
+    def pairs(self):
+        """(cut index, future index, year) of every forecast year that was later observed
+        (and not past the end of life, after which the unit would have been repaired)."""
+        last = self.end_of_life if self.end_of_life is not None else int(self.years[-1])
+        for c, k in enumerate(self.cuts):
+            for j in range(self.horizon):
+                y = int(k) + 1 + j
+                if y <= last and y in self.years:
+                    yield c, j, y
+
+
+@dataclass
+class TTFScore:
+    """Time-to-failure scores of one unit that reached unsafe (see module docstring)."""
+
+    end_of_life: int
+    rul_true: np.ndarray
+    rul_pred: np.ndarray
+    cut_lambda: int
+    alpha_lambda: bool
+    relative_accuracy: float
+    prognostic_horizon: float
+
+
+def ttf_scores(cuts: np.ndarray, failure_pred: np.ndarray, end_of_life: int, horizon: int,
+               alpha: float = 0.2, lam: float = 0.5) -> Optional[TTFScore]:
+    """alpha-lambda accuracy, relative accuracy and prognostic horizon of one unit.
+
+    Parameters
+    ----------
+    cuts : ndarray of int, shape [n_c]
+    failure_pred : ndarray of int, shape [n_c]
+        Predicted failure year per cut; -1 = none within ``horizon`` (censored at
+        ``cut + horizon + 1``).
+    end_of_life : int
+        True (or observed) failure year.
+
+    Returns
+    -------
+    TTFScore or None
+        None when no cut precedes the end of life.
+    """
+    cuts = np.asarray(cuts, int)
+    before = cuts < end_of_life
+    if not before.any():
+        return None
+    k = cuts[before]
+    fp = np.asarray(failure_pred, int)[before]
+    fp = np.where(fp < 0, k + horizon + 1, fp)
+    rul, pred = end_of_life - k, fp - k
+    ok = np.abs(pred - rul) <= alpha * rul
+    k_lam = k[0] + lam * (end_of_life - k[0])
+    i = int(np.argmin(np.abs(k - k_lam)))
+    ra = float(1 - abs(rul[i] - pred[i]) / rul[i])
+    # Prognostic horizon: from the first cut after which every prediction stays in the cone.
+    ph = 0.0
+    for j in range(len(k)):
+        if ok[j:].all():
+            ph = float(end_of_life - k[j])
+            break
+    return TTFScore(end_of_life, rul, pred, int(k[i]), bool(ok[i]), ra, ph)
+
+
+@dataclass
+class BacktestSummary:
+    units: dict
+    coverage: float
+    n_pairs: int
+    indicator_mae: float
+    ttf: dict = field(default_factory=dict)
+    output: str = ""
+    confidence: float = 0.9
+
+    @property
+    def alpha_lambda(self) -> float:
+        return float(np.mean([s.alpha_lambda for s in self.ttf.values()])) if self.ttf \
+            else float("nan")
+
+    def as_dict(self) -> dict:
+        f = (lambda v: None if v is None or not np.isfinite(v) else round(float(v), 4))
+        return {
+            "coverage": f(self.coverage), "confidence": self.confidence,
+            "pairs": self.n_pairs, "indicator_mae": f(self.indicator_mae),
+            "alpha_lambda_accuracy": f(self.alpha_lambda),
+            "units_reaching_unsafe": len(self.ttf),
+            "ttf": {u: {"end_of_life": s.end_of_life, "cut_lambda": s.cut_lambda,
+                        "alpha_lambda": s.alpha_lambda,
+                        "relative_accuracy": f(s.relative_accuracy),
+                        "prognostic_horizon": f(s.prognostic_horizon)}
+                    for u, s in self.ttf.items()},
+            "units": {u: {"cuts": b.cuts.tolist(), "failure_pred": b.failure_pred.tolist(),
+                          "end_of_life": b.end_of_life} for u, b in self.units.items()},
+            "output": self.output,
+        }
+
+
+def truncate(up, last_year: int):
+    """A unit's posterior restricted to the years up to ``last_year`` (trend draws dropped:
+    they were fitted on the whole history)."""
+    keep = np.asarray(up.years) <= last_year
+    n_y = len(up.years)
+    out = {}
+    for f in dataclasses.fields(up):
+        v = getattr(up, f.name)
+        if f.name == "fit":
+            v = {k: np.asarray(a)[keep] for k, a in v.items()}
+        elif f.name == "trend":
+            v = {}
+        elif isinstance(v, np.ndarray) and v.ndim >= 1 and v.shape[0] == n_y:
+            v = v[keep]
+        out[f.name] = v
+    return type(up)(**out)
+
+
+def backtest(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str | os.PathLike,
+             output: str | os.PathLike | None = None, executor=None,
+             progress: Optional[Callable[[int, int], None]] = None) -> BacktestSummary:
+    """Back-test the forecasts on the history in a posterior (see the module docstring).
+
+    Raises
+    ------
+    ArtifactError
+        Unusable inputs (as ``forecast``), or no unit with enough years for one cut.
+    """
+    from .calibrate import Posterior, read_posterior
+    from .forecast import box_is_physical, degrading_directions, forecast_units
+    from .reduce import check_made_for, read_surrogate
+    from .safety import Indicator
+    posterior_path, surrogate_path = Path(posterior_path), Path(surrogate_path)
+    bt = cfg.backtest
+    post = read_posterior(posterior_path)
+    sur = read_surrogate(surrogate_path)
+    check_made_for(cfg, surrogate_path, sur.input_names, sur.time, sur.bounds,
+                   "simulate and reduce")
+    if list(post.input_names) != cfg.model.input_names:
+        raise ArtifactError(f"{posterior_path}: posterior inputs {list(post.input_names)} "
+                            f"differ from the config's inputs {cfg.model.input_names}")
+    directions = degrading_directions(cfg, sur)
+    box_ok = box_is_physical(cfg)
+    h = cfg.forecast.horizon
+    c = cfg.forecast.confidence
+    q = [(1 - c) / 2, 0.5, (1 + c) / 2]
+
+    # The whole history once: the observed indicator and unsafe years.
+    full, _, _ = forecast_units(cfg, post, sur, posterior_path=posterior_path,
+                                executor=executor, directions=directions, box_ok=box_ok)
+    units = {}
+    years_of = {u: np.asarray(post.units[u].years, int) for u in post.units}
+    cuts_of = {u: y[bt.min_years - 1:-1] for u, y in years_of.items()}
+    all_cuts = sorted({int(k) for v in cuts_of.values() for k in v})
+    if not all_cuts:
+        raise ArtifactError(f"{posterior_path}: no unit has more than backtest.min_years = "
+                            f"{bt.min_years} years: nothing to back-test")
+    preds = {u: {} for u in post.units}
+    for n, k in enumerate(all_cuts):
+        sub = {u: truncate(post.units[u], k) for u in post.units if k in cuts_of[u]}
+        cut_post = Posterior(post.input_names, sub, post.path, post.fit_windows)
+        res, _, _ = forecast_units(cfg, cut_post, sur, posterior_path=posterior_path,
+                                   executor=executor, directions=directions, box_ok=box_ok)
+        for u, uf in res.items():
+            preds[u][k] = (uf.indicator_quantiles(q),
+                           -1 if uf.failure_year is None else int(uf.failure_year))
+        if progress:
+            progress(n + 1, len(all_cuts))
+
+    ind = Indicator.from_config(cfg)
+    limit = cfg.safety.failure_probability
+    pairs_in, errs, ttf = [], [], {}
+    for u, uf in full.items():
+        yrs = years_of[u]
+        v = np.where(np.isnan(uf.indicator_observed), np.inf, uf.indicator_observed)
+        obs = np.quantile(v, 0.5, axis=1, method="inverted_cdf")
+        unsafe = uf.p_unsafe_observed > limit
+        eol = int(yrs[np.argmax(unsafe)]) if unsafe.any() else None
+        cuts = np.array(sorted(preds[u]), int)
+        lo = np.array([preds[u][k][0][0] for k in cuts]).reshape(-1, h)
+        med = np.array([preds[u][k][0][1] for k in cuts]).reshape(-1, h)
+        hi = np.array([preds[u][k][0][2] for k in cuts]).reshape(-1, h)
+        fp = np.array([preds[u][k][1] for k in cuts], int)
+        b = UnitBacktest(yrs, obs, unsafe, cuts, lo, med, hi, fp, eol, h)
+        units[u] = b
+        for ci, j, y in b.pairs():
+            o = obs[np.flatnonzero(yrs == y)[0]]
+            pairs_in.append(lo[ci, j] <= o <= hi[ci, j])
+            if np.isfinite(o) and np.isfinite(med[ci, j]):
+                errs.append(abs(med[ci, j] - o))
+        if eol is not None and cuts.size:
+            s = ttf_scores(cuts, fp, eol, h, bt.alpha, bt.lambda_value)
+            if s is not None:
+                ttf[u] = s
+    summary = BacktestSummary(units, float(np.mean(pairs_in)) if pairs_in else float("nan"),
+                              len(pairs_in), float(np.median(errs)) if errs else float("nan"),
+                              ttf, str(output or ""), c)
+    if output is not None:
+        write_backtest(output, cfg, summary, ind, [posterior_path, surrogate_path])
+    return summary
+
+
+def write_backtest(path, cfg: Config, s: BacktestSummary, ind, inputs) -> None:
+    """``backtest.h5`` (``twinmon.backtest/1``): per unit the cuts, the forecast interval of
+    the indicator per cut and future year, the observed indicator and the failure years."""
+    put = artifacts.put
+    with artifacts.write_artifact(path, "backtest", config=cfg.section_yaml(*SECTIONS),
+                                  inputs=inputs, seed=cfg.seed) as f:
+        f.attrs["coverage"] = s.coverage
+        f.attrs["confidence"] = s.confidence
+        f.attrs["indicator_mae"] = s.indicator_mae
+        f.attrs["alpha_lambda"] = s.alpha_lambda
+        f.attrs["alpha"] = cfg.backtest.alpha
+        f.attrs["lambda_value"] = cfg.backtest.lambda_value
+        f.attrs["indicator"] = artifacts.json_attr({"name": ind.name, "units": ind.units,
+                                                    "limit": ind.limit})
+        for u, b in s.units.items():
+            g = f.create_group(f"units/{u}")
+            put(g, "years", b.years, "year", "observed years")
+            put(g, "observed", b.observed, ind.units, f"observed {ind.name} (posterior median)")
+            put(g, "observed_unsafe", b.observed_unsafe.astype(np.int8), "1",
+                "1 where the year's recording was unsafe")
+            put(g, "cuts", b.cuts, "year", "last year each back-test forecast saw")
+            for name in ("pred_lo", "pred_med", "pred_hi"):
+                put(g, name, getattr(b, name), ind.units,
+                    f"forecast {name[5:]} of {ind.name} [cut, future year]")
+            put(g, "failure_pred", b.failure_pred, "year", "predicted failure year per cut "
+                "(-1: none within the horizon)")
+            g.attrs["end_of_life"] = -1 if b.end_of_life is None else b.end_of_life
+            g.attrs["horizon"] = b.horizon
+
+
+def read_backtest(path: str | os.PathLike) -> BacktestSummary:
+    """Load ``backtest.h5`` (the TTF scores are recomputed from the stored arrays)."""
+    path = Path(path)
+    units, ttf = {}, {}
+    with artifacts.open_artifact(path, "backtest") as f:
+        if "units" not in f:
+            raise ArtifactError(f"{path}: group /units is missing")
+        alpha, lam = float(f.attrs["alpha"]), float(f.attrs["lambda_value"])
+        for u, g in f["units"].items():
+            get = (lambda n: artifacts.get(g, n, path))
+            eol = int(g.attrs["end_of_life"])
+            b = UnitBacktest(get("years"), get("observed"), get("observed_unsafe").astype(bool),
+                             get("cuts"), get("pred_lo"), get("pred_med"), get("pred_hi"),
+                             get("failure_pred"), None if eol < 0 else eol,
+                             int(g.attrs["horizon"]))
+            units[u] = b
+            if b.end_of_life is not None and b.cuts.size:
+                sc = ttf_scores(b.cuts, b.failure_pred, b.end_of_life, b.horizon, alpha, lam)
+                if sc is not None:
+                    ttf[u] = sc
+        return BacktestSummary(units, float(f.attrs["coverage"]), 0,
+                               float(f.attrs["indicator_mae"]), ttf, str(path),
+                               float(f.attrs["confidence"]))

@@ -1,0 +1,48 @@
+"""The ``backtest`` command: how good the forecasts have been on the user's own history."""
+from __future__ import annotations
+
+import click
+
+from . import main
+from .common import config_options, emit_json, json_option, load, say
+
+
+@main.command()
+@config_options
+@click.option("--posterior", default="out/posterior.h5", show_default=True,
+              type=click.Path(), help="Posterior artifact of calibrate.")
+@click.option("--surrogate", default="out/surrogate.h5", show_default=True,
+              type=click.Path(), help="Surrogate artifact of reduce.")
+@click.option("-o", "--output", default="out/backtest.h5", show_default=True,
+              type=click.Path(), help="Back-test artifact to write.")
+@json_option
+def backtest(config_path, overrides, posterior, surrogate, output, as_json):
+    """Forecast from each past year and score against what was later observed.
+
+    No truth needed: for each cut year, the forecast from the years up to it is compared with
+    the indicator of the later years (coverage of the prediction intervals, indicator error)
+    and, for units that reached unsafe, the time to failure (alpha-lambda accuracy, relative
+    accuracy, prognostic horizon).
+    """
+    from ..backtest import backtest as run
+    cfg = load(config_path, overrides)
+    s = run(cfg, posterior, surrogate, output)
+    if as_json:
+        emit_json(s.as_dict())
+        return
+    c = int(round(100 * s.confidence))
+    say(f"coverage of the {c} % prediction intervals of the indicator: "
+        f"{100 * s.coverage:.0f} % of {s.n_pairs} later observations; median abs. error "
+        f"{s.indicator_mae:.3g}")
+    if s.ttf:
+        bt = cfg.backtest
+        say(f"time to failure ({len(s.ttf)} unit(s) reached unsafe): alpha-lambda accuracy "
+            f"(alpha {bt.alpha:g}, lambda {bt.lambda_value:g}) {100 * s.alpha_lambda:.0f} %")
+        for u, t in s.ttf.items():
+            say(f"  {u}: unsafe in year {t.end_of_life}; at cut {t.cut_lambda} predicted RUL "
+                f"{int(t.rul_pred[list(t.rul_true).index(t.end_of_life - t.cut_lambda)])} vs "
+                f"{t.end_of_life - t.cut_lambda}; relative accuracy {t.relative_accuracy:.2f}; "
+                f"prognostic horizon {t.prognostic_horizon:g} yr")
+    else:
+        say("time to failure: no unit reached unsafe in its history")
+    say(f"wrote {output}")

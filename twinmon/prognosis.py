@@ -1,0 +1,391 @@
+"""Detection on the health indicator and attribution of a drift to components.
+
+Why not per-input slope tests alone: from one output channel, two inputs can move the
+output in nearly the same way (for the pump, a damping rise and an efficiency decline give
+almost the same start-up curve; their single-year estimates correlate at 0.9). Each input's
+slope can then sit inside its normal-ageing band while the health indicator -- which the
+data do identify -- drifts abnormally. So a unit is judged in two steps:
+
+1. **Detection** (:func:`indicator_drift`): the OLS trend of the unit's yearly indicator
+   (the posterior median of the indicator of each calibrated year) is tested against the
+   indicator drift that normal ageing of every input produces. Under normal ageing each
+   input's yearly rate is taken as uniform on ``normal_rate +- normal_rate_tolerance``,
+   independently across inputs; through the twin's gradient at the unit's mid-history state
+   this gives the distribution of the indicator's normal slope (a sum of uniforms). Its
+   convolution with the Student-t error of the fitted slope is the null distribution; the
+   p-value is its tail beyond the observed slope, on the unsafe side. A unit is degrading
+   when ``p < forecast.alpha``.
+2. **Attribution** (:func:`attribute`): the joint sampling distribution of the inputs'
+   slopes (OLS slopes, covariance ``S / Sxx`` from the residual covariance ``S`` of the
+   yearly estimates -- this carries the inputs' trade-off -- Student t, ``n - 2`` dof) is
+   split into the regions "these components beyond their normal band, the others within":
+   the probability of each set of components, given that at least one is abnormal. The verdict
+   names the components when the most probable set reaches
+   ``forecast.attribution_confidence``; otherwise it is ``ambiguous``, with the
+   probabilities and the unobserved channel that would tell the leading explanations apart.
+
+A repaired component's inputs are fitted from the repair on (see ``forecast``): their pre-repair
+history does not make the unit degrading.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from itertools import product
+from typing import Optional
+
+import numpy as np
+
+#: Monte Carlo draws for the null distribution of the indicator slope and for attribution.
+DRAWS = 200_000
+#: Verdict when no component can be named with enough confidence.
+AMBIGUOUS = "ambiguous"
+HEALTHY = "healthy"
+#: Verdict for several components at once.
+SEVERAL = "both"
+
+
+@dataclass
+class IndicatorDrift:
+    """The trend of a unit's health indicator and its test against normal ageing.
+
+    Attributes
+    ----------
+    years : ndarray of int, shape [n]
+        Years whose indicator is finite (used in the fit).
+    values : ndarray, shape [n]
+        Posterior median of the indicator per year (indicator units).
+    slope, slope_se : float
+        OLS slope (indicator units per year) and its standard error; NaN with < 3 years.
+    dof : int
+        ``n - 2``.
+    normal_slope : float
+        Indicator slope when every input ages at its normal rate (indicator units/yr).
+    normal_halfwidth : ndarray, shape [d]
+        Per input, ``|dI/dx_i| * tolerance_i``: how far normal ageing of that input can move
+        the indicator's slope either way.
+    gradient : ndarray, shape [d]
+        ``dI/dx`` at the unit's mid-history state (indicator units per input unit).
+    sense : int
+        +1 when the indicator is unsafe above its limit, -1 below.
+    p_value : float
+        Probability, under normal ageing, of a slope at least this far towards unsafe.
+    abnormal : bool
+        ``p_value < alpha``.
+    """
+
+    years: np.ndarray
+    values: np.ndarray
+    slope: float
+    slope_se: float
+    dof: int
+    normal_slope: float
+    normal_halfwidth: np.ndarray
+    gradient: np.ndarray
+    sense: int
+    p_value: float
+    abnormal: bool
+    #: p-value of the inputs' slopes against the normal-ageing box (:func:`box_test`).
+    p_inputs: float = float("nan")
+
+    @property
+    def excess(self) -> float:
+        """Slope beyond the normal one, towards unsafe (indicator units per year)."""
+        return float(self.sense * (self.slope - self.normal_slope))
+
+    def describe(self, name: str, units: str) -> str:
+        if not np.isfinite(self.slope):
+            return f"{name} trend not testable ({self.years.size} finite year(s))"
+        return (f"{name} slope {self.slope:+.3g} {units}/yr vs normal ageing "
+                f"{self.normal_slope:+.3g} +- {float(np.sum(self.normal_halfwidth)):.3g} "
+                f"(p = {self.p_value:.2g})")
+
+
+def mid_state(trends: dict, names: list) -> np.ndarray:
+    """The unit's state at its mean observed year, from its input trends, shape [d]."""
+    return np.array([trends[n].intercept + trends[n].slope * trends[n].x_mean for n in names])
+
+
+def gradient_points(cfg, x_mid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Central-difference probe points around ``x_mid`` [d] (clipped to the box).
+
+    Returns
+    -------
+    X : ndarray, shape [2d, d]
+        ``x - h_i e_i`` and ``x + h_i e_i`` for each input in turn.
+    step : ndarray, shape [d]
+        The actual distance between each pair (input units).
+    """
+    bounds = cfg.model.bounds
+    width = bounds[:, 1] - bounds[:, 0]
+    d = len(x_mid)
+    x = np.clip(x_mid, bounds[:, 0], bounds[:, 1])
+    X = np.repeat(x[None, :], 2 * d, axis=0)
+    for i in range(d):
+        h = 0.03 * width[i]
+        X[2 * i, i] = max(x[i] - h, bounds[i, 0])
+        X[2 * i + 1, i] = min(x[i] + h, bounds[i, 1])
+    step = np.array([X[2 * i + 1, i] - X[2 * i, i] for i in range(d)])
+    return X, step
+
+
+def gradient_from(values: np.ndarray, step: np.ndarray) -> np.ndarray:
+    """``dI/dx`` [d] from the indicator at the probe points [2d] of :func:`gradient_points`;
+    0 where a value is not finite (a level never reached: no usable slope)."""
+    v = np.asarray(values, float).reshape(-1, 2)
+    g = (v[:, 1] - v[:, 0]) / np.where(step > 0, step, 1.0)
+    return np.where(np.isfinite(g), g, 0.0)
+
+
+def yearly_indicator(years: np.ndarray, ind_obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Posterior median of the indicator per year, keeping years where it is finite.
+
+    Parameters
+    ----------
+    years : ndarray of int, shape [n_y]
+    ind_obs : ndarray, shape [n_y, n_o]
+        Indicator of posterior draws of each year (inf = level not reached, NaN = failed).
+    """
+    v = np.where(np.isnan(ind_obs), np.inf, ind_obs)
+    med = np.quantile(v, 0.5, axis=1, method="inverted_cdf")
+    ok = np.isfinite(med)
+    return np.asarray(years)[ok], med[ok]
+
+
+def indicator_drift(years, ind_obs, gradient, normal_rate, tolerance, sense: int,
+                    alpha: float, rng: np.random.Generator) -> IndicatorDrift:
+    """Test a unit's indicator trend against what normal ageing of every input produces.
+
+    Parameters
+    ----------
+    years : ndarray of int, shape [n_y]
+    ind_obs : ndarray, shape [n_y, n_o]
+        Indicator of each year's posterior draws (indicator units).
+    gradient : ndarray, shape [d]
+        ``dI/dx`` at the unit's mid-history state.
+    normal_rate, tolerance : ndarray, shape [d]
+        Normal ageing per input (input units per year).
+    sense : int
+        +1 unsafe above the limit, -1 below.
+    alpha : float
+    rng : numpy Generator
+        For the Monte Carlo convolution (seeded per unit by the caller).
+    """
+    from scipy import stats
+    yrs, vals = yearly_indicator(years, ind_obs)
+    g = np.asarray(gradient, float)
+    normal = float(g @ np.asarray(normal_rate, float))
+    half = np.abs(g) * np.asarray(tolerance, float)
+    if yrs.size < 3:
+        return IndicatorDrift(yrs, vals, np.nan, np.nan, max(yrs.size - 2, 0), normal, half, g,
+                              sense, np.nan, False)
+    x = yrs.astype(float)
+    xc = x - x.mean()
+    sxx = float(xc @ xc)
+    slope = float(xc @ (vals - vals.mean()) / sxx)
+    resid = vals - vals.mean() - slope * xc
+    dof = yrs.size - 2
+    se = float(np.sqrt(resid @ resid / dof / sxx))
+    excess = sense * (slope - normal)
+    # Null: excess = sum_i half_i * U(-1, 1) + se * t_dof. The uniform sum is drawn, the t
+    # tail is exact given it.
+    u = rng.uniform(-1.0, 1.0, (DRAWS, half.size)) @ half
+    if se > 0:
+        p = float(np.mean(stats.t.sf((excess - u) / se, dof)))
+    else:
+        p = float(np.mean(u >= excess))
+    return IndicatorDrift(yrs, vals, slope, se, dof, normal, half, g, sense, p, p < alpha)
+
+
+@dataclass
+class Attribution:
+    """Which components a unit's abnormal drift comes from.
+
+    Attributes
+    ----------
+    verdict : str
+        ``healthy``, a component name, ``both`` (several components) or ``ambiguous``.
+    probabilities : dict component -> float
+        P(component beyond its normal ageing | data, at least one is); empty when healthy.
+    sets : dict str -> float
+        Probability of each non-empty set of abnormal components ("pump", "motor+pump").
+    separating_channel : str
+        The unobserved channel that would tell the two leading explanations apart ("" when not
+        ambiguous or none is configured).
+    channel_scores : dict channel -> float
+        Difference between the leading explanations on each candidate channel, in that
+        channel's noise sd.
+    """
+
+    verdict: str
+    probabilities: dict = field(default_factory=dict)
+    sets: dict = field(default_factory=dict)
+    separating_channel: str = ""
+    channel_scores: dict = field(default_factory=dict)
+    #: Mean slope vector [d] of the draws of the two leading sets (for the separating channel).
+    leading_slopes: Optional[np.ndarray] = None
+
+    def describe(self) -> str:
+        if not self.probabilities:
+            return self.verdict
+        probs = ", ".join(f"{c} {p:.2f}" for c, p in
+                          sorted(self.probabilities.items(), key=lambda kv: -kv[1]))
+        return f"{self.verdict} ({probs})"
+
+
+def slope_covariance(trends: list, residuals: np.ndarray, years: Optional[np.ndarray] = None,
+                     post_cov: Optional[np.ndarray] = None) -> np.ndarray:
+    """Covariance [d, d] of the inputs' OLS slopes.
+
+    ``S / Sxx`` with ``S`` the covariance of the regression residuals [n, d] (``n - 2`` dof;
+    all inputs share one design), plus, with the yearly posterior covariances ``post_cov``
+    [n, d, d] of ``years`` [n], ``sum_k w_k^2 P_k`` (``w_k = (k - kbar) / Sxx``, the slope's
+    weights). The second term matters: along a direction the data barely identify (two
+    inputs trading off), the sequential prior carries each year's error into the next, so the
+    estimates drift together and the residual scatter does not show it."""
+    n = residuals.shape[0]
+    se = np.array([t.slope_se for t in trends])
+    extra = 0.0
+    if post_cov is not None and years is not None and len(years) >= 3:
+        x = np.asarray(years, float)
+        w = (x - x.mean()) / np.sum((x - x.mean()) ** 2)
+        extra = np.einsum("k,kij->ij", w ** 2, np.asarray(post_cov, float))
+    if n < 3:       # too few common years (a recent repair) to estimate the correlation
+        return np.diag(se ** 2) + extra
+    S = residuals.T @ residuals / max(n - 2, 1)
+    C = S / trends[0].sxx
+    # Keep the per-input variances exactly those of the single-input fits.
+    dg = np.sqrt(np.clip(np.diag(C), 1e-300, None))
+    R = C / np.outer(dg, dg)
+    w, V = np.linalg.eigh(R)
+    R = (V * np.maximum(w, 1e-9)) @ V.T
+    dg2 = np.sqrt(np.diag(R))
+    R = R / np.outer(dg2, dg2)
+    return R * np.outer(se, se) + extra
+
+
+def box_test(b: np.ndarray, C: np.ndarray, dof: int, normal_rate, tolerance,
+             directions) -> tuple[float, np.ndarray]:
+    """Test of the inputs' slopes [d] against the normal-ageing box, jointly.
+
+    H0: every input ages within its band on the degrading side (``dir_i (b_i - r_i) <=
+    tol_i``; both sides for an unknown direction). Statistic: the squared Mahalanobis
+    distance (metric ``C``) from the estimate to the box, a bounded least-squares problem.
+    Its null law is a chi-bar-square mixture; the p-value uses conservative equal weights
+    on 1 and ``k`` (active bounds at the projection) degrees of freedom, with F laws for the
+    Student-t error (``dof``).
+
+    Returns
+    -------
+    p : float
+    b0 : ndarray, shape [d]
+        The closest slopes inside the box.
+    """
+    from scipy import stats
+    from scipy.optimize import lsq_linear
+    r, tol, dirs = (np.asarray(a, float) for a in (normal_rate, tolerance, directions))
+    lo = np.where(dirs > 0, -np.inf, r - tol)
+    hi = np.where(dirs < 0, np.inf, r + tol)
+    Li = np.linalg.inv(np.linalg.cholesky(C))
+    res = lsq_linear(Li, Li @ b, bounds=(lo, hi))
+    b0 = res.x
+    z = Li @ (b - b0)
+    T = float(z @ z)
+    if T <= 1e-12:
+        return 1.0, b0
+    k = max(1, int(np.sum(np.isclose(b0, lo) | np.isclose(b0, hi))))
+    p = 0.5 * stats.f.sf(T, 1, dof) + 0.5 * stats.f.sf(T / k, k, dof)
+    return float(min(1.0, p)), b0
+
+
+def attribute(trends: list, names: list, components: list, C: np.ndarray,
+              normal_rate, tolerance, directions, confidence: float,
+              rng: np.random.Generator) -> Attribution:
+    """Probabilities of each set of abnormal components, given that the unit drifts.
+
+    Parameters
+    ----------
+    trends : list of Trend, length d
+        OLS trends of the inputs (slopes and standard errors).
+    names, components : list of str, length d
+        Input names and the component of each.
+    C : ndarray, shape [d, d]
+        Covariance of the slopes (:func:`slope_covariance`; it ties the inputs).
+    normal_rate, tolerance : ndarray, shape [d]
+    directions : ndarray of int, shape [d]
+        Degrading direction of each input (+1, -1, or 0 = either way).
+    confidence : float
+        Probability the leading set needs for a verdict naming it.
+    rng : numpy Generator
+    """
+    b = np.array([t.slope for t in trends])
+    dof = max(trends[0].dof, 1)
+    L = np.linalg.cholesky(C + 1e-300 * np.eye(len(b)))
+    z = rng.standard_normal((DRAWS, len(b))) @ L.T
+    draws = b + z / np.sqrt(rng.chisquare(dof, (DRAWS, 1)) / dof)
+    normal_rate, tolerance = np.asarray(normal_rate, float), np.asarray(tolerance, float)
+    dirs = np.asarray(directions, int)
+    dev = draws - normal_rate
+    beyond = np.where(dirs[None, :] == 0, np.abs(dev), dev * dirs[None, :]) > tolerance
+    comps = sorted(set(components))
+    comp_bad = np.column_stack([beyond[:, [c == comp for c in components]].any(axis=1)
+                                for comp in comps])
+    some = comp_bad.any(axis=1)
+    if not some.any():
+        # No draw leaves the normal band: the drift is not in any input's slope (e.g. a
+        # fault on a path the inputs do not model); name nothing.
+        return Attribution(AMBIGUOUS, {c: 1.0 / len(comps) for c in comps}, {})
+    sets, means = {}, {}
+    for pattern in product((False, True), repeat=len(comps)):
+        if not any(pattern):
+            continue
+        sel = some & np.all(comp_bad == np.array(pattern), axis=1)
+        label = "+".join(c for c, on in zip(comps, pattern) if on)
+        sets[label] = float(sel.sum() / some.sum())
+        if sel.any():
+            means[label] = draws[sel].mean(axis=0)
+    probs = {c: float(comp_bad[some, k].mean()) for k, c in enumerate(comps)}
+    best = max(sets, key=sets.get)
+    if sets[best] >= confidence:
+        verdict = best if "+" not in best else SEVERAL
+        return Attribution(verdict, probs, sets)
+    ranked = sorted((s for s in sets if s in means), key=sets.get, reverse=True)
+    lead = np.array([means[s] for s in ranked[:2]]) if len(ranked) >= 2 else None
+    return Attribution(AMBIGUOUS, probs, sets, leading_slopes=lead)
+
+
+def separating_channel(cfg, observed: set, x_first: np.ndarray, lead_slopes: np.ndarray,
+                       span: float, executor=None) -> tuple[str, dict]:
+    """The unobserved channel whose recording would best tell two explanations apart.
+
+    The two explanations (mean slope vectors of the two leading sets, [2, d]) both reproduce
+    the observed output; started from the unit's first-year state ``x_first`` [d], after
+    ``span`` years they reach different states that look alike on the output. Each candidate channel (``model.channels`` not observed) is simulated at both and
+    scored by the RMS difference in its noise sd (``diagnose.channel_noise_fraction`` of the
+    healthy unit's range on that channel).
+
+    Returns
+    -------
+    channel : str
+        "" when no channel is configured or none differs.
+    scores : dict channel -> float
+    """
+    from .simulate import as_parameters, run_batch, spec_for
+    chans = [c for c in cfg.model.channels if c not in observed]
+    if not chans or lead_slopes is None:
+        return "", {}
+    lo, hi = cfg.model.bounds[:, 0], cfg.model.bounds[:, 1]
+    ends = [np.clip(x_first + s * span, lo, hi) for s in lead_slopes]
+    nominal = np.array([s.nominal for s in cfg.model.inputs.values()])
+    spec = spec_for(cfg, outputs=list(dict.fromkeys([cfg.model.output.variable, *chans])))
+    batch = run_batch(spec, as_parameters(cfg, np.array([*ends, nominal])), executor)
+    if not batch.ok.all():
+        return "", {}
+    frac = cfg.diagnose.channel_noise_fraction
+    scores = {}
+    for c in chans:
+        y = batch.outputs[c]
+        healthy = y[2]
+        scale = float(healthy.max() - healthy.min()) or float(abs(healthy).max()) or 1.0
+        scores[c] = float(np.sqrt(np.mean((y[0] - y[1]) ** 2)) / (frac * scale))
+    best = max(scores, key=scores.get)
+    return (best if scores[best] > 0 else ""), scores
