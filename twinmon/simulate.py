@@ -19,7 +19,7 @@ import numpy as np
 
 from . import artifacts
 from .config import Config
-from .errors import ArtifactError, Interrupted, SimulationError
+from .errors import ArtifactError, ConfigError, Interrupted, SimulationError
 from .executors import Executor, InterruptGuard, SimulationSpec, make_executor
 
 SPLITS = ("train", "test")
@@ -278,7 +278,8 @@ def _simulate_locked(cfg: Config, output: Path, workers, progress) -> SimulateSu
     partial = output.with_name(output.name + ".partial")
     resumed = _open_partial(partial, section, spec, cfg, designs)
     executor = make_executor(cfg.simulate.executor,
-                             cfg.simulate.workers if workers is None else workers)
+                             cfg.simulate.workers if workers is None else workers,
+                             dask=cfg.dask)
     total = sum(len(x) for x in designs.values())
     start = _time.perf_counter()
     done = resumed
@@ -316,7 +317,7 @@ def _simulate_locked(cfg: Config, output: Path, workers, progress) -> SimulateSu
     except KeyboardInterrupt:
         raise Interrupted(f"{output}: interrupted; {partial} keeps the finished runs and "
                           "the next 'twinmon simulate' resumes from it") from None
-    except SimulationError:
+    except (SimulationError, ConfigError):      # ConfigError: dask.address out of reach
         if done == 0 and partial.exists():
             partial.unlink()          # nothing to resume: leave no empty partial file behind
         raise

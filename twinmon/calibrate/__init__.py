@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import os
 import zlib
+from functools import partial
 from dataclasses import dataclass, field
 from typing import Callable, Optional
 
@@ -250,7 +251,8 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
     total = sum(len(r.years) for r in runs.values())
     n_tasks = len(runs) * cfg.calibrate.chains
     workers = min(cfg.calibrate.workers or len(os.sched_getaffinity(0)), n_tasks)
-    if workers <= 1:
+    # On a Dask cluster (an address) the cluster's workers do the work, whatever the count.
+    if workers <= 1 and not (cfg.calibrate.executor == "dask" and cfg.dask.address):
         for run in runs.values():
             while not run.done:
                 run.finish([_run_task(surrogate, t) for t in run.plan()])
@@ -261,8 +263,10 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
         # so the parallel grain is the chain: every unit's chains of the same year at once.
         from concurrent.futures.process import BrokenProcessPool
 
-        from ..executors import InterruptGuard, start_pool, stop_pool
-        fork = hasattr(os, "fork")
+        from ..executors import InterruptGuard, open_pool, stop_pool
+        # A forked worker has the surrogate already; a Dask worker gets it sent, once.
+        fork = hasattr(os, "fork") or cfg.calibrate.executor == "dask"
+        start_pool = partial(open_pool, cfg, "calibrate")      # process or Dask pool
         pool = start_pool(workers, _init_worker, (surrogate if fork else None,
                                                   str(surrogate_path)))
         ok = False

@@ -152,17 +152,17 @@ def _job(args):
     return diagnose_unit(*args)
 
 
-def _map_units(jobs: list, n_workers: int, fmu, progress) -> dict:
+def _map_units(cfg: Config, jobs: list, n_workers: int, fmu, progress) -> dict:
     """Diagnose the units of ``jobs`` on ``n_workers`` processes: ``{unit: UnitGap}`` in the
     order of ``jobs``. The workers are the project's detached pool workers (they ignore
     Ctrl-C, which the parent handles); a worker that dies (a crash in the FMU's native code)
     ends the stage at once with a one-line :class:`~twinmon.errors.SimulationError`."""
     from concurrent.futures.process import BrokenProcessPool
 
-    from ..executors import start_pool, stop_pool
+    from ..executors import open_pool, stop_pool
 
     results = {}
-    pool = start_pool(n_workers)
+    pool = open_pool(cfg, "diagnose", n_workers, files=(fmu,))
     ok = False
     try:
         for i, (j, g) in enumerate(zip(jobs, pool.map(_job, jobs)), 1):
@@ -248,14 +248,14 @@ def diagnose(cfg: Config, observations: str | os.PathLike, output: str | os.Path
     n_workers = workers if workers is not None else cfg.diagnose.workers
     n_workers = min(n_workers or os.cpu_count() or 1, len(jobs))
     try:
-        if n_workers <= 1:
+        if n_workers <= 1 and not (cfg.diagnose.executor == "dask" and cfg.dask.address):
             results = {}
             for i, j in enumerate(jobs, 1):
                 results[j[2]] = _job(j)
                 if progress:
                     progress(i)
         else:
-            results = _map_units(jobs, n_workers, fmu, progress)
+            results = _map_units(cfg, jobs, n_workers, fmu, progress)
         write_gap(output, results, cfg, obs.time,
                   [observations, fmu] + ([posterior] if posterior is not None else []))
     except KeyboardInterrupt:
