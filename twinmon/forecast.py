@@ -600,6 +600,21 @@ def _drift_dict(dr: Optional[IndicatorDrift]) -> Optional[dict]:
             "years": [int(y) for y in dr.years]}
 
 
+def _drift_state(dr: IndicatorDrift) -> dict:
+    """The detection as JSON-able values (for the artifact)."""
+    return {"years": [int(y) for y in dr.years], "values": [float(v) for v in dr.values],
+            "slope": dr.slope, "slope_se": dr.slope_se, "dof": dr.dof,
+            "normal_slope": dr.normal_slope,
+            "normal_halfwidth": [float(v) for v in dr.normal_halfwidth],
+            "gradient": [float(v) for v in dr.gradient], "sense": dr.sense,
+            "p_value": dr.p_value, "abnormal": bool(dr.abnormal), "p_inputs": dr.p_inputs}
+
+
+def _drift_from(d: dict) -> IndicatorDrift:
+    return IndicatorDrift(**{k: (np.asarray(v) if isinstance(v, list) else v)
+                             for k, v in d.items()})
+
+
 def _finite(a) -> list:
     """JSON-able list: non-finite values (a level never reached) become None."""
     return [round(float(v), 3) if np.isfinite(v) else None for v in a]
@@ -1049,6 +1064,14 @@ def _write(path, cfg: Config, units: dict, names: list, directions: dict, box_ok
             g.attrs["status"], g.attrs["status_reason"] = u.status, u.status_reason
             g.attrs["forced"] = u.forced
             g.attrs["root_cause"] = u.root_cause
+            if u.drift is not None:
+                g.attrs["detection"] = artifacts.json_attr(_drift_state(u.drift))
+            if u.attribution is not None:
+                a = u.attribution
+                g.attrs["attribution"] = artifacts.json_attr(
+                    {"verdict": a.verdict, "probabilities": a.probabilities, "sets": a.sets,
+                     "separating_channel": a.separating_channel,
+                     "channel_scores": a.channel_scores})
             g.attrs["failure_year"] = -1 if u.failure_year is None else u.failure_year
             g.attrs["plan"] = u.plan
             g.attrs["fmu_fraction"] = u.fmu_fraction
@@ -1189,6 +1212,9 @@ def _read_unit(f, unit: str, path: Path, names: list) -> UnitForecast:
         status=str(g.attrs.get("status", STATUS_OK)),
         status_reason=str(g.attrs.get("status_reason", "")),
         forced=bool(g.attrs.get("forced", False)),
+        drift=_drift_from(json.loads(g.attrs["detection"])) if "detection" in g.attrs else None,
+        attribution=(Attribution(**json.loads(g.attrs["attribution"]))
+                     if "attribution" in g.attrs else None),
         has_truth=has_truth, true_failure_year=None if tfy < 0 else tfy,
         true_indicator=get(g, "truth/indicator") if has_truth else None,
         true_unsafe=get(g, "truth/unsafe").astype(bool) if has_truth else None,
