@@ -168,3 +168,30 @@ def test_ctrl_c_on_dask_exits_130_and_leaves_no_worker(small_cfg, tmp_path):
     assert not [w for w in workers if w.is_running() and w.status() != psutil.STATUS_ZOMBIE]
     assert not list(scratch.iterdir())
 
+
+
+def test_a_worker_that_lacks_the_fmu_runs_the_copy_it_was_sent(fmu_path, tmp_path, alarm):
+    """The FMU travels with the pool: a worker that cannot see the user's file (another
+    machine) runs a copy keyed by content, and errors still name the user's file."""
+    from twinmon.executors.dask import DaskConnection, DaskPool, _open_model, _work_chunk
+    params = [(i, {"motor.D": 6.0 + i, "pump.b2": 3.2}) for i in range(4)]
+    spec = SimulationSpec(fmu=fmu_path, outputs=OUTPUTS, times=TIMES)
+    want = {r.index: r.outputs for r in ProcessExecutor(2).map(spec, params)}
+    with DaskConnection(1) as conn:
+        for outputs in (OUTPUTS, ("no.such.output",)):
+            gone = tmp_path / outputs[0] / "PumpCircuit.fmu"
+            gone.parent.mkdir()
+            gone.write_bytes(fmu_path.read_bytes())
+            pool = DaskPool(conn, _open_model,
+                            (SimulationSpec(fmu=gone, outputs=outputs, times=TIMES),),
+                            files=(gone,))
+            gone.unlink()                      # read and sent; no longer here for the worker
+            if outputs == OUTPUTS:
+                got = [r for rs in pool.as_completed(_work_chunk, [params]) for r in rs]
+                assert all(np.array_equal(r.outputs[o], want[r.index][o])
+                           for r in got for o in OUTPUTS)
+            else:
+                with pytest.raises(SimulationError) as exc:
+                    list(pool.as_completed(_work_chunk, [params]))
+                assert str(gone) in str(exc.value) and "twinmon-dask-files" not in str(exc.value)
+            pool.shutdown()

@@ -470,9 +470,10 @@ class DaskPool:
         try:
             if cancel_futures and self._futures:
                 conn.client.cancel(list(self._futures), force=True)
-            if not self._own:
-                # Another pool may follow on the same workers: free this one's state (its
-                # FMU instance) on long-lived cluster workers.
+            if (conn.address or not self._own) and not cancel_futures:
+                # Long-lived workers (a cluster of your own, or another pool to follow): free
+                # this pool's state there (its FMU instance, a surrogate). Not after a cancel:
+                # a task may still be running with it; the next pool's set-up frees it then.
                 conn.client.run(_forget, self._token)
         except Exception:  # noqa: BLE001 -- a lost connection has nothing left to free
             pass
@@ -565,9 +566,14 @@ class DaskExecutor(Executor):
         self.close(kill=typ is not None)
 
     def close(self, kill: bool = False) -> None:
-        conn, self._conn, self._pool, self._spec = self._conn, None, None, None
-        if conn is not None:
-            conn.close(kill=kill)
+        conn, pool = self._conn, self._pool
+        self._conn, self._pool, self._spec = None, None, None
+        try:
+            if pool is not None:
+                pool.shutdown(cancel_futures=kill)
+        finally:
+            if conn is not None:
+                conn.close(kill=kill)
 
     def _pool_for(self, spec: SimulationSpec) -> DaskPool:
         if self._conn is None:
