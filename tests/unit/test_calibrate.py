@@ -11,6 +11,7 @@ from click.testing import CliRunner
 from twinmon.calibrate import (Prior, _noise_for, calibrate, calibrate_unit, ess,
                                estimate_noise, find_map, make_log_density, read_posterior,
                                sample_posterior, split_rhat, write_posterior, year_prior)
+from twinmon.calibrate.posterior import thin_indices
 from twinmon.config import load_config
 from twinmon.errors import ArtifactError, InputDataError
 from twinmon.observations import Observations, UnitObservations, write_observations
@@ -178,9 +179,12 @@ def test_posterior_round_trip_and_schema(setup, tmp_path):
     back = read_posterior(tmp_path / "post.h5")
     assert back.input_names == cfg.model.input_names
     q = back.units["U1"]
-    for name in ("years", "samples", "mean", "median", "q05", "q95", "rhat", "ess",
+    for name in ("years", "mean", "median", "q05", "q95", "rhat", "ess",
                  "acceptance", "noise_std", "surrogate_var_ratio"):
         assert np.array_equal(getattr(q, name), getattr(p, name)), name
+    # calibrate.keep_draws of the pooled draws are stored, evenly thinned.
+    keep = cfg.calibrate.keep_draws
+    assert np.array_equal(q.samples, p.samples[:, thin_indices(p.samples.shape[1], keep)])
     assert q.noise_source == "estimated"
     with h5py.File(tmp_path / "post.h5", "r") as f:
         def check(name, ds):
@@ -222,7 +226,8 @@ def test_json_shape_through_the_cli(setup, tmp_path):
     assert d["noise"]["A"] == {"std": NOISE, "source": "file"}
     assert np.shape(d["diagnostics"]["A"]["rhat"]) == (2, 2)
     assert isinstance(d["warnings"], list) and "truth_check" not in d
-    assert read_posterior(tmp_path / "post.h5").units["A"].samples.shape == (2, 4 * 300, 2)
+    # 4 chains x 300 draws, thinned to calibrate.keep_draws in the artifact.
+    assert read_posterior(tmp_path / "post.h5").units["A"].samples.shape == (2, 1000, 2)
 
 
 def test_time_grid_unlike_the_surrogates_names_both_files(setup, tmp_path):

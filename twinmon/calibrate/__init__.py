@@ -20,7 +20,8 @@ The result is ``posterior.h5`` (``twinmon.posterior/1``)::
 
     attrs input_names (JSON list), input_units (JSON list)
     /units/<U>/years        int64   [n_y]             year of service
-    /units/<U>/samples      float64 [n_y, n_s, d]     pooled post-burn-in draws (input units)
+    /units/<U>/samples      float64 [n_y, n_s, d]     pooled post-burn-in draws (input units),
+                            evenly thinned to calibrate.keep_draws (statistics use them all)
     /units/<U>/mean, median, q05, q95  float64 [n_y, d]
     /units/<U>/rhat, ess    float64 [n_y, d]
     /units/<U>/acceptance   float64 [n_y, chains]

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -143,10 +144,14 @@ def year_fit(surrogate, cfg: Config, y: np.ndarray, total_var: np.ndarray,
 
 @dataclass
 class Posterior:
-    """A loaded ``posterior.h5``: ``input_names`` and per unit a :class:`UnitPosterior`."""
+    """A loaded ``posterior.h5``: ``input_names`` and per unit a :class:`UnitPosterior`.
+
+    Read from a file, ``units`` is an :class:`~twinmon.artifacts.LazyUnits` mapping: a unit
+    is read (and checked) when it is looked up, so a fleet's posterior never sits in memory
+    whole."""
 
     input_names: list[str]
-    units: dict[str, UnitPosterior]
+    units: Mapping[str, UnitPosterior]
     path: Path = Path("<memory>")
     #: Names of the windows ``fit/window`` indexes.
     fit_windows: list = field(default_factory=list)
@@ -155,7 +160,8 @@ class Posterior:
 _DATASETS = {
     # name: (units, description); "in" = input units (listed per input in the attrs)
     "years": ("year", "year of service of each calibration"),
-    "samples": ("input units", "pooled post-burn-in MCMC draws [year, draw, input]"),
+    "samples": ("input units", "post-burn-in MCMC draws, evenly thinned over the chain-major "
+                "pooled draws to calibrate.keep_draws [year, draw, input]"),
     "mean": ("input units", "posterior mean [year, input]"),
     "median": ("input units", "posterior median [year, input]"),
     "q05": ("input units", "posterior 5 % quantile [year, input]"),
@@ -169,14 +175,35 @@ _DATASETS = {
 }
 
 
+def thin_indices(n_draws: int, keep: int) -> np.ndarray:
+    """Indices of ``keep`` draws evenly spaced over ``n_draws`` pooled draws (all of them
+    when ``keep >= n_draws``).
+
+    The pooled draws are chain-major (chain after chain, each the same length), so every
+    chain gives ``keep / chains`` draws (within one), evenly spaced along it: the kept set
+    spans every chain from start to end and the thinning cuts the autocorrelation between
+    neighbouring kept draws.
+    """
+    if keep >= n_draws:
+        return np.arange(n_draws)
+    return np.floor((np.arange(keep) + 0.5) * (n_draws / keep)).astype(np.int64)
+
+
 def write_posterior(path, posterior: dict[str, UnitPosterior], input_names: list[str],
                     cfg: Config, inputs, surrogate_id: str = "") -> None:
     """Write ``posterior.h5`` atomically (layout in the module docstring).
 
+    The summary statistics (mean, quantiles, R-hat, ESS) are those of all the draws, as
+    computed by calibration; only ``calibrate.keep_draws`` draws per year are stored, evenly
+    thinned (:func:`thin_indices`), one gzip-compressed chunk per unit-year. The dataset's
+    ``draws_total``/``draws_kept`` attributes record the thinning.
+
     ``surrogate_id`` is the :meth:`~twinmon.reduce.Surrogate.fingerprint` of the surrogate
     the posterior was sampled through."""
+    keep = cfg.calibrate.keep_draws
     with artifacts.write_artifact(path, "posterior", config=cfg.section_yaml(*SECTIONS),
-                                  inputs=inputs, seed=cfg.seed + SEED_OFFSET) as f:
+                                  inputs=inputs, seed=cfg.seed + SEED_OFFSET,
+                                  compact=True) as f:
         if surrogate_id:
             f.attrs["surrogate_id"] = surrogate_id
         f.attrs["input_names"] = json.dumps(list(input_names))
@@ -185,6 +212,9 @@ def write_posterior(path, posterior: dict[str, UnitPosterior], input_names: list
             g = f.create_group(f"units/{unit}")
             for name, (units, desc) in _DATASETS.items():
                 units = cfg.model.output.units if units == "output units" else units
+                if name == "samples":
+                    _put_draws(g, np.asarray(p.samples), keep, desc)
+                    continue
                 artifacts.put(g, name, np.asarray(getattr(p, name)), units, desc)
             g.attrs["noise_source"] = p.noise_source
             for key, (units, desc) in (FIT_FIELDS.items() if p.fit else ()):
@@ -197,13 +227,36 @@ def write_posterior(path, posterior: dict[str, UnitPosterior], input_names: list
         f.attrs["fit_windows"] = json.dumps(list(cfg.diagnose_windows()))
 
 
+def _put_draws(g: h5py.Group, samples: np.ndarray, keep: int, desc: str) -> None:
+    """The thinned draws [n_y, n_kept, d]: one chunk per year, so reading a unit-year reads
+    one chunk; shuffle + gzip shrink float64 draws by about a fifth."""
+    n_y, n_draws, d = samples.shape
+    kept = samples[:, thin_indices(n_draws, keep), :]
+    chunks = (1, kept.shape[1], d) if kept.size else None
+    ds = artifacts.put(g, "samples", kept, "input units", desc, chunks=chunks,
+                       compression="gzip" if kept.size else None,
+                       compression_opts=4 if kept.size else None, shuffle=bool(kept.size))
+    ds.attrs["draws_total"] = n_draws
+    ds.attrs["draws_kept"] = kept.shape[1]
+    ds.attrs["thinning"] = ("evenly spaced over the chain-major pooled draws (one in "
+                            f"{n_draws / max(kept.shape[1], 1):.3g}); the summary statistics "
+                            "are of all the draws")
+
+
 def read_posterior(path: str | os.PathLike) -> Posterior:
-    """Load ``posterior.h5`` (schema checked).
+    """Open ``posterior.h5`` (schema checked); its units are read when looked up.
+
+    Only the root attributes and the list of units are read here. Each unit is read from
+    the file, and its shapes checked, on access (``post.units[u]``, iteration); a few
+    recently read units are kept. A file replaced after this call is refused on access
+    rather than mixed with the first one. Posteriors written before the draws were thinned
+    (every pooled draw, uncompressed) read the same way.
 
     Raises
     ------
     ArtifactError
-        Missing file, wrong schema, missing datasets or inconsistent shapes.
+        Missing file, wrong schema, no units; on access: missing datasets, inconsistent
+        shapes or damaged bytes (naming the file and the dataset).
     """
     path = Path(path)
     with artifacts.open_artifact(path, "posterior") as f:
@@ -212,27 +265,35 @@ def read_posterior(path: str | os.PathLike) -> Posterior:
         names = json.loads(f.attrs["input_names"])
         if "units" not in f or len(f["units"]) == 0:
             raise ArtifactError(f"{path}: group /units is missing or empty")
-        units = {}
-        for unit, g in f["units"].items():
-            arrs = {n: artifacts.get(g, n, path) for n in _DATASETS
-                    if n != "surrogate_var_ratio" or n in g}
-            n_y, d = len(arrs["years"]), len(names)
-            for n in ("mean", "median", "q05", "q95", "rhat", "ess"):
-                if arrs[n].shape != (n_y, d):
-                    raise ArtifactError(f"{path}: /units/{unit}/{n} has shape {arrs[n].shape}, "
-                                        f"expected ({n_y}, {d})")
-            if arrs["samples"].ndim != 3 or arrs["samples"].shape[::2] != (n_y, d):
-                raise ArtifactError(f"{path}: /units/{unit}/samples has shape "
-                                    f"{arrs['samples'].shape}, expected ({n_y}, n_s, {d})")
-            src = g.attrs.get("noise_source", "")
-            fit = {}
-            if "fit" in g:
-                fit = {key: artifacts.get(g["fit"], key, path) for key in FIT_FIELDS}
-                fit["converged"] = fit["converged"].astype(bool)
-                if len(fit["status"]) != n_y:
-                    raise ArtifactError(f"{path}: /units/{unit}/fit/status has "
-                                        f"{len(fit['status'])} years, expected {n_y}")
-            units[unit] = UnitPosterior(noise_source=src.decode() if isinstance(src, bytes)
-                                        else str(src), fit=fit, **arrs)
+        unit_names = list(f["units"])
         windows = json.loads(f.attrs["fit_windows"]) if "fit_windows" in f.attrs else []
-        return Posterior(names, units, path, windows)
+    units = artifacts.LazyUnits(path, "posterior", unit_names,
+                                lambda f, unit, p: _read_unit(f, unit, p, names))
+    return Posterior(names, units, path, windows)
+
+
+def _read_unit(f: h5py.File, unit: str, path: Path, names: list[str]) -> UnitPosterior:
+    """Read and check one unit of an open ``posterior.h5``."""
+    if f"units/{unit}" not in f:
+        raise ArtifactError(f"{path}: group /units/{unit} is missing")
+    g = f["units"][unit]
+    arrs = {n: artifacts.get(g, n, path) for n in _DATASETS
+            if n != "surrogate_var_ratio" or n in g}
+    n_y, d = len(arrs["years"]), len(names)
+    for n in ("mean", "median", "q05", "q95", "rhat", "ess"):
+        if arrs[n].shape != (n_y, d):
+            raise ArtifactError(f"{path}: /units/{unit}/{n} has shape {arrs[n].shape}, "
+                                f"expected ({n_y}, {d})")
+    if arrs["samples"].ndim != 3 or arrs["samples"].shape[::2] != (n_y, d):
+        raise ArtifactError(f"{path}: /units/{unit}/samples has shape "
+                            f"{arrs['samples'].shape}, expected ({n_y}, n_s, {d})")
+    src = g.attrs.get("noise_source", "")
+    fit = {}
+    if "fit" in g:
+        fit = {key: artifacts.get(g["fit"], key, path) for key in FIT_FIELDS}
+        fit["converged"] = fit["converged"].astype(bool)
+        if len(fit["status"]) != n_y:
+            raise ArtifactError(f"{path}: /units/{unit}/fit/status has "
+                                f"{len(fit['status'])} years, expected {n_y}")
+    return UnitPosterior(noise_source=src.decode() if isinstance(src, bytes) else str(src),
+                         fit=fit, **arrs)

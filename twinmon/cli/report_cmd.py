@@ -56,9 +56,12 @@ def _artifact_option(name: str, help_text: str):
 @_artifact_option("truth", "Truth file of fabricate: true values drawn on the figures.")
 @click.option("-o", "--output", default=None, type=click.Path(file_okay=False),
               help="Report folder to write  [default: <workdir>/report, or out/report].")
+@click.option("--unit", "units", multiple=True, metavar="UNIT",
+              help="Draw this unit's figures whatever its state (repeatable). A fleet of more "
+                   "than report.detail_units units otherwise draws only the units at risk.")
 @json_option
 def report(config_path, overrides, workdir, observations, simulations, surrogate, posterior,
-           forecast, gap, truth, output, as_json):
+           forecast, gap, truth, output, units, as_json):
     """Health report: figures, index.html (self-contained), summary.json.
 
     Every section is optional: it is drawn when its artifact is given (or found in
@@ -74,7 +77,7 @@ def report(config_path, overrides, workdir, observations, simulations, surrogate
             v is not None for v in (*given.values(), observations, truth)))
     if output is None:
         output = str(Path(workdir) / "report") if workdir is not None else "out/report"
-    s = run(cfg, output, observations=observations, truth=truth, **given)
+    s = run(cfg, output, observations=observations, truth=truth, units=units, **given)
     if as_json:
         emit_json(s.as_dict())
         return

@@ -27,11 +27,17 @@ figure                       module                  shows
 ``diag_candidates``          ``fig_diagnose``        candidate unmodelled effects by BIC gain
 ``diag_overlay``             ``fig_diagnose``        one affected year: observation, base twin,
                                                      augmented twin
+``fleet_failure``            ``fig_fleet``           a large fleet's time to failure: units by
+                                                     years to failure, failures per year ahead
 ===========================  ======================  =============================================
 
 Other modules: ``load`` (reading the artifacts, all before anything is drawn), ``summary``
 (per-unit words, ``summary.json``, the terminal text), ``html`` (the page, its CSS and
-tables), ``common`` (colours, the figure saver, the config's words), ``stage`` (:func:`report`).
+tables), ``common`` (colours, the figure saver, the config's words), ``fleet`` (a large fleet's
+ranking, units at risk and the units drawn in detail), ``stage`` (:func:`report`).
+
+A fleet of more than ``report.detail_units`` units opens on a fleet overview and draws per-unit
+figures for the units at risk and those asked for only, a few units per figure.
 
 Everything is written to a temporary folder beside ``output_dir`` and moved into place at the
 end, ``index.html`` last, so a failing report never leaves a half-written ``index.html``.

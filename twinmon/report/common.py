@@ -172,11 +172,16 @@ def indicator_rows(ind: Indicator, time: np.ndarray, values: np.ndarray) -> np.n
 # Figures
 # ---------------------------------------------------------------------------------------
 class Figures:
-    """Saves figures as PNG files and remembers them for the HTML."""
+    """Saves figures as PNG files and remembers them for the HTML.
+
+    ``suffix`` and ``units`` name a group of units drawn apart (a large fleet's units are
+    drawn a few at a time): ``fig7_trends_2.png``, titled "... (A, B, C)"."""
 
     def __init__(self, folder: Path):
         self.folder = folder
         self.items: list[dict] = []
+        self.suffix = ""
+        self.units: list[str] = []
 
     def new(self, width: float, height: float, **kw):
         from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -186,6 +191,9 @@ class Figures:
         return fig
 
     def save(self, fig, name: str, section: str, title: str, caption: str) -> None:
+        name += self.suffix
+        if self.units:
+            title += f" ({', '.join(self.units)})"
         path = self.folder / f"{name}.png"
         fig.savefig(path, dpi=DPI)
         self.items.append({"name": name, "section": section, "title": title,

@@ -22,6 +22,10 @@ th{background:#f3f3f3}.note{color:#777;font-style:italic}
 figure img{max-width:100%;border:1px solid #eee}figcaption{color:#444;font-size:.92em}
 .unit{font-weight:bold}.bad{color:#b00}.ok{color:#070}.warn{color:#a60}
 code{background:#f4f4f4;padding:0 .2em}
+.scroll{max-height:34em;overflow-y:auto;border:1px solid #ddd;margin:.8em 0}
+.scroll table{margin:0;width:100%}.scroll th{position:sticky;top:0}
+table.rank{font-size:.86em}table.rank td,table.rank th{padding:.2em .45em}
+td.num{text-align:right}
 """
 
 
@@ -69,9 +73,17 @@ def stored_validation_text(v: dict) -> str:
     return text
 
 
-def calibration_table(cfg: Config, diag: dict) -> list[str]:
+def calibration_table(cfg: Config, diag: dict, fleet=None) -> list[str]:
+    """The convergence table; for a large fleet (``fleet`` given, ``diag`` cut to the units
+    drawn in detail by the stage), a line on the whole fleet first."""
     units = cfg.model.output.units
-    rows = ["<table><tr><th>Unit</th><th>Years</th><th>max R-hat</th><th>min ESS</th>"
+    rows = []
+    whole = diag.get("fleet")
+    if fleet is not None and whole:
+        rows.append(e_p(f"Over the {whole['units']} units: max R-hat {whole['max_rhat']:.3f}, "
+                        f"min ESS {whole['min_ess']:.0f}; {whole['warned_units']} unit(s) with "
+                        "sampling warnings. The table lists the units drawn in detail."))
+    rows += ["<table><tr><th>Unit</th><th>Years</th><th>max R-hat</th><th>min ESS</th>"
             f"<th>acceptance</th><th>noise std ({e(units if units not in ('', '1') else '-')})"
             "</th></tr>"]
     for u, d in diag["units"].items():
@@ -104,19 +116,90 @@ def _what_is_monitored(cfg: Config, words: Words) -> str:
             f"of being unsafe exceeds {100 * cfg.safety.failure_probability:g} %.</p>")
 
 
+def unit_anchor(unit: str) -> str:
+    """The id of a unit's row in the detail table."""
+    return "unit-" + "_".join(str(unit).split())
+
+
+def _status_short(s) -> str:
+    if s.status == "withheld":
+        return "FORCED" if s.forced else "withheld"
+    return {"none": "no forecast"}.get(s.status, s.status)
+
+
+def fleet_overview(cfg: Config, summary: ReportSummary, fleet, fig_items: list) -> list[str]:
+    """The overview a large fleet's page opens on: counts, the fleet figure, the ranking."""
+    from .fleet import failure_cell, p_cell
+    units = summary.units
+    failing = sum(1 for s in units.values() if s.failure_year is not None)
+    detail = set(fleet.detail)
+    out = ['<h2 id="fleet">Fleet overview</h2>']
+    text = (f"<p>{len(units)} units; {failing} fail within the forecast horizon; "
+            f"{len(fleet.at_risk)} at risk (a failure year, a fault, a prognosis withheld or "
+            "unreliable, or a gap found by diagnose). ")
+    if fleet.detail:
+        text += (f"Figures are drawn below for {len(fleet.detail)} of them"
+                 + (f" (asked for: {e(', '.join(fleet.requested))})" if fleet.requested
+                    else "") + ". ")
+    else:
+        text += "No unit needs figures. "
+    if fleet.not_shown:
+        text += (f"{len(fleet.not_shown)} more at risk have none here (at most "
+                 f"{cfg.report.detail_units} units are drawn, <code>report.detail_units</code>)"
+                 "; <code>twinmon report --unit U</code> draws any unit.")
+    out.append(text + "</p>")
+    fails = {k: 0 for k in fleet.counts}
+    for s in units.values():
+        fails[s.short_health] = fails.get(s.short_health, 0) + (s.failure_year is not None)
+    out.append("<table><tr><th>Verdict</th><th>Units</th><th>of which fail within the "
+               "horizon</th></tr>" + "".join(
+                   f"<tr><td>{e(k)}</td><td class='num'>{v}</td>"
+                   f"<td class='num'>{fails.get(k, 0)}</td></tr>"
+                   for k, v in fleet.counts.items()) + "</table>")
+    out += [figure_html(item) for item in fig_items]
+    out.append("<h3>Units ranked by P(unsafe)</h3><p class='meta'>Largest P(unsafe) over "
+               "the horizon first, then the earliest failure year; units without a prognosis "
+               "last. Failure year: year of service (+ years after the last observation). "
+               "Linked units are drawn in detail below.</p>")
+    out.append('<div class="scroll"><table class="rank"><tr><th>#</th><th>Unit</th>'
+               "<th>Verdict</th><th>Status</th><th>Failure year</th><th>max P(unsafe)</th>"
+               "<th>At risk because</th><th>What to do</th></tr>")
+    for i, u in enumerate(fleet.ranking, 1):
+        s = units[u]
+        name = (f'<a href="#{e(unit_anchor(u))}">{e(u)}</a>' if u in detail else e(u))
+        cls = ("bad" if s.failure_year is not None else "warn" if u in fleet.at_risk
+               else "ok" if s.root_cause == "healthy" else "")
+        st_cls = {"ok": "ok", "none": ""}.get(s.status, "warn")
+        out.append(f"<tr><td class='num'>{i}</td><td class='unit'>{name}</td>"
+                   f"<td class='{cls}'>{e(s.short_health)}</td>"
+                   f"<td class='{st_cls}'>{e(_status_short(s))}</td>"
+                   f"<td>{e(failure_cell(s))}</td><td class='num'>{e(p_cell(s))}</td>"
+                   f"<td>{e('; '.join(fleet.at_risk.get(u, [])))}</td>"
+                   f"<td>{e(s.action)}</td></tr>")
+    out.append("</table></div>")
+    return out
+
+
 def page(cfg: Config, words: Words, summary: ReportSummary, figs: list[dict],
-         extra: dict) -> str:
-    """The whole ``index.html``."""
+         extra: dict, fleet=None) -> str:
+    """The whole ``index.html``; a large fleet's (``fleet`` given) opens on its overview
+    and its per-unit tables list the units drawn in detail only."""
     out = ["<!DOCTYPE html>", '<html lang="en"><head><meta charset="utf-8">',
            "<title>twinmon health report</title>", f"<style>{CSS}</style></head><body>",
            "<h1>twinmon health report</h1>",
            f'<p class="meta">Generated {e(artifacts.utc_now())} by twinmon from config '
            f"<code>{e(cfg.source)}</code>.</p>", _what_is_monitored(cfg, words)]
-    out.append("<h2>Summary per unit</h2>")
-    if summary.units:
+    shown = summary.units
+    if fleet is not None:
+        out += extra.get("fleet", [])
+        shown = {u: summary.units[u] for u in fleet.detail}
+        out.append(f"<h2>Units drawn in detail ({len(shown)} of {len(summary.units)})</h2>")
+    else:
+        out.append("<h2>Summary per unit</h2>")
+    if shown:
         out.append("<table><tr><th>Unit</th><th>Status</th><th>Health</th>"
                    "<th>Time to failure</th><th>What to do</th><th>What this rests on</th></tr>")
-        for u, s in summary.units.items():
+        for u, s in shown.items():
             cls = ("warn" if s.status in ("withheld", "unreliable")
                    else "ok" if s.root_cause == "healthy" else "bad" if s.failure_year is not None
                    else "warn" if s.root_cause else "")
@@ -127,17 +210,18 @@ def page(cfg: Config, words: Words, summary: ReportSummary, figs: list[dict],
                        f"after the last observation (year {s.last_year}); P(unsafe) "
                        f"{pct(s.p_unsafe)} in year {s.failure_year}")
             st_cls = {"ok": "ok", "none": ""}.get(s.status, "warn")
-            out.append(f'<tr><td class="unit">{e(u)}</td>'
+            anchor = f' id="{e(unit_anchor(u))}"' if fleet is not None else ""
+            out.append(f'<tr{anchor}><td class="unit">{e(u)}</td>'
                        f'<td class="{st_cls}">{e(s.status_words)}</td>'
                        f'<td class="{cls}">{e(s.health)}</td>'
                        f"<td>{e(ttf)}</td><td>{e(s.action)}</td><td>{e(s.confidence)}</td></tr>")
         out.append("</table>")
-        plans = [(u, s.plan) for u, s in summary.units.items() if s.plan]
+        plans = [(u, s.plan) for u, s in shown.items() if s.plan]
         if plans:
             out.append("<p>Maintenance plans from the forecast:</p><ul>")
             out += [f"<li><b>{e(u)}</b>: {e(p)}</li>" for u, p in plans]
             out.append("</ul>")
-        est = [(u, s) for u, s in summary.units.items() if s.estimates]
+        est = [(u, s) for u, s in shown.items() if s.estimates]
         if est:
             names = list(est[0][1].estimates)
             out.append("<p>Latest estimates (posterior mean, 90 % interval):</p><table><tr>"
@@ -150,6 +234,9 @@ def page(cfg: Config, words: Words, summary: ReportSummary, figs: list[dict],
                 year = next(iter(s.estimates.values()))["year"]
                 out.append(f"<tr><td class='unit'>{e(u)}</td><td>{year}</td>{cells}</tr>")
             out.append("</table>")
+    elif fleet is not None:
+        out.append('<p class="note">No unit is at risk or asked for: no per-unit figures '
+                   "(<code>twinmon report --unit U</code> draws one).</p>")
     else:
         out.append('<p class="note">No units: no artifact with units was given.</p>')
     for note in summary.notes:

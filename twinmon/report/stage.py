@@ -2,22 +2,31 @@
 ``summary.json`` and the PNGs into a temporary folder, then move them into place."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import shutil
 from pathlib import Path
+from typing import Sequence
 
 from .. import artifacts
 from ..config import Config
 from .common import SKIP_HINTS, UNIT_COLOURS, Figures, plain
 from .fig_calibration import fig_estimates
 from .fig_diagnose import fig_candidates, fig_overlay, fig_residual_map, gap_title
+from .fig_fleet import fig_fleet_failure
 from .fig_forecast import fig_indicator_forecast, fig_marginals, fig_trends
 from .fig_observations import fig_indicator_history, fig_last_transients
 from .fig_surrogate import fig_surrogate
-from .html import (calibration_table, e_p, page, stored_validation_text, surrogate_text)
+from .fleet import check_requested, fleet_view, is_fleet
+from .html import (calibration_table, e_p, fleet_overview, page, stored_validation_text,
+                   surrogate_text)
 from .load import Inputs, check_consistency, load, observed_indicator
 from .summary import ReportSummary, calibration_diagnostics, unit_summary, words_dict
+
+#: Units per figure when a large fleet's units are drawn in detail (Figures 6 and 7 give
+#: each unit a column: more would not read).
+GROUP = 4
 
 
 def report(cfg: Config, output_dir: str | os.PathLike, *,
@@ -27,7 +36,8 @@ def report(cfg: Config, output_dir: str | os.PathLike, *,
            posterior: str | os.PathLike | None = None,
            forecast: str | os.PathLike | None = None,
            gap: str | os.PathLike | None = None,
-           truth: str | os.PathLike | None = None) -> ReportSummary:
+           truth: str | os.PathLike | None = None,
+           units: Sequence[str] = ()) -> ReportSummary:
     """Make the health report from whichever artifacts are given.
 
     Parameters
@@ -41,6 +51,10 @@ def report(cfg: Config, output_dir: str | os.PathLike, *,
     observations, simulations, surrogate, posterior, forecast, gap, truth : path-like, optional
         Artifacts (``twinmon.<kind>/1``); ``None`` skips the sections that need it. The
         surrogate figure needs both ``simulations`` (the test runs) and ``surrogate``.
+    units : sequence of str
+        Units to draw in detail whatever their state (``report --unit``). A fleet of more
+        than ``report.detail_units`` units opens on a fleet overview and draws per-unit
+        figures only for these and the units at risk (see :mod:`~twinmon.report.fleet`).
 
     Returns
     -------
@@ -52,6 +66,8 @@ def report(cfg: Config, output_dir: str | os.PathLike, *,
     ArtifactError
         An artifact is missing, of the wrong schema or made for other inputs than the
         config's; nothing is written then.
+    ConfigError
+        A unit of ``units`` is in none of the artifacts.
     """
     import matplotlib
     paths = {"observations": observations, "simulations": simulations, "surrogate": surrogate,
@@ -71,29 +87,50 @@ def report(cfg: Config, output_dir: str | os.PathLike, *,
         try:
             with matplotlib.rc_context({"font.size": 10, "axes.titlesize": 11,
                                         "figure.titlesize": 12, "legend.framealpha": 0.85}):
-                summary = _render(cfg, inp, tmp, out, provenance)
+                summary = _render(cfg, inp, tmp, out, provenance, list(units))
             _install(tmp, out)
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
     return summary
 
 
-def _render(cfg: Config, inp: Inputs, tmp: Path, out: Path, provenance: dict) -> ReportSummary:
+def _render(cfg: Config, inp: Inputs, tmp: Path, out: Path, provenance: dict,
+            requested: list) -> ReportSummary:
     figs = Figures(tmp / "figures")
     w = inp.words
     units = inp.unit_names()
-    colours = {u: UNIT_COLOURS[i % len(UNIT_COLOURS)] for i, u in enumerate(units)}
     sections: dict[str, str] = {}
     notes: list[str] = []
     extra: dict[str, list[str]] = {"provenance": provenance}
     surrogate_info = calibration_info = None
 
     observed = observed_indicator(inp)
+    summaries = {u: unit_summary(u, inp, observed) for u in units}
+    fleet = None
+    if is_fleet(cfg, len(units)):
+        # A large fleet: the overview first, per-unit figures for a few units only.
+        fleet = fleet_view(cfg, summaries, requested)
+        drawn = fleet.detail
+        groups = _groups(drawn, GROUP)
+        if fig_fleet_failure(figs, inp, summaries):
+            extra["fleet_figure"] = [figs.items[-1]]
+    else:
+        check_requested(summaries, requested)
+        drawn, groups = units, [units]
+    colours = {u: UNIT_COLOURS[i % len(UNIT_COLOURS)] for i, u in enumerate(drawn)}
+    views = _views(inp, groups, fleet is not None)
+
     if inp.obs is not None:
-        fig_last_transients(figs, inp, colours, observed)
-        if observed:
-            fig_indicator_history(figs, inp, colours, observed)
-        else:
+        # Figures 2 and 3 draw every unit on one axis: as many as there are colours.
+        obs_views = views if fleet is None else _views(inp, _groups(drawn, len(UNIT_COLOURS)),
+                                                       True)
+        for group, sub, suffix in _drawing(figs, obs_views, fleet):
+            seen = {u: observed[u] for u in group if u in observed}
+            if sub.obs.units:
+                fig_last_transients(figs, sub, colours, seen)
+            if seen:
+                fig_indicator_history(figs, sub, colours, seen)
+        if not observed:
             extra["observations"] = [e_p(
                 f"The observations do not record the {w.var_label} ({w.ind.variable}), the "
                 f"variable the "
@@ -118,19 +155,27 @@ def _render(cfg: Config, inp: Inputs, tmp: Path, out: Path, provenance: dict) ->
         sections["surrogate"] = f"skipped: {SKIP_HINTS['surrogate']}"
 
     if inp.posterior is not None:
-        errors = fig_estimates(figs, inp, colours)
+        errors = []
+        for group, sub, suffix in _drawing(figs, views, fleet):
+            if sub.posterior.units:
+                errors.append((len(sub.posterior.units), fig_estimates(figs, sub, colours)))
         calibration_info = calibration_diagnostics(inp)
-        if errors:
-            calibration_info["truth_check"] = errors
-        extra["calibration"] = calibration_table(cfg, calibration_info)
+        check = _pooled_truth_check(errors)
+        if check:
+            calibration_info["truth_check"] = check
+        extra["calibration"] = calibration_table(cfg, _only(calibration_info, drawn)
+                                                 if fleet else calibration_info, fleet)
         sections["calibration"] = "rendered"
     else:
         sections["calibration"] = f"skipped: {SKIP_HINTS['calibration']}"
 
     if inp.forecast is not None:
-        fig_trends(figs, inp, colours)
-        fig_marginals(figs, inp, colours)
-        fig_indicator_forecast(figs, inp, colours, observed or None)
+        for group, sub, suffix in _drawing(figs, views, fleet):
+            if sub.forecast.units:
+                seen = {u: observed[u] for u in group if u in observed}
+                fig_trends(figs, sub, colours)
+                fig_marginals(figs, sub, colours)
+                fig_indicator_forecast(figs, sub, colours, seen or None)
         sections["forecast"] = "rendered"
     else:
         sections["forecast"] = f"skipped: {SKIP_HINTS['forecast']}"
@@ -144,10 +189,24 @@ def _render(cfg: Config, inp: Inputs, tmp: Path, out: Path, provenance: dict) ->
             extra["diagnose"] = [e_p(
                 f"This section diagnoses {inp.gap_other_source}, not the observations above; "
                 "its units are not merged into the unit summaries. " + "; ".join(lines) + ".")]
-        fig_residual_map(figs, inp, colours)
-        fig_candidates(figs, inp, colours)
-        if not fig_overlay(figs, inp, colours):
-            notes.append("Diagnose found no gap in any unit: no before/after overlay.")
+        gap_views = views
+        if fleet is not None and inp.gap_other_source is not None:
+            # Other machines than the fleet's: the first of them, a group at a time.
+            other = list(inp.gap.units)[:cfg.report.detail_units]
+            chunks = _groups(other, GROUP)
+            gap_views = [(g, _subset(inp, g, gap_only=True),
+                          f"_{k + 1}" if len(chunks) > 1 else "") for k, g in enumerate(chunks)]
+            for i, u in enumerate(other):
+                colours.setdefault(u, UNIT_COLOURS[i % len(UNIT_COLOURS)])
+        overlay = False
+        for group, sub, suffix in _drawing(figs, gap_views, fleet):
+            if sub.gap.units:
+                fig_residual_map(figs, sub, colours)
+                fig_candidates(figs, sub, colours)
+                overlay = fig_overlay(figs, sub, colours) or overlay
+        if not overlay:
+            notes.append("Diagnose found no gap in any unit"
+                         + (" drawn in detail" if fleet else "") + ": no before/after overlay.")
         sections["diagnose"] = "rendered"
     else:
         sections["diagnose"] = f"skipped: {SKIP_HINTS['diagnose']}"
@@ -160,17 +219,91 @@ def _render(cfg: Config, inp: Inputs, tmp: Path, out: Path, provenance: dict) ->
     output_words, indicator_words = words_dict(inp)
     summary = ReportSummary(
         output_dir=str(out), index=str(out / "index.html"),
-        units={u: unit_summary(u, inp, observed) for u in units},
+        units=summaries,
         sections=sections,
         figures=[{**{k: v for k, v in f.items() if not k.startswith("_")},
                   "path": str(out / f["file"])} for f in figs.items],
         surrogate=plain(surrogate_info), calibration=plain(calibration_info),
         artifacts=dict(inp.paths), notes=notes, output=output_words,
-        indicator=plain(indicator_words))
+        indicator=plain(indicator_words), fleet=fleet.as_dict() if fleet else None)
+    if fleet is not None:
+        extra["fleet"] = fleet_overview(cfg, summary, fleet, extra.pop("fleet_figure", []))
     (tmp / "summary.json").write_text(json.dumps(plain(summary.as_dict()), indent=2,
                                                  allow_nan=False))
-    (tmp / "index.html").write_text(page(cfg, w, summary, figs.items, extra), encoding="utf-8")
+    (tmp / "index.html").write_text(page(cfg, w, summary, figs.items, extra, fleet),
+                                    encoding="utf-8")
     return summary
+
+
+def _groups(units: list, most: int) -> list[list]:
+    """``units`` cut into the fewest groups of at most ``most``, of near-equal sizes (a
+    group of 1 beside groups of 4 would be drawn at another scale)."""
+    if not units:
+        return []
+    n = -(-len(units) // most)
+    size = -(-len(units) // n)
+    return [units[i:i + size] for i in range(0, len(units), size)]
+
+
+def _views(inp: Inputs, groups: list, subset: bool) -> list:
+    """``(units, inputs restricted to them, figure-name suffix)`` per group."""
+    return [(g, _subset(inp, g) if subset else inp, f"_{k + 1}" if len(groups) > 1 else "")
+            for k, g in enumerate(groups)]
+
+
+def _drawing(figs: Figures, views: list, fleet):
+    """Yield ``(units, inputs, suffix)`` per group of units, with the figure names and
+    titles of the group set on ``figs`` (a large fleet's figures name their units)."""
+    for group, sub, suffix in views:
+        figs.suffix, figs.units = suffix, (list(group) if fleet is not None else [])
+        yield group, sub, suffix
+    figs.suffix, figs.units = "", []
+
+
+def _subset(inp: Inputs, units: list, gap_only: bool = False) -> Inputs:
+    """The inputs restricted to ``units`` (the figures of a group draw every unit they get);
+    the units are read from their artifacts here."""
+    def keep(obj, own: bool = True):
+        if obj is None or not own:
+            return obj
+        return dataclasses.replace(obj, units={u: obj.units[u] for u in units
+                                               if u in obj.units})
+    if gap_only:
+        return dataclasses.replace(inp, gap=keep(inp.gap))
+    return dataclasses.replace(
+        inp, obs=keep(inp.obs), posterior=keep(inp.posterior), forecast=keep(inp.forecast),
+        gap=keep(inp.gap, inp.gap_other_source is None))
+
+
+def _only(diag: dict, units: list) -> dict:
+    """Calibration diagnostics of ``units`` only, with the fleet's figures beside them."""
+    keep = set(units)
+    per_unit = diag["units"]
+    out = {**diag, "units": {u: d for u, d in per_unit.items() if u in keep},
+           "warnings": [x for x in diag["warnings"] if x.split(" year ")[0] in keep]}
+    if per_unit:
+        out["fleet"] = {"units": len(per_unit),
+                        "max_rhat": max(d["max_rhat"] for d in per_unit.values()),
+                        "min_ess": min(d["min_ess"] for d in per_unit.values()),
+                        "warned_units": len({x.split(" year ")[0] for x in diag["warnings"]})}
+    return out
+
+
+def _pooled_truth_check(errors: list) -> dict:
+    """The truth errors of the groups drawn, pooled (max of maxima, unit-weighted means)."""
+    errors = [(n, e) for n, e in errors if e]
+    if not errors:
+        return {}
+    if len(errors) == 1:
+        return errors[0][1]
+    out = {}
+    for name in errors[0][1]:
+        got = [(n, e[name]) for n, e in errors if name in e]
+        total = sum(n for n, _ in got)
+        out[name] = {"max_rel_error": max(e["max_rel_error"] for _, e in got),
+                     "mean_rel_error": sum(n * e["mean_rel_error"] for n, e in got) / total,
+                     "coverage_90": sum(n * e["coverage_90"] for n, e in got) / total}
+    return out
 
 
 def _install(tmp: Path, out: Path) -> None:

@@ -74,6 +74,10 @@ class UnitSummary:
     status: str = "none"
     status_reason: str = ""
     forced: bool = False
+    #: Largest P(unsafe) over the horizon, and P(unsafe) 1, 2, ... years after the last
+    #: observation (the fleet overview ranks and sums them); None / () without a prognosis.
+    p_unsafe_max: Optional[float] = None
+    p_unsafe_ahead: tuple = ()
 
     @property
     def status_words(self) -> str:
@@ -120,6 +124,7 @@ class UnitSummary:
             "diagnose": self.diagnose, "true_failure_year": self.true_failure_year,
             "status": self.status, "status_reason": self.status_reason or None,
             "status_words": self.status_words, "forced": self.forced,
+            "p_unsafe_max": self.p_unsafe_max,
         }
 
 
@@ -150,6 +155,9 @@ class ReportSummary:
         The observed output's words: ``{name, label, units}``.
     indicator : dict
         The health indicator: ``{name, label, units, kind, variable, limit, sense, rule}``.
+    fleet : dict or None
+        For a fleet of more than ``report.detail_units`` units: the ranking, verdict counts,
+        units at risk and units drawn in detail (:class:`~twinmon.report.fleet.FleetView`).
     """
 
     output_dir: str
@@ -163,9 +171,10 @@ class ReportSummary:
     notes: list = field(default_factory=list)
     output: dict = field(default_factory=dict)
     indicator: dict = field(default_factory=dict)
+    fleet: Optional[dict] = None
 
     def as_dict(self) -> dict:
-        return {
+        return {**({"fleet": self.fleet} if self.fleet is not None else {}),
             "units": {u: s.as_dict() for u, s in self.units.items()},
             "sections": dict(self.sections),
             "figures": list(self.figures),
@@ -182,6 +191,12 @@ class ReportSummary:
         """A short multi-line text: one line per unit, then the report's path."""
         if not self.units:
             lines = ["report: no units"]
+        elif self.fleet is not None:
+            from .fleet import FleetView, overview_lines
+            ends = [s.horizon_end - s.last_year for s in self.units.values()
+                    if s.horizon_end is not None and s.last_year is not None]
+            lines = overview_lines(FleetView(**self.fleet), self.units,
+                                   max(ends) if ends else None)
         else:
             w = max(len(u) for u in self.units)
             h = max(len(s.short_health) for s in self.units.values())
@@ -278,6 +293,8 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
             s.health += " (unreliable)"
             why.append(uf.status_reason)
         s.failure_year = uf.failure_year
+        s.p_unsafe_ahead = tuple(float(p) for p in uf.p_unsafe)
+        s.p_unsafe_max = max(s.p_unsafe_ahead) if s.p_unsafe_ahead else None
         s.horizon_end = int(uf.years_future[-1])
         s.last_year = s.last_year or int(uf.years_observed[-1])
         s.plan = uf.plan
