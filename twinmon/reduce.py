@@ -11,9 +11,17 @@ variance of the discarded modes are propagated to each time step.
 A surrogate is rebuilt from the arrays stored in ``surrogate.h5`` (no pickles): the regression
 is always built from the stored hyperparameters and trend coefficients, both right after the
 fit and after a reload, so a reloaded surrogate predicts exactly what the fitted one did.
+
+Further channels the design recorded (``model.channels``, e.g. a speed or a current) get a
+surrogate each, by the same algorithm with transform ``auto`` (``reduce.channels`` chooses
+which), stored under ``/channels/<FMU variable>`` with the root's layout; ``calibrate`` puts
+the observed ones in its likelihood. :func:`read_surrogate` loads the output's only,
+:func:`read_channel_surrogates` the channels'. A file written before channels existed simply
+has none.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 from dataclasses import dataclass, field
@@ -123,6 +131,9 @@ class Surrogate:
     Y_test: np.ndarray = field(default_factory=lambda: np.empty((0, 0)))
     #: Hash of what the surrogate predicts from (see :meth:`fingerprint`); set on reading.
     content_id: str = ""
+    #: Further channels whose surrogates the same file holds (see
+    #: :func:`read_channel_surrogates`); set on reading.
+    channel_names: list = field(default_factory=list)
     _results: list = field(default_factory=list, repr=False)
     _meta = None
     _covs: list = field(default_factory=list, repr=False)
@@ -342,35 +353,93 @@ def validate_surrogate(s: Surrogate, X: np.ndarray, Y: np.ndarray) -> Validation
 # ---------------------------------------------------------------------------------------
 @dataclass
 class ReduceSummary:
+    """What :func:`reduce` did; ``as_dict`` is the ``--json`` output.
+
+    ``channels`` maps each further channel that got a surrogate to its modes, variance
+    ratio and test validation (``as_dict`` form)."""
+
     modes: int
     variance_ratio: float
     validation: Validation
     train_runs: int
     output: str
+    channels: dict = field(default_factory=dict)
+    warnings: list = field(default_factory=list)
 
     def as_dict(self) -> dict:
         return {"modes": self.modes, "variance_ratio": self.variance_ratio,
                 "test": self.validation.as_dict(), "train_runs": self.train_runs,
-                "output": self.output}
+                "output": self.output, "channels": self.channels,
+                "warnings": list(self.warnings)}
 
 
 def reduce(cfg: Config, simulations: str | os.PathLike, output: str | os.PathLike) -> ReduceSummary:
-    """Fit the surrogate on the training runs, validate it on the test runs, write it."""
+    """Fit the surrogate on the training runs, validate it on the test runs, write it.
+
+    The output's surrogate comes first; then one per further channel of
+    :func:`channels_to_reduce` (same training and test runs)."""
     sims = read_simulations(simulations)
     check_made_for(cfg, simulations, sims.input_names, sims.time, sims.bounds, "simulate")
     ok = sims.ok["train"]
     if ok.sum() < 2 * len(sims.input_names) + 2:
         raise CalibrationError(f"{simulations}: only {int(ok.sum())} successful training runs")
-    try:
-        s = fit_surrogate(sims.X["train"][ok], sims.Y["train"][ok], sims.time, sims.bounds,
-                          sims.input_names, cfg.reduce, cfg.model.output.units)
-    except CalibrationError as exc:
-        raise CalibrationError(f"{simulations}: {exc.message}") from None
     okt = sims.ok["test"]
-    s.X_test, s.Y_test = sims.X["test"][okt], sims.Y["test"][okt]
-    val = validate_surrogate(s, s.X_test, s.Y_test)
-    write_surrogate(output, s, val, cfg, [simulations])
-    return ReduceSummary(s.n_modes, s.variance_ratio, val, int(ok.sum()), str(output))
+
+    def fit(Y: np.ndarray, Y_test: np.ndarray, rc: ReduceConfig, units: str, what: str):
+        try:
+            s = fit_surrogate(sims.X["train"][ok], Y, sims.time, sims.bounds,
+                              sims.input_names, rc, units)
+        except CalibrationError as exc:
+            raise CalibrationError(f"{simulations}: {what}{exc.message}") from None
+        s.X_test, s.Y_test = sims.X["test"][okt], Y_test
+        return s, validate_surrogate(s, s.X_test, s.Y_test)
+
+    s, val = fit(sims.Y["train"][ok], sims.Y["test"][okt], cfg.reduce,
+                 cfg.model.output.units, "")
+    names, warnings = channels_to_reduce(cfg, sims)
+    # Each channel its own transform: a speed or a current may cross zero where the output
+    # (learnt in log scale) does not.
+    rc = dataclasses.replace(cfg.reduce, transform="auto")
+    fitted = {}
+    for ch in names:
+        Y = sims.channels["train"][ch][ok]
+        if np.ptp(Y, axis=0).max() <= 1e-12 * max(float(np.abs(Y).max()), 1e-300):
+            warnings.append(f"channel {ch} does not change over the design box: it says "
+                            "nothing about the inputs; no surrogate")
+            continue
+        fitted[ch] = fit(Y, sims.channels["test"][ch][okt], rc,
+                         cfg.model.variable_words(ch)[1], f"channel {ch}: ")
+    write_surrogate(output, s, val, cfg, [simulations], channels=fitted)
+    return ReduceSummary(s.n_modes, s.variance_ratio, val, int(ok.sum()), str(output),
+                         {ch: {"modes": c.n_modes, "variance_ratio": c.variance_ratio,
+                               "transform": c.transform, "test": v.as_dict()}
+                          for ch, (c, v) in fitted.items()}, warnings)
+
+
+def channels_to_reduce(cfg: Config, sims) -> tuple[list[str], list[str]]:
+    """The further channels that get a surrogate, and warnings about the others.
+
+    ``reduce.channels`` when set (each must be in the design), else every channel of
+    ``model.channels`` the design recorded (a design simulated before channels were recorded
+    has none: a warning says so).
+
+    Raises
+    ------
+    ArtifactError
+        ``reduce.channels`` names a channel the design did not record.
+    """
+    recorded = set(sims.channels.get("train", {}))
+    wanted = cfg.reduce.channels
+    if wanted is not None:
+        for ch in wanted:
+            if ch not in recorded:
+                raise ArtifactError(f"{sims.path}: the design did not record channel {ch!r} "
+                                    "(reduce.channels); re-run simulate")
+        return list(wanted), []
+    missing = [ch for ch in cfg.model.channels if ch not in recorded]
+    warnings = [f"the design did not record channel(s) {', '.join(missing)}: no surrogate; "
+                "re-run simulate to learn them"] if missing else []
+    return [ch for ch in cfg.model.channels if ch in recorded], warnings
 
 
 def check_made_for(cfg: Config, path, input_names, time, bounds, rerun: str) -> None:
@@ -404,56 +473,106 @@ def check_made_for(cfg: Config, path, input_names, time, bounds, rerun: str) -> 
                             f"input ranges are {cfg.model.bounds.tolist()}; re-run {rerun}")
 
 
-def write_surrogate(path, s: Surrogate, val: Validation, cfg: Config, inputs) -> None:
+def write_surrogate(path, s: Surrogate, val: Validation, cfg: Config, inputs,
+                    channels: dict | None = None) -> None:
+    """Write ``surrogate.h5``: the output's surrogate at the root, each further channel's
+    (``channels``: name -> (Surrogate, Validation)) under ``/channels/<name>``."""
     with artifacts.write_artifact(path, "surrogate", config=cfg.section_yaml(*SECTIONS),
                                   inputs=inputs) as f:
-        f.attrs["input_names"] = json.dumps(s.input_names)
-        f.attrs["kernel"] = s.kernel
-        f.attrs["trend"] = s.trend
-        f.attrs["transform"] = s.transform
-        f.attrs["output_units"] = s.units
-        f.attrs["validation"] = artifacts.json_attr(val.as_dict())
-        f.attrs["content_id"] = s.fingerprint()
-        put = artifacts.put
-        put(f, "time", s.time, "s", "sample times")
-        put(f, "bounds", s.bounds, "input units", "training box, rows (low, high) per input")
-        zu = f"log({s.units})" if s.transform == "log" else s.units
-        put(f, "mean", s.mean, zu, "mean training transient (after the transform)")
-        put(f, "basis", s.basis, zu, "lifting of mode coefficients: z = mean + xi @ basis")
-        put(f, "eigenvalues", s.eigenvalues, f"({zu})^2", "Karhunen-Loeve eigenvalues")
-        put(f, "truncation_var", s.truncation_var, f"({zu})^2",
-            "training variance not captured by the kept modes, per time step")
-        put(f, "X_train", s.X_train, "1", "training inputs scaled to the unit box")
-        put(f, "xi_train", s.xi_train, "1", "mode coefficients of the training transients")
-        put(f, "scales", s.scales, "1 (unit box)", "kernel scale per mode and input")
-        put(f, "amplitudes", s.amplitudes, "1", "kernel amplitude per mode")
-        put(f, "X_test", s.X_test, "input units", "held-out test inputs, one row per FMU run")
-        put(f, "Y_test", s.Y_test, s.units, "held-out FMU transients of the test inputs")
-        g = f.create_group("trend_coefficients")
-        for k, c in enumerate(s.trend_coefs):
-            put(g, str(k), c, "1", f"trend coefficients of mode {k}")
+        _put_surrogate(f, s, val)
+        f.attrs["channels"] = json.dumps(list(channels or {}))
+        for ch, (cs, cv) in (channels or {}).items():
+            _put_surrogate(f.create_group(f"channels/{ch}"), cs, cv)
+
+
+def _put_surrogate(f, s: Surrogate, val: Validation) -> None:
+    """One surrogate's attributes and arrays into a group (the file's root or a channel's)."""
+    f.attrs["input_names"] = json.dumps(s.input_names)
+    f.attrs["kernel"] = s.kernel
+    f.attrs["trend"] = s.trend
+    f.attrs["transform"] = s.transform
+    f.attrs["output_units"] = s.units
+    f.attrs["validation"] = artifacts.json_attr(val.as_dict())
+    f.attrs["content_id"] = s.fingerprint()
+    put = artifacts.put
+    put(f, "time", s.time, "s", "sample times")
+    put(f, "bounds", s.bounds, "input units", "training box, rows (low, high) per input")
+    zu = f"log({s.units})" if s.transform == "log" else s.units
+    put(f, "mean", s.mean, zu, "mean training transient (after the transform)")
+    put(f, "basis", s.basis, zu, "lifting of mode coefficients: z = mean + xi @ basis")
+    put(f, "eigenvalues", s.eigenvalues, f"({zu})^2", "Karhunen-Loeve eigenvalues")
+    put(f, "truncation_var", s.truncation_var, f"({zu})^2",
+        "training variance not captured by the kept modes, per time step")
+    put(f, "X_train", s.X_train, "1", "training inputs scaled to the unit box")
+    put(f, "xi_train", s.xi_train, "1", "mode coefficients of the training transients")
+    put(f, "scales", s.scales, "1 (unit box)", "kernel scale per mode and input")
+    put(f, "amplitudes", s.amplitudes, "1", "kernel amplitude per mode")
+    put(f, "X_test", s.X_test, "input units", "held-out test inputs, one row per FMU run")
+    put(f, "Y_test", s.Y_test, s.units, "held-out FMU transients of the test inputs")
+    g = f.create_group("trend_coefficients")
+    for k, c in enumerate(s.trend_coefs):
+        put(g, str(k), c, "1", f"trend coefficients of mode {k}")
 
 
 def read_surrogate(path: str | os.PathLike) -> Surrogate:
-    """Rebuild a surrogate from ``surrogate.h5`` (schema checked)."""
+    """Rebuild the output's surrogate from ``surrogate.h5`` (schema checked); its
+    ``channel_names`` lists the further channels the file holds."""
     path = Path(path)
     with artifacts.open_artifact(path, "surrogate") as f:
-        get = lambda name: artifacts.get(f, name, path)  # noqa: E731
-        K = get("basis").shape[0]
-        coefs = [artifacts.get(f["trend_coefficients"], str(k), path) for k in range(K)]
-        return Surrogate(input_names=json.loads(f.attrs["input_names"]), bounds=get("bounds"),
-                         time=get("time"), mean=get("mean"), basis=get("basis"),
-                         eigenvalues=get("eigenvalues"), truncation_var=get("truncation_var"),
-                         X_train=get("X_train"), xi_train=get("xi_train"),
-                         kernel=str(f.attrs["kernel"]), trend=str(f.attrs["trend"]),
-                         scales=get("scales"), amplitudes=get("amplitudes"),
-                         trend_coefs=coefs, transform=str(f.attrs["transform"]),
-                         units=str(f.attrs["output_units"]),
-                         X_test=get("X_test") if "X_test" in f else np.empty((0, 0)),
-                         Y_test=get("Y_test") if "Y_test" in f else np.empty((0, 0)),
-                         content_id=str(f.attrs.get("content_id", "")))
+        s = _get_surrogate(f, path)
+        s.channel_names = json.loads(f.attrs.get("channels", "[]"))
+        return s
+
+
+def read_channel_surrogates(path: str | os.PathLike,
+                            names: list[str] | None = None) -> dict[str, Surrogate]:
+    """The further channels' surrogates of ``surrogate.h5``: ``names`` (default: all).
+
+    Raises
+    ------
+    ArtifactError
+        A named channel has no surrogate in the file (written before channels were
+        reduced, or left out by ``reduce.channels``).
+    """
+    path = Path(path)
+    with artifacts.open_artifact(path, "surrogate") as f:
+        have = json.loads(f.attrs.get("channels", "[]"))
+        out = {}
+        for ch in (have if names is None else names):
+            if ch not in have or f"channels/{ch}" not in f:
+                raise ArtifactError(f"{path}: no surrogate of channel {ch!r} (the file has "
+                                    f"{', '.join(have) or 'none'}); re-run simulate and reduce "
+                                    "with the channel in model.channels (and reduce.channels)")
+            out[ch] = _get_surrogate(f[f"channels/{ch}"], path)
+        return out
+
+
+def _get_surrogate(f, path: Path) -> Surrogate:
+    """A surrogate from the group :func:`_put_surrogate` wrote."""
+    get = lambda name: artifacts.get(f, name, path)  # noqa: E731
+    K = get("basis").shape[0]
+    coefs = [artifacts.get(f["trend_coefficients"], str(k), path) for k in range(K)]
+    return Surrogate(input_names=json.loads(f.attrs["input_names"]), bounds=get("bounds"),
+                     time=get("time"), mean=get("mean"), basis=get("basis"),
+                     eigenvalues=get("eigenvalues"), truncation_var=get("truncation_var"),
+                     X_train=get("X_train"), xi_train=get("xi_train"),
+                     kernel=str(f.attrs["kernel"]), trend=str(f.attrs["trend"]),
+                     scales=get("scales"), amplitudes=get("amplitudes"),
+                     trend_coefs=coefs, transform=str(f.attrs["transform"]),
+                     units=str(f.attrs["output_units"]),
+                     X_test=get("X_test") if "X_test" in f else np.empty((0, 0)),
+                     Y_test=get("Y_test") if "Y_test" in f else np.empty((0, 0)),
+                     content_id=str(f.attrs.get("content_id", "")))
 
 
 def read_validation(path: str | os.PathLike) -> dict:
+    """The output surrogate's validation on the test runs (:meth:`Validation.as_dict`)."""
     with artifacts.open_artifact(path, "surrogate") as f:
         return json.loads(f.attrs["validation"])
+
+
+def read_channel_validation(path: str | os.PathLike) -> dict[str, dict]:
+    """Each further channel's validation on the test runs, by channel ({} when none)."""
+    with artifacts.open_artifact(path, "surrogate") as f:
+        return {ch: json.loads(f[f"channels/{ch}"].attrs["validation"])
+                for ch in json.loads(f.attrs.get("channels", "[]"))}

@@ -74,6 +74,12 @@ def twin_outputs(cfg: Config) -> list[str]:
     return list(dict.fromkeys(outputs))
 
 
+def design_outputs(cfg: Config) -> list[str]:
+    """FMU variables a design run records: the twin's (:func:`twin_outputs`) and the further
+    channels (``model.channels``), which ``reduce`` may learn for a multi-channel likelihood."""
+    return list(dict.fromkeys(twin_outputs(cfg) + list(cfg.model.channels)))
+
+
 def check_model(cfg: Config) -> None:
     """Check every FMU variable the config names against the FMU's model description.
 
@@ -271,7 +277,7 @@ def simulate(cfg: Config, output: str | os.PathLike, *, workers: int | None = No
 
 
 def _simulate_locked(cfg: Config, output: Path, workers, progress) -> SimulateSummary:
-    spec = spec_for(cfg)
+    spec = spec_for(cfg, outputs=design_outputs(cfg))
     section = cfg.section_yaml(*SECTIONS)
     designs = {"train": draw_design(cfg, cfg.simulate.train_size, cfg.seed),
                "test": draw_design(cfg, cfg.simulate.test_size, cfg.seed + 1)}
@@ -374,6 +380,11 @@ def _open_partial(partial: Path, section: str, spec: SimulationSpec, cfg: Config
                               cfg.model.variable_words(cfg.indicator_variable)[1],
                               f"{cfg.indicator_variable} (the health indicator's variable) at "
                               "the sample times; NaN if the run failed")
+            for ch in _design_channels(cfg):
+                artifacts.put(g, f"channels/{ch}", np.full((len(X), times.size), np.nan),
+                              cfg.model.variable_words(ch)[1],
+                              f"{ch} (a further channel) at the sample times; NaN if the run "
+                              "failed")
             artifacts.put(g, "nonphysical", np.zeros(len(X), np.int8), "1",
                           "1 when the twin ended in its non-physical mode")
             artifacts.put(g, "status", np.full(len(X), STATUS_PENDING, np.int8), "1",
@@ -383,11 +394,20 @@ def _open_partial(partial: Path, section: str, spec: SimulationSpec, cfg: Config
     return 0
 
 
+def _design_channels(cfg: Config) -> list[str]:
+    """The further channels stored under ``<split>/channels`` (not the output itself)."""
+    return [ch for ch in cfg.model.channels if ch != cfg.model.output.variable]
+
+
 def _store_chunk(g: h5py.Group, idx: np.ndarray, batch: BatchResult, spec: SimulationSpec,
                  cfg: Config) -> None:
     # Write only this chunk's rows (idx is increasing, as h5py's point selection needs).
     rows = idx.tolist()
     g["Y"][rows] = batch.outputs[cfg.model.output.variable]
+    for ch in _design_channels(cfg):
+        # A partial file begun before channels were recorded has no room for them.
+        if f"channels/{ch}" in g and ch in batch.outputs:
+            g[f"channels/{ch}"][rows] = batch.outputs[ch]
     if "Y_indicator" in g:
         g["Y_indicator"][rows] = batch.outputs[cfg.indicator_variable]
     if cfg.model.nonphysical:
@@ -409,6 +429,8 @@ class Simulations:
     X, Y, ok, nonphysical : dict split -> arrays [n, n_inputs], [n, n_t], [n], [n]
     indicator_series : dict split -> array [n, n_t]
         The health indicator's variable (``Y`` itself when it is the output).
+    channels : dict split -> dict FMU variable -> array [n, n_t]
+        Further channels the design recorded (empty for files written before they were).
     """
 
     path: Path
@@ -420,6 +442,7 @@ class Simulations:
     ok: dict[str, np.ndarray]
     nonphysical: dict[str, np.ndarray]
     indicator_series: dict[str, np.ndarray] = field(default_factory=dict)
+    channels: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
 
 
 def read_simulations(path: str | os.PathLike) -> Simulations:
@@ -428,7 +451,7 @@ def read_simulations(path: str | os.PathLike) -> Simulations:
     path = Path(path)
     with artifacts.open_artifact(path, "simulations") as f:
         names = json.loads(f.attrs["input_names"])
-        X, Y, ok, nph, ind = {}, {}, {}, {}, {}
+        X, Y, ok, nph, ind, chans = {}, {}, {}, {}, {}, {}
         for split in SPLITS:
             if split not in f:
                 raise ArtifactError(f"{path}: group /{split} is missing")
@@ -439,5 +462,7 @@ def read_simulations(path: str | os.PathLike) -> Simulations:
             ok[split] = status == STATUS_OK
             nph[split] = artifacts.get(g, "nonphysical", path).astype(bool)
             ind[split] = artifacts.get(g, "Y_indicator", path) if "Y_indicator" in g else Y[split]
+            chans[split] = ({ch: artifacts.get(g["channels"], ch, path) for ch in g["channels"]}
+                            if "channels" in g else {})
         return Simulations(path, artifacts.get(f, "time", path), names,
-                           artifacts.get(f, "bounds", path), X, Y, ok, nph, ind)
+                           artifacts.get(f, "bounds", path), X, Y, ok, nph, ind, chans)

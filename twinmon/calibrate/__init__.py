@@ -31,6 +31,10 @@ The result is ``posterior.h5`` (``twinmon.posterior/1``)::
                             rms, p_chi2, p_ljung_box, window, window_rms, edge_share,
                             extensions, converged, status (ok|misfit|edge|unconverged)
     /units/<U>.attrs noise_source  "file" | "config" | "estimated"
+    /units/<U>.attrs channels      JSON {channel: {std, source}} when further channels were
+                                   in the likelihood (the output first); then also
+    /units/<U>/fit/channel_rms     float64 [n_y, n_ch]  residual RMS per channel, in noise sd
+    attrs channels (JSON list: the channels in the likelihood, the output's name first)
     attrs fit_windows (JSON list: the window names fit/window indexes)
 
 Goodness of fit: each year's residual at the posterior mean, standardised by the likelihood's
@@ -40,9 +44,13 @@ plant -- and one whose draws pile against a bound of the design box is "edge". A
 R-hat or ESS is poor is sampled again with longer chains (``max_extensions`` times); still
 poor, it is "unconverged". ``forecast`` withholds or flags a prognosis on these verdicts.
 
-Modules: ``density`` (prior, log-posterior, MAP), ``diagnostics`` (R-hat, ESS), ``sequential``
-(the paper's year-by-year method), ``posterior`` (per-unit results, goodness of fit, the
-artifact); this module is the stage's entry point.
+Further recorded channels (``model.channels``) that ``reduce`` learnt enter the likelihood
+with their own noise (``calibrate.channels`` restricts them; see ``channels``).
+
+Modules: ``density`` (prior, log-posterior, MAP), ``diagnostics`` (R-hat, ESS), ``channels``
+(several channels in one likelihood), ``sequential`` (the paper's year-by-year method),
+``posterior`` (per-unit results, goodness of fit, the artifact); this module is the stage's
+entry point.
 """
 from __future__ import annotations
 
@@ -59,6 +67,7 @@ import numpy as np
 from ..config import Config
 from ..errors import ArtifactError, CalibrationError, InputDataError, Interrupted
 from ..observations import check_events, read_observations
+from .channels import StackedSurrogate, channel_noise, select_channels, stacked_rows
 from .density import LogDensity, Prior, find_map, make_log_density
 from .diagnostics import ess, split_rhat
 from .posterior import (FIT_FIELDS, SECTIONS, SEED_OFFSET, STATUS_EDGE, STATUS_MISFIT,
@@ -95,6 +104,8 @@ class CalibrateSummary:
     truth_check: Optional[dict] = None
     #: Names of the windows the fit's ``window`` indexes.
     windows: list = field(default_factory=list)
+    #: Channels in the likelihood: the output's name, then the further channels used.
+    channels: list = field(default_factory=list)
 
     def as_dict(self) -> dict:
         units = {}
@@ -111,11 +122,16 @@ class CalibrateSummary:
                    "worst_window_rms": np.round(f["window_rms"], 3).tolist(),
                    "edge_share": np.round(f["edge_share"], 3).tolist(),
                    "extensions": f["extensions"].tolist()} if f else {}
+            if f and "channel_rms" in f:
+                fit["channel_rms"] = {ch: np.round(f["channel_rms"][:, i], 3).tolist()
+                                      for i, ch in enumerate(p.channels)}
             units[u] = {"years": p.years.tolist(), "params": params, "fit": fit}
         out = {
             "units": units,
-            "noise": {u: {"std": float(p.noise_std[0]), "source": p.noise_source}
+            "noise": {u: {"std": float(p.noise_std[0]), "source": p.noise_source,
+                          **({"channels": p.channels} if p.channels else {})}
                       for u, p in self.posterior.items()},
+            "channels": list(self.channels),
             "diagnostics": {u: {"rhat": p.rhat.tolist(), "ess": p.ess.tolist(),
                                 "acceptance": p.acceptance.tolist()}
                             for u, p in self.posterior.items()},
@@ -143,10 +159,10 @@ def _noise_for(cfg: Config, u) -> tuple[Optional[float], str]:
 _worker = {}
 
 
-def _init_worker(surrogate, surrogate_path) -> None:
+def _init_worker(surrogate, surrogate_path, output: str = "", channels=()) -> None:
     if surrogate is None:  # spawned, not forked: rebuild from the file
-        from ..reduce import read_surrogate
-        surrogate = read_surrogate(surrogate_path)
+        from .channels import load_surrogate
+        surrogate = load_surrogate(surrogate_path, output, list(channels))
     _worker["surrogate"] = surrogate
 
 
@@ -172,8 +188,9 @@ def _check_inputs(cfg: Config, surrogate, surrogate_path, obs) -> None:
 RANGE_FACTOR = 1.0
 
 
-def check_observed_range(cfg: Config, surrogate, obs) -> None:
-    """Observed output values must lie near what the design's simulations produced.
+def check_observed_range(cfg: Config, surrogate, obs, channel: str = "") -> None:
+    """Observed values of the output (or of a further ``channel``, with that channel's
+    surrogate) must lie near what the design's simulations produced.
 
     Raises
     ------
@@ -184,9 +201,10 @@ def check_observed_range(cfg: Config, surrogate, obs) -> None:
     lo, hi = float(np.min(train)), float(np.max(train))
     width = max(hi - lo, abs(hi), 1e-300)
     low, high = lo - RANGE_FACTOR * width, hi + RANGE_FACTOR * width
-    name, units = cfg.model.output.name, cfg.model.output.units
+    name = channel or cfg.model.output.name
+    units = cfg.model.channel_units.get(name, "")
     for unit in obs.units:
-        y = obs.output_of(unit)
+        y = obs.units[unit].channels[name]
         with np.errstate(invalid="ignore"):
             bad = (y < low) | (y > high)
         if bad.any():
@@ -196,6 +214,22 @@ def check_observed_range(cfg: Config, surrogate, obs) -> None:
                 f"t = {obs.time[j]:g} s is {y[k, j]:g} {units}, far outside anything the "
                 f"design's simulations produced ({lo:.4g} to {hi:.4g} {units}); check the "
                 "units and the channel")
+
+
+def _likelihood_model(cfg: Config, surrogate, surrogate_path, obs):
+    """The surrogate the likelihood predicts through, the further channels in it, and
+    warnings about recorded channels left out (:func:`.channels.select_channels`).
+
+    Without further channels it is the output's ``surrogate`` itself; else a
+    :class:`.channels.StackedSurrogate`, each channel's observations range-checked."""
+    from ..reduce import read_channel_surrogates
+    channels, warnings = select_channels(cfg, surrogate, obs, surrogate_path)
+    if not channels:
+        return surrogate, [], warnings
+    parts = read_channel_surrogates(surrogate_path, channels)
+    for ch, s in parts.items():
+        check_observed_range(cfg, s, obs, ch)
+    return StackedSurrogate({cfg.model.output.name: surrogate, **parts}), channels, warnings
 
 
 def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
@@ -242,13 +276,17 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
         if missing:
             raise ArtifactError(f"{truth_path}: no truth for unit {missing[0]!r}")
 
-    runs = {}
+    model, channels, channel_warnings = _likelihood_model(cfg, surrogate, surrogate_path, obs)
+    runs, channel_info = {}, {}
     for unit, u in obs.units.items():
         noise, source = _noise_for(cfg, u)
         y = obs.output_of(unit)
         if noise is None:
             noise = estimate_noise(surrogate, cfg, y)
-        runs[unit] = _UnitRun(surrogate, cfg, u.years, y, noise, _unit_seed(cfg, unit), source)
+        if channels:  # one noise per channel, records side by side
+            noise, channel_info[unit] = channel_noise(cfg, u, model, noise, source)
+            y = stacked_rows(u, model, cfg.model.output.name)
+        runs[unit] = _UnitRun(model, cfg, u.years, y, noise, _unit_seed(cfg, unit), source)
     total = sum(len(r.years) for r in runs.values())
     n_tasks = len(runs) * cfg.calibrate.chains
     workers = min(cfg.calibrate.workers or len(os.sched_getaffinity(0)), n_tasks)
@@ -256,7 +294,7 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
     if workers <= 1 and not (cfg.calibrate.executor == "dask" and cfg.dask.address):
         for run in runs.values():
             while not run.done:
-                run.finish([_run_task(surrogate, t) for t in run.plan()])
+                run.finish([_run_task(model, t) for t in run.plan()])
                 if progress:
                     progress(sum(r.k for r in runs.values()), total)
     else:
@@ -268,8 +306,8 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
         # A forked worker has the surrogate already; a Dask worker gets it sent, once.
         fork = hasattr(os, "fork") or cfg.calibrate.executor == "dask"
         start_pool = partial(open_pool, cfg, "calibrate")      # process or Dask pool
-        pool = start_pool(workers, _init_worker, (surrogate if fork else None,
-                                                  str(surrogate_path)))
+        pool = start_pool(workers, _init_worker, (model if fork else None, str(surrogate_path),
+                                                  cfg.model.output.name, tuple(channels)))
         ok = False
         try:
             with InterruptGuard() as guard:
@@ -287,17 +325,20 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
             else:
                 stop_pool(pool)
     posterior = {unit: run.result() for unit, run in runs.items()}
+    for unit, info in channel_info.items():
+        posterior[unit].channels = info
 
     names = cfg.model.input_names
     windows = list(cfg.diagnose_windows())
-    warnings = fit_warnings(posterior, names, windows, cfg) + \
+    warnings = channel_warnings + fit_warnings(posterior, names, windows, cfg) + \
         diagnostics_warnings(posterior, names, cfg)
     # The truth only feeds the summary, but it is recorded so that `twinmon run` re-runs
     # the stage (and its truth check) when it changes.
     inputs = [surrogate_path, observations_path] + ([truth_path] if truth_path else [])
     write_posterior(output, posterior, names, cfg, inputs, surrogate_id=surrogate.fingerprint())
     check = truth_check(posterior, truth, names) if truth is not None else None
-    return CalibrateSummary(names, posterior, warnings, str(output), check, windows)
+    return CalibrateSummary(names, posterior, warnings, str(output), check, windows,
+                            channels=[cfg.model.output.name] + channels)
 
 
 def _run_parallel(pool, runs: dict[str, "_UnitRun"], total: int, progress, guard) -> None:

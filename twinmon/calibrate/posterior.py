@@ -58,6 +58,10 @@ class UnitPosterior:
     surrogate_var_ratio: np.ndarray = field(default_factory=lambda: np.zeros(0))
     #: Goodness of fit per year (see :func:`year_fit`); empty for posteriors written before.
     fit: dict = field(default_factory=dict)
+    #: Channels in the likelihood when there were several: name -> {"std", "source"} (the
+    #: output first); empty when the output alone was used. ``fit["channel_rms"]`` [year,
+    #: channel] then holds each channel's residual RMS, in its noise sd.
+    channels: dict = field(default_factory=dict)
 
     @property
     def chains(self) -> int:
@@ -96,11 +100,16 @@ def year_fit(surrogate, cfg: Config, y: np.ndarray, total_var: np.ndarray,
     its RMS per diagnose window says where the twin misses. The draws' share near a box
     bound says whether the plant needs inputs outside the twin's box.
 
+    With a stacked surrogate (several channels side by side, see
+    :class:`~twinmon.calibrate.channels.StackedSurrogate`) ``y`` and ``total_var`` are
+    stacked the same way; the windows hold every channel's samples in them, the Ljung-Box
+    test runs per channel, and ``channel_rms`` gives each channel's RMS.
+
     Parameters
     ----------
-    y : ndarray, shape [n_t]
+    y : ndarray, shape [n_t] (or [n_ch * n_t])
         The observation (output units); NaN = missing.
-    total_var : ndarray, shape [n_t]
+    total_var : ndarray, shape [n_t] (or [n_ch * n_t])
         Likelihood variance per time step (output units squared).
     draws : ndarray, shape [n_s, d]
         Posterior draws (input units).
@@ -125,7 +134,16 @@ def year_fit(surrogate, cfg: Config, y: np.ndarray, total_var: np.ndarray,
     chi2 = float(np.sum(z[ok] ** 2))
     rms = float(np.sqrt(chi2 / max(n, 1)))
     p_chi2 = float(stats.chi2.sf(chi2, max(n - d, 1)))
-    p_lb = ljung_box(z, cfg.diagnose.ljung_box_lags)
+    blocks = getattr(surrogate, "blocks", None)
+    if blocks:
+        # Several channels side by side: one Ljung-Box test per channel (a residual's
+        # structure runs along one channel, not across), Bonferroni over channels.
+        p_lb = min(1.0, len(blocks) * min(ljung_box(z[sl], cfg.diagnose.ljung_box_lags)
+                                          for _, sl in blocks))
+    else:
+        p_lb = ljung_box(z, cfg.diagnose.ljung_box_lags)
+    # A stacked surrogate's time repeats the grid per channel: a window holds every
+    # channel's samples in it.
     t = surrogate.time
     wins = list(cfg.diagnose_windows().values())
     w_rms = np.array([np.sqrt(np.mean(z[(t >= w.start) & (t < w.stop) & ok] ** 2))
@@ -137,9 +155,13 @@ def year_fit(surrogate, cfg: Config, y: np.ndarray, total_var: np.ndarray,
     misfit = rms > cc.fit_min_rms and min(p_chi2, p_lb) < cc.fit_alpha
     status = STATUS_MISFIT if misfit else STATUS_EDGE if edge.max() > cc.edge_share \
         else STATUS_OK
-    return {"rms": rms, "p_chi2": p_chi2, "p_ljung_box": p_lb,
-            "window": int(np.argmax(w_rms)), "window_rms": float(w_rms.max()),
-            "edge_share": edge, "status": status}
+    out = {"rms": rms, "p_chi2": p_chi2, "p_ljung_box": p_lb,
+           "window": int(np.argmax(w_rms)), "window_rms": float(w_rms.max()),
+           "edge_share": edge, "status": status}
+    if blocks:
+        out["channel_rms"] = np.array([np.sqrt(np.mean(z[sl][ok[sl]] ** 2))
+                                       if ok[sl].any() else np.nan for _, sl in blocks])
+    return out
 
 
 @dataclass
@@ -217,6 +239,12 @@ def write_posterior(path, posterior: dict[str, UnitPosterior], input_names: list
                     continue
                 artifacts.put(g, name, np.asarray(getattr(p, name)), units, desc)
             g.attrs["noise_source"] = p.noise_source
+            if p.channels:      # several channels in the likelihood: each one's noise and fit
+                g.attrs["channels"] = artifacts.json_attr(p.channels)
+                if "channel_rms" in p.fit:
+                    artifacts.put(g, "fit/channel_rms", np.asarray(p.fit["channel_rms"]), "1",
+                                  "residual RMS per channel (order of the channels attribute),"
+                                  " in its noise sd [year, channel]")
             for key, (units, desc) in (FIT_FIELDS.items() if p.fit else ()):
                 data = np.asarray(p.fit[key])
                 if key == "status":
@@ -225,6 +253,8 @@ def write_posterior(path, posterior: dict[str, UnitPosterior], input_names: list
                     data = data.astype(np.int8)
                 artifacts.put(g, f"fit/{key}", data, units, desc)
         f.attrs["fit_windows"] = json.dumps(list(cfg.diagnose_windows()))
+        f.attrs["channels"] = json.dumps(list(dict.fromkeys(
+            c for p in posterior.values() for c in p.channels)) or [cfg.model.output.name])
 
 
 def _put_draws(g: h5py.Group, samples: np.ndarray, keep: int, desc: str) -> None:
@@ -295,5 +325,8 @@ def _read_unit(f: h5py.File, unit: str, path: Path, names: list[str]) -> UnitPos
         if len(fit["status"]) != n_y:
             raise ArtifactError(f"{path}: /units/{unit}/fit/status has "
                                 f"{len(fit['status'])} years, expected {n_y}")
+    channels = json.loads(g.attrs.get("channels", "{}"))
+    if channels and "fit" in g and "channel_rms" in g["fit"]:
+        fit["channel_rms"] = artifacts.get(g["fit"], "channel_rms", path)
     return UnitPosterior(noise_source=src.decode() if isinstance(src, bytes) else str(src),
-                         fit=fit, **arrs)
+                         fit=fit, channels=channels, **arrs)

@@ -171,7 +171,10 @@ class _UnitRun:
         self.years = np.asarray(years, dtype=np.int64)
         self.flows = np.atleast_2d(np.asarray(flows, float))
         n_y, d = len(self.years), len(cfg.model.input_names)
-        self.noise = np.broadcast_to(np.asarray(noise_std, float), (n_y,)).copy()
+        # A stacked surrogate (several channels) takes one noise per channel: [n_y, n_ch].
+        n_ch = len(getattr(surrogate, "blocks", ()))
+        self.noise = np.broadcast_to(np.asarray(noise_std, float),
+                                     (n_y, n_ch) if n_ch else (n_y,)).copy()
         self.stats = {k: np.empty((n_y, d))
                       for k in ("mean", "median", "q05", "q95", "rhat", "ess")}
         self.samples = np.empty((n_y, cc.chains * cc.samples, d))
@@ -192,8 +195,13 @@ class _UnitRun:
         # The surrogate's variance is held at its value at the prior's centre: computing it
         # costs ~4 likelihood evaluations and it is 3 orders of magnitude below the noise.
         s_var = self.surrogate.predict_with_var(prior.location[None, :])[1][0]
-        total = self.noise[k] ** 2 + s_var
-        self.ratio[k] = float(np.mean(s_var) / self.noise[k] ** 2)
+        if self.noise.ndim == 2:   # per channel: each channel's noise over its own steps
+            var = self.surrogate.noise_var(self.noise[k])
+            total = var + s_var
+            self.ratio[k] = float(np.mean(s_var / var))
+        else:
+            total = self.noise[k] ** 2 + s_var
+            self.ratio[k] = float(np.mean(s_var) / self.noise[k] ** 2)
         ld = make_log_density(self.surrogate, self.flows[k], total, prior)
         self._total, self._prior = total, prior
         seed = self.seed + 97 * k
@@ -238,8 +246,12 @@ class _UnitRun:
 
     def result(self) -> UnitPosterior:
         fit = {key: np.array([f[key] for f in self.fits]) for key in FIT_FIELDS}
+        if self.fits and "channel_rms" in self.fits[0]:
+            fit["channel_rms"] = np.array([f["channel_rms"] for f in self.fits])
+        # noise_std is the output's; the further channels' go with UnitPosterior.channels.
+        noise = self.noise[:, 0] if self.noise.ndim == 2 else self.noise
         return UnitPosterior(years=self.years, samples=self.samples, acceptance=self.acc,
-                             noise_std=self.noise, noise_source=self.source,
+                             noise_std=noise, noise_source=self.source,
                              surrogate_var_ratio=self.ratio, fit=fit, **self.stats)
 
 
@@ -253,10 +265,12 @@ def calibrate_unit(surrogate, cfg: Config, years, flows, noise_std, rng_seed: in
     cfg : Config
         Uses ``model`` (box) and ``calibrate`` (chains, samples, burn-in, prior width).
     years : array of int, shape [n_y]
-    flows : ndarray, shape [n_y, n_t]
-        Measured output (its units) on the surrogate's time grid; NaN = missing.
-    noise_std : float or ndarray, shape [n_y]
-        Output noise standard deviation (output units).
+    flows : ndarray, shape [n_y, n_t] or [n_y, n_ch * n_t]
+        Measured output (its units) on the surrogate's time grid; NaN = missing. With a
+        :class:`~twinmon.calibrate.channels.StackedSurrogate`, every stacked channel's
+        records side by side.
+    noise_std : float or ndarray, shape [n_y]; with a stacked surrogate [n_ch] or [n_y, n_ch]
+        Output (or each channel's) noise standard deviation (its units).
     rng_seed : int
         Seed of this unit's draws (year ``k`` uses ``rng_seed + 97 * k``, as
         :func:`sample_posterior` would).

@@ -44,6 +44,11 @@ def calibrate(config_path, overrides, surrogate, observations, truth, output, as
             f"{cfg.model.output.units} "
             f"({_SOURCE[nz['source']]}), R-hat <= {p.rhat.max():.3f}, ESS >= {p.ess.min():.0f}, "
             f"acceptance {p.acceptance.min():.2f}-{p.acceptance.max():.2f}")
+        if p.channels:
+            units = cfg.model.channel_units
+            say("  channels: " + ", ".join(
+                f"{ch} (noise std {c['std']:.3g} {units.get(ch, '')}, {c['source']})"
+                for ch, c in p.channels.items()))
         last = {n: p.mean[-1, j] for j, n in enumerate(s.input_names)}
         say("  last year: " + ", ".join(
             f"{n} {v:.4g} [{p.q05[-1, j]:.4g}, {p.q95[-1, j]:.4g}]"

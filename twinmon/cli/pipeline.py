@@ -32,6 +32,13 @@ def reduce(config_path, overrides, simulations, output, as_json):
             f"output's range ({v.output_range:.4g} {cfg.model.output.units}){rel}; Q2 per mode "
             f"{', '.join(f'{q:.5f}' for q in v.q2)}, 90 % band coverage "
             f"{100 * v.coverage_90:.1f} % -> {output}")
+        for ch, c in s.channels.items():
+            t = c["test"]
+            say(f"  channel {ch}: {c['modes']} modes, transform {c['transform']}; test error "
+                f"max {100 * t['max_range_error']:.3f} %, mean {100 * t['mean_range_error']:.4f} "
+                f"% of its range; 90 % band coverage {100 * t['coverage_90']:.1f} %")
+    for w in s.warnings:
+        click.echo(f"twinmon: warning: {w}", err=True)
 
 
 @main.command()
