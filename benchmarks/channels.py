@@ -110,20 +110,21 @@ def main() -> None:
     units = len(base.fabricate.units)
     print(f"\n{units} units x {args.years} years (configs/fleet.yaml, every channel recorded, "
           "1 % noise each)")
-    head = f"{'likelihood':<22} {'input':<14} {'mean err':>9} {'max err':>8} {'cover90':>8} " \
+    w = max(22, *(len(k) for k in runs))
+    head = f"{'likelihood':<{w}} {'input':<14} {'mean err':>9} {'max err':>8} {'cover90':>8} " \
            f"{'width90':>8}"
     print(head)
     print("-" * len(head))
     for label, (fig, wall, _) in runs.items():
         for name in names:
             f = fig[name]
-            print(f"{label:<22} {name:<14} {100 * f['mean']:8.2f}% {100 * f['max']:7.2f}% "
+            print(f"{label:<{w}} {name:<14} {100 * f['mean']:8.2f}% {100 * f['max']:7.2f}% "
                   f"{100 * f['cover']:7.1f}% {100 * f['width']:7.2f}%")
-    print(f"\n{'likelihood':<22} {'corr(draws) mean':>17} {'mean |corr|':>12} {'range':>16} "
+    print(f"\n{'likelihood':<{w}} {'corr(draws) mean':>17} {'mean |corr|':>12} {'range':>16} "
           f"{'calibrate':>10}")
     for label, (fig, wall, s) in runs.items():
         c = fig["corr"]
-        print(f"{label:<22} {c['mean']:17.3f} {c['abs']:12.3f} "
+        print(f"{label:<{w}} {c['mean']:17.3f} {c['abs']:12.3f} "
               f"{c['min']:7.3f}..{c['max']:6.3f} {wall:9.1f}s")
     ref, new = list(runs.values())[0][0], list(runs.values())[1][0]
     print("\nratio (with channels / flow only): " + "; ".join(
