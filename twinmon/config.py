@@ -472,6 +472,11 @@ class CalibrateConfig:
     #: each with its own noise; None: every channel the observations carry and the surrogate
     #: models; []: the output only.
     channels: Optional[tuple[str, ...]] = None
+    #: How the sequential method samples: ``vectorised`` (numpy random-walk Metropolis over
+    #: every unit's chains at once, run until the ESS is met; calibrate/vectorised.py) or
+    #: ``openturns`` (OpenTURNS' sampler, one chain per task: the reference). Same model, same
+    #: diagnostics; docs/calibration.md compares them.
+    sampler: Literal["vectorised", "openturns"] = "vectorised"
 
     def _check(self):
         if self.chains < 2:

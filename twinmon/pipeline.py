@@ -56,6 +56,7 @@ def _stage(cfg: Config, name: str, kind: str, sections, output: Path, inputs, fo
 def run_pipeline(cfg: Config, observations: str | os.PathLike, workdir: str | os.PathLike = "out",
                  *, gap_observations: str | os.PathLike | None = None,
                  truth: str | os.PathLike | None = None, force: bool = False,
+                 update: bool = False,
                  log: Callable[[str], None] = lambda s: None) -> RunSummary:
     """Run simulate, reduce, calibrate, forecast, diagnose and report.
 
@@ -72,6 +73,11 @@ def run_pipeline(cfg: Config, observations: str | os.PathLike, workdir: str | os
         A truth file (fabricated data only): adds errors against the truth to the outputs.
     force : bool
         Re-run every stage even when its output is up to date.
+    update : bool
+        When calibrate runs (its observations changed, or ``force``), it keeps the years
+        already in ``posterior.h5`` and samples only the new ones (``calibrate --update``);
+        forecast, diagnose and report then re-run in full as usual (they are cheap next to
+        calibration), as their inputs changed.
     log : callable
         Receives one human line per stage.
     """
@@ -91,11 +97,11 @@ def run_pipeline(cfg: Config, observations: str | os.PathLike, workdir: str | os
     wd.mkdir(parents=True, exist_ok=True)
     # Two runs into one workdir would race on every artifact: the second one stops at once.
     with artifacts.output_lock(wd, "twinmon run"):
-        return _run_locked(cfg, obs, gap_obs, wd, truth, force, log)
+        return _run_locked(cfg, obs, gap_obs, wd, truth, force, log, update)
 
 
 def _run_locked(cfg: Config, obs: Path, gap_obs: Path, wd: Path, truth, force: bool,
-                log) -> RunSummary:
+                log, update: bool = False) -> RunSummary:
     from . import calibrate, diagnose, forecast, reduce, report, simulate
     p = {k: wd / f"{k}.h5" for k in ("simulations", "surrogate", "posterior", "forecast", "gap")}
     extra = [truth] if truth else []
@@ -110,7 +116,7 @@ def _run_locked(cfg: Config, obs: Path, gap_obs: Path, wd: Path, truth, force: b
     stages.append(_stage(cfg, "calibrate", "posterior", calibrate.SECTIONS, p["posterior"],
                          [p["surrogate"], obs] + extra, force,
                          lambda: calibrate.calibrate(cfg, p["surrogate"], obs, p["posterior"],
-                                                     truth), log))
+                                                     truth, update=update), log))
     stages.append(_stage(cfg, "forecast", "forecast", forecast.SECTIONS, p["forecast"],
                          [p["posterior"], p["surrogate"]] + extra, force,
                          lambda: forecast.forecast(cfg, p["posterior"], p["surrogate"],

@@ -30,7 +30,9 @@ def setup(tmp_path_factory, fmu_path):
     cfg_path = write_yaml(tmp / "c.yaml", {
         "extends": str(CONFIGS / "pump.yaml"),
         "simulate": {"train_size": 64, "test_size": 8},
-        "calibrate": {"chains": 4, "samples": 1000, "burn_in": 200, "workers": 1}})
+        # The OpenTURNS sampler, the reference (test_calibrate_vectorised.py: the other one).
+        "calibrate": {"chains": 4, "samples": 1000, "burn_in": 200, "workers": 1,
+                      "sampler": "openturns"}})
     cfg = load_config(cfg_path)
     simulate(cfg, tmp / "sims.h5")
     reduce(cfg, tmp / "sims.h5", tmp / "sur.h5")

@@ -106,6 +106,8 @@ class CalibrateSummary:
     windows: list = field(default_factory=list)
     #: Channels in the likelihood: the output's name, then the further channels used.
     channels: list = field(default_factory=list)
+    #: What ``--update`` kept and sampled (:func:`.update.plan_update`); None for a full run.
+    update: Optional[dict] = None
 
     def as_dict(self) -> dict:
         units = {}
@@ -140,6 +142,8 @@ class CalibrateSummary:
         }
         if self.truth_check is not None:
             out["truth_check"] = self.truth_check
+        if self.update is not None:
+            out["update"] = self.update
         return out
 
 
@@ -235,7 +239,8 @@ def _likelihood_model(cfg: Config, surrogate, surrogate_path, obs):
 def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
               observations_path: str | os.PathLike, output: str | os.PathLike,
               truth_path: str | os.PathLike | None = None,
-              progress: Optional[Callable[[int, int], None]] = None) -> CalibrateSummary:
+              progress: Optional[Callable[[int, int], None]] = None,
+              update: bool = False) -> CalibrateSummary:
     """Calibrate every unit of an observations file and write ``posterior.h5``.
 
     Years within a unit run in order (each year's prior is centred on the previous estimate);
@@ -254,6 +259,11 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
         A ``twinmon.truth/1`` file: adds the relative errors and 90 % interval coverage.
     progress : callable(done, total), optional
         Called as unit-years complete.
+    update : bool
+        Continue the posterior already at ``output``: its years are kept as they are and
+        only the years added since are sampled (:mod:`.update`; the result equals a full
+        run's). Refused (``ArtifactError``) when it was made with another config or
+        surrogate.
 
     Raises
     ------
@@ -287,11 +297,29 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
             noise, channel_info[unit] = channel_noise(cfg, u, model, noise, source)
             y = stacked_rows(u, model, cfg.model.output.name)
         runs[unit] = _UnitRun(model, cfg, u.years, y, noise, _unit_seed(cfg, unit), source)
+    from .update import Kept, plan_update, year_digests
+    digests = {unit: year_digests(r.flows, r.noise) for unit, r in runs.items()}
+    resume, update_info = plan_update(cfg, surrogate.fingerprint(), output, runs) if update \
+        else ({}, None)
     total = sum(len(r.years) for r in runs.values())
     n_tasks = len(runs) * cfg.calibrate.chains
     workers = min(cfg.calibrate.workers or len(os.sched_getaffinity(0)), n_tasks)
+    for unit, p in resume.items():
+        if len(p.years) == len(runs[unit].years):
+            runs[unit] = Kept(p)          # nothing new: kept as it is
+        else:
+            runs[unit].resume(p)          # continue after the stored years
+    if cfg.calibrate.sampler == "vectorised":
+        # every run finished by the vectorised sampler
+        from .vectorised import run_vectorised
+        fork = hasattr(os, "fork") or cfg.calibrate.executor == "dask"
+        run_vectorised(cfg, model, runs, resume, output, progress,
+                       (_init_worker, (model if fork else None, str(surrogate_path),
+                                       cfg.model.output.name, tuple(channels))))
+    if all(r.done for r in runs.values()):      # vectorised, or nothing new (--update)
+        pass
     # On a Dask cluster (an address) the cluster's workers do the work, whatever the count.
-    if workers <= 1 and not (cfg.calibrate.executor == "dask" and cfg.dask.address):
+    elif workers <= 1 and not (cfg.calibrate.executor == "dask" and cfg.dask.address):
         for run in runs.values():
             while not run.done:
                 run.finish([_run_task(model, t) for t in run.plan()])
@@ -325,6 +353,8 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
             else:
                 stop_pool(pool)
     posterior = {unit: run.result() for unit, run in runs.items()}
+    for unit, p in posterior.items():
+        p.digest = np.array(digests[unit])
     for unit, info in channel_info.items():
         posterior[unit].channels = info
 
@@ -338,7 +368,7 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
     write_posterior(output, posterior, names, cfg, inputs, surrogate_id=surrogate.fingerprint())
     check = truth_check(posterior, truth, names) if truth is not None else None
     return CalibrateSummary(names, posterior, warnings, str(output), check, windows,
-                            channels=[cfg.model.output.name] + channels)
+                            channels=[cfg.model.output.name] + channels, update=update_info)
 
 
 def _run_parallel(pool, runs: dict[str, "_UnitRun"], total: int, progress, guard) -> None:

@@ -62,6 +62,14 @@ class UnitPosterior:
     #: output first); empty when the output alone was used. ``fit["channel_rms"]`` [year,
     #: channel] then holds each channel's residual RMS, in its noise sd.
     channels: dict = field(default_factory=dict)
+    #: Posterior variance of all the draws [year, input] and each chain's last state [year,
+    #: chain, input]: what ``calibrate --update`` continues from (the next year's prior and
+    #: the vectorised sampler's warm start); empty in posteriors written before.
+    var: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    chain_end: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 0)))
+    #: Per year, a SHA-256 of the observation row and noise the year was calibrated on:
+    #: ``--update`` keeps a year only if its data are unchanged.
+    digest: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=str))
 
     @property
     def chains(self) -> int:
@@ -197,6 +205,15 @@ _DATASETS = {
 }
 
 
+#: Optional per-unit datasets (absent from posteriors written before ``--update`` existed).
+_CONTINUATION = {
+    "var": ("input units squared", "posterior variance of all the draws [year, input]"),
+    "chain_end": ("input units", "last state of each chain [year, chain, input]"),
+    "digest": ("1", "SHA-256 of the observation row and noise each year was calibrated on "
+               "[year]"),
+}
+
+
 def thin_indices(n_draws: int, keep: int) -> np.ndarray:
     """Indices of ``keep`` draws evenly spaced over ``n_draws`` pooled draws (all of them
     when ``keep >= n_draws``).
@@ -239,6 +256,11 @@ def write_posterior(path, posterior: dict[str, UnitPosterior], input_names: list
                     continue
                 artifacts.put(g, name, np.asarray(getattr(p, name)), units, desc)
             g.attrs["noise_source"] = p.noise_source
+            for name, (units, desc) in _CONTINUATION.items():
+                if np.size(getattr(p, name)):
+                    data = getattr(p, name)
+                    data = [str(v) for v in data] if name == "digest" else np.asarray(data)
+                    artifacts.put(g, name, data, units, desc)
             if p.channels:      # several channels in the likelihood: each one's noise and fit
                 g.attrs["channels"] = artifacts.json_attr(p.channels)
                 if "channel_rms" in p.fit:
@@ -328,5 +350,6 @@ def _read_unit(f: h5py.File, unit: str, path: Path, names: list[str]) -> UnitPos
     channels = json.loads(g.attrs.get("channels", "{}"))
     if channels and "fit" in g and "channel_rms" in g["fit"]:
         fit["channel_rms"] = artifacts.get(g["fit"], "channel_rms", path)
+    arrs.update({n: artifacts.get(g, n, path) for n in _CONTINUATION if n in g})
     return UnitPosterior(noise_source=src.decode() if isinstance(src, bytes) else str(src),
                          fit=fit, channels=channels, **arrs)

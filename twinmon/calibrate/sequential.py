@@ -14,7 +14,8 @@ from ..config import Config
 from ..errors import CalibrationError
 from .density import LogDensity, Prior, find_map, make_log_density
 from .diagnostics import ess, split_rhat
-from .posterior import FIT_FIELDS, STATUS_OK, STATUS_UNCONVERGED, UnitPosterior, year_fit
+from .posterior import (FIT_FIELDS, STATUS_OK, STATUS_UNCONVERGED, UnitPosterior, thin_indices,
+                        year_fit)
 
 
 def _initial_states(rng: np.random.Generator, x_map: np.ndarray, cov: np.ndarray,
@@ -180,10 +181,26 @@ class _UnitRun:
         self.samples = np.empty((n_y, cc.chains * cc.samples, d))
         self.acc = np.empty((n_y, cc.chains))
         self.ratio = np.empty(n_y)
+        self.var, self.chain_end = np.empty((n_y, d)), np.empty((n_y, cc.chains, d))
         self.fits: list[dict] = []
         self.k = 0
         self.ext = 0             # how many times year k's chains were lengthened
         self.prev = self.prev_var = None
+
+    def resume(self, p: UnitPosterior) -> None:
+        """Take the first ``len(p.years)`` years from an earlier posterior of this unit (as
+        they are) and continue after them (``calibrate --update``)."""
+        k = len(p.years)
+        for key, arr in self.stats.items():
+            arr[:k] = getattr(p, key)
+        # The stored draws may be thinned: later years are thinned alike (see finish()).
+        self.samples = np.empty((len(self.years),) + p.samples.shape[1:])
+        self.samples[:k] = p.samples
+        self.acc[:k], self.ratio[:k] = p.acceptance, p.surrogate_var_ratio
+        self.var[:k], self.chain_end[:k] = p.var, p.chain_end
+        self.fits = [{key: p.fit[key][i] for key in p.fit} for i in range(k)]
+        self.k = k
+        self.prev, self.prev_var = p.mean[k - 1], p.var[k - 1]
 
     @property
     def done(self) -> bool:
@@ -228,7 +245,8 @@ class _UnitRun:
             return
         self.acc[k] = [r[1] for r in results]
         pooled = draws.reshape(-1, d)
-        self.samples[k] = pooled
+        self.samples[k] = pooled if len(pooled) == self.samples.shape[1] else \
+            pooled[thin_indices(len(pooled), self.samples.shape[1])]
         st = self.stats
         st["mean"][k] = pooled.mean(axis=0)
         st["median"][k] = np.median(pooled, axis=0)
@@ -240,7 +258,8 @@ class _UnitRun:
         if fit["status"] == STATUS_OK and not converged:
             fit["status"] = STATUS_UNCONVERGED
         self.fits.append(fit)
-        self.prev, self.prev_var = st["mean"][k], pooled.var(axis=0)
+        self.var[k], self.chain_end[k] = pooled.var(axis=0), draws[:, -1]
+        self.prev, self.prev_var = st["mean"][k], self.var[k]
         self.k += 1
         self.ext = 0
 
@@ -252,7 +271,8 @@ class _UnitRun:
         noise = self.noise[:, 0] if self.noise.ndim == 2 else self.noise
         return UnitPosterior(years=self.years, samples=self.samples, acceptance=self.acc,
                              noise_std=noise, noise_source=self.source,
-                             surrogate_var_ratio=self.ratio, fit=fit, **self.stats)
+                             surrogate_var_ratio=self.ratio, fit=fit, var=self.var,
+                             chain_end=self.chain_end, **self.stats)
 
 
 def calibrate_unit(surrogate, cfg: Config, years, flows, noise_std, rng_seed: int,

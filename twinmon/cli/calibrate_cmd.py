@@ -20,14 +20,18 @@ MAX_WARNINGS = 12
               help="Truth file (from fabricate): print errors and interval coverage.")
 @click.option("-o", "--output", default="out/posterior.h5", show_default=True,
               type=click.Path(), help="Posterior artifact to write.")
+@click.option("--update", is_flag=True,
+              help="Keep the years already in the output posterior; sample only the years "
+                   "(and units) added to the observations since. Same result as a full run.")
 @json_option
-def calibrate(config_path, overrides, surrogate, observations, truth, output, as_json):
+def calibrate(config_path, overrides, surrogate, observations, truth, output, update, as_json):
     """Bayesian calibration (MCMC) of each unit's inputs, year by year."""
     from ..calibrate import calibrate as run
     cfg = load(config_path, overrides)
     n_years = _count_years(observations)
-    with progress_bar(n_years, "calibrate") as update:
-        s = run(cfg, surrogate, observations, output, truth_path=truth, progress=update)
+    with progress_bar(n_years, "calibrate") as tick:
+        s = run(cfg, surrogate, observations, output, truth_path=truth, progress=tick,
+                update=update)
     # Warnings go to stderr even with --json or -q: they say the numbers may be wrong.
     for w in s.warnings[:MAX_WARNINGS]:
         click.echo(f"twinmon: warning: {w}", err=True)
@@ -38,6 +42,13 @@ def calibrate(config_path, overrides, surrogate, observations, truth, output, as
         emit_json(s.as_dict())
         return
     d = s.as_dict()
+    if s.update is not None:
+        u = s.update
+        say(f"calibrate --update: {u['kept_years']} unit-year(s) kept from "
+            f"{u['from'] or 'nothing (no earlier posterior)'}, {u['new_years']} sampled"
+            + "".join(f"; {what}: {', '.join(u[key])}" for key, what in
+                      (("new_units", "new units"), ("redone_units", "redone (data changed)"),
+                       ("dropped_units", "no longer observed")) if u[key]))
     for unit, nz in d["noise"].items():
         p = s.posterior[unit]
         say(f"calibrate: {unit}: {len(p.years)} years, noise std {nz['std']:.3g} "

@@ -52,13 +52,17 @@ def reduce(config_path, overrides, simulations, output, as_json):
 @click.option("--workdir", default="out", show_default=True, type=click.Path(file_okay=False),
               help="Folder of the artifacts and of report/.")
 @click.option("--force", is_flag=True, help="Re-run every stage, even those up to date.")
+@click.option("--update", is_flag=True,
+              help="calibrate keeps the years already in the workdir's posterior and samples "
+                   "only those added since (calibrate --update); later stages re-run.")
 @json_option
-def run(config_path, overrides, observations, gap_observations, truth, workdir, force, as_json):
+def run(config_path, overrides, observations, gap_observations, truth, workdir, force, update,
+        as_json):
     """Every stage in order, skipping those whose output is up to date."""
     from ..pipeline import run_pipeline
     cfg = load(config_path, overrides)
     summary = run_pipeline(cfg, observations, workdir, gap_observations=gap_observations,
-                           truth=truth, force=force, log=say)
+                           truth=truth, force=force, update=update, log=say)
     if as_json:
         emit_json(summary.as_dict())
     else:

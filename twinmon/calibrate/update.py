@@ -1,0 +1,146 @@
+"""``calibrate --update``: continue an earlier posterior with the years added since.
+
+The sequential method calibrates a unit's years in order, each year's prior built from the
+year before (its posterior mean and variance), and draws year ``k`` of unit ``U`` from a
+generator seeded by (``U``, ``k``) alone. So the years already in ``posterior.h5`` need not
+be sampled again: a unit continues from its last stored year (mean, variance and, for the
+vectorised sampler's warm start, each chain's last state, all stored bit for bit), and the
+result is the one a full run would give, array for array.
+
+With the joint method (a unit's whole history in one posterior) a unit is kept as it is when
+it has no new year, and calibrated again in full otherwise.
+
+A unit is calibrated in full instead when it is new, when the data of a stored year changed
+(each year's observation row and noise are recorded as a SHA-256: a corrected file, or a
+noise estimated from all the unit's years, which moves when years are added), or when its
+stored years are not the first of its years now. Units no longer in the observations are
+left out, as a full run would. An update is refused (``ArtifactError``) when the posterior
+was made with another ``model``/``calibrate``/``seed`` config, through another surrogate,
+or before these records existed.
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from .. import artifacts
+from ..config import Config
+from ..errors import ArtifactError
+from .posterior import SECTIONS, UnitPosterior, read_posterior
+
+
+def year_digests(flows: np.ndarray, noise: np.ndarray) -> list[str]:
+    """SHA-256 per year of the observation row (NaN included) and its noise.
+
+    Parameters
+    ----------
+    flows : ndarray, shape [n_y, n_out]
+    noise : ndarray, shape [n_y] or [n_y, n_ch]
+    """
+    flows = np.atleast_2d(np.asarray(flows, float))
+    noise = np.asarray(noise, float).reshape(len(flows), -1)
+    return [hashlib.sha256(np.ascontiguousarray(f).tobytes()
+                           + np.ascontiguousarray(n).tobytes()).hexdigest()
+            for f, n in zip(flows, noise)]
+
+
+def _config_difference(old: str, new: str) -> str:
+    """The first config keys (dotted) whose values differ, for the error message."""
+    a, b = yaml.safe_load(old) or {}, yaml.safe_load(new) or {}
+    out = []
+
+    def walk(x, y, where):
+        if isinstance(x, dict) and isinstance(y, dict):
+            for k in sorted(set(x) | set(y), key=str):
+                walk(x.get(k), y.get(k), f"{where}.{k}" if where else str(k))
+        elif x != y:
+            out.append(f"{where} {x!r} -> {y!r}")
+    walk(a, b, "")
+    return "; ".join(out[:3]) + (" ..." if len(out) > 3 else "")
+
+
+class Kept:
+    """A unit whose result is already known (kept from the earlier posterior, or finished by
+    the vectorised sampler), in ``calibrate()``'s table of runs."""
+
+    done = True
+
+    def __init__(self, posterior: UnitPosterior):
+        self.posterior, self.years, self.k = posterior, posterior.years, len(posterior.years)
+
+    def result(self) -> UnitPosterior:
+        return self.posterior
+
+
+def plan_update(cfg: Config, surrogate_id: str, output: str | os.PathLike,
+                runs: dict) -> tuple[dict[str, UnitPosterior], dict]:
+    """Which units continue an earlier ``posterior.h5`` and from where.
+
+    Parameters
+    ----------
+    cfg : Config
+    surrogate_id : str
+        Fingerprint of the surrogate of this run.
+    output : path-like
+        The posterior to update (also the one to write).
+    runs : dict unit -> object with ``years``, ``flows``, ``noise``
+        This run's units and their data.
+
+    Returns
+    -------
+    resume : dict unit -> UnitPosterior
+        Units that keep their stored years (their arrays as they are): all of the unit's
+        years, or (sequential method) the first ones, sampling continuing after them. With
+        the joint method a unit with new years is sampled again in full.
+    info : dict
+        ``{"from", "kept_years", "new_years", "new_units", "redone_units", "dropped_units"}``
+        for the summary (``from`` is None when there was no earlier posterior).
+
+    Raises
+    ------
+    ArtifactError
+        The posterior was made with another config or surrogate, or lacks the records an
+        update needs.
+    """
+    path = Path(output)
+    total = sum(len(r.years) for r in runs.values())
+    if not path.exists():
+        return {}, {"from": None, "kept_years": 0, "new_years": total,
+                    "new_units": sorted(runs), "redone_units": [], "dropped_units": []}
+    post = read_posterior(path)
+    prov = artifacts.read_provenance(path)
+    want = cfg.section_yaml(*SECTIONS)
+    if prov.get("config") != want:
+        raise ArtifactError(f"{path}: made with another config ("
+                            f"{_config_difference(prov.get('config', ''), want)}); "
+                            "re-run calibrate without --update")
+    if prov.get("surrogate_id", "") != surrogate_id:
+        raise ArtifactError(f"{path}: made through another surrogate (surrogate_id "
+                            f"{str(prov.get('surrogate_id', ''))[:12] or 'missing'}, this one "
+                            f"{surrogate_id[:12]}); re-run calibrate without --update")
+    resume, new, redone = {}, [], []
+    for unit, run in runs.items():
+        if unit not in post.units:
+            new.append(unit)
+            continue
+        p = post.units[unit]
+        if not (np.size(p.digest) and np.size(p.var) and np.size(p.chain_end)):
+            raise ArtifactError(f"{path}: /units/{unit} lacks the records an update continues "
+                                "from (var, chain_end, digest: written by an older twinmon); "
+                                "re-run calibrate without --update")
+        n = len(p.years)
+        years = np.asarray(run.years)
+        same = n <= len(years) and np.array_equal(p.years, years[:n]) and \
+            list(p.digest) == year_digests(run.flows, run.noise)[:n]
+        if not same:
+            redone.append(unit)
+        elif n == len(years) or getattr(cfg.calibrate, "method", "sequential") == "sequential":
+            resume[unit] = p      # a joint history is one posterior: new years redo it all
+    kept = sum(len(p.years) for p in resume.values())
+    return resume, {"from": str(path), "kept_years": kept, "new_years": total - kept,
+                    "new_units": new, "redone_units": redone,
+                    "dropped_units": sorted(set(post.units) - set(runs))}
