@@ -477,6 +477,14 @@ class CalibrateConfig:
     #: ``openturns`` (OpenTURNS' sampler, one chain per task: the reference). Same model, same
     #: diagnostics; docs/calibration.md compares them.
     sampler: Literal["vectorised", "openturns"] = "vectorised"
+    #: ``sequential``: the paper's method, each year sampled in turn with a prior centred on
+    #: the previous year's estimate (calibrate/sequential.py). ``joint``: each unit's whole
+    #: history in one posterior with a linear trend per input (restarted at maintenance
+    #: events) and its year-to-year scatter inside (calibrate/joint.py; docs/calibration.md).
+    method: Literal["sequential", "joint"] = "sequential"
+    #: ``joint`` only: moves of the whole trend (levels, slopes, scatter) per Gibbs sweep,
+    #: each one surrogate call over the unit's years; the years' own moves are one each.
+    joint_trend_moves: int = 5
 
     def _check(self):
         if self.chains < 2:
@@ -499,6 +507,8 @@ class CalibrateConfig:
             yield "keep_draws", "must be >= 1", self.keep_draws
         if self.max_extensions < 0:
             yield "max_extensions", "must be >= 0", self.max_extensions
+        if self.joint_trend_moves < 1:
+            yield "joint_trend_moves", "must be >= 1", self.joint_trend_moves
         if not 0 < self.fit_alpha < 1:
             yield "fit_alpha", "must lie in (0, 1)", self.fit_alpha
         if self.fit_min_rms < 1:

@@ -30,6 +30,9 @@ The result is ``posterior.h5`` (``twinmon.posterior/1``)::
     /units/<U>/fit/<field>  [n_y] or [n_y, d]         goodness of fit per year (FIT_FIELDS):
                             rms, p_chi2, p_ljung_box, window, window_rms, edge_share,
                             extensions, converged, status (ok|misfit|edge|unconverged)
+    /units/<U>/trend/<field>                   calibrate.method joint only: the trend's
+                            posterior (joint.TREND_FIELDS): start [S, d]; intercept, slope
+                            [draw, S, d]; sigma [draw, d]; rhat, ess [3, d]; acceptance [chain]
     /units/<U>.attrs noise_source  "file" | "config" | "estimated"
     /units/<U>.attrs channels      JSON {channel: {std, source}} when further channels were
                                    in the likelihood (the output first); then also
@@ -171,7 +174,15 @@ def _init_worker(surrogate, surrogate_path, output: str = "", channels=()) -> No
 
 
 def _work(task: _ChainTask):
-    return _run_task(_worker["surrogate"], task)
+    return _run_any(_worker["surrogate"], task)
+
+
+def _run_any(surrogate, task):
+    """One task of either method: a year's chain (sequential) or a unit's (joint)."""
+    from .joint import _JointTask, run_joint_task
+    if isinstance(task, _JointTask):
+        return run_joint_task(surrogate, task)
+    return _run_task(surrogate, task)
 
 
 def _check_inputs(cfg: Config, surrogate, surrogate_path, obs) -> None:
@@ -296,7 +307,13 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
         if channels:  # one noise per channel, records side by side
             noise, channel_info[unit] = channel_noise(cfg, u, model, noise, source)
             y = stacked_rows(u, model, cfg.model.output.name)
-        runs[unit] = _UnitRun(model, cfg, u.years, y, noise, _unit_seed(cfg, unit), source)
+        if cfg.calibrate.method == "joint":   # the parallel grain: the unit's chains
+            from .joint import _JointRun
+            runs[unit] = _JointRun(model, cfg, u.years, y, noise, _unit_seed(cfg, unit),
+                                   source, getattr(u, "events", []))
+        else:
+            runs[unit] = _UnitRun(model, cfg, u.years, y, noise, _unit_seed(cfg, unit),
+                                  source)
     from .update import Kept, plan_update, year_digests
     digests = {unit: year_digests(r.flows, r.noise) for unit, r in runs.items()}
     resume, update_info = plan_update(cfg, surrogate.fingerprint(), output, runs) if update \
@@ -309,7 +326,7 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
             runs[unit] = Kept(p)          # nothing new: kept as it is
         else:
             runs[unit].resume(p)          # continue after the stored years
-    if cfg.calibrate.sampler == "vectorised":
+    if cfg.calibrate.sampler == "vectorised" and cfg.calibrate.method == "sequential":
         # every run finished by the vectorised sampler
         from .vectorised import run_vectorised
         fork = hasattr(os, "fork") or cfg.calibrate.executor == "dask"
@@ -322,7 +339,7 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
     elif workers <= 1 and not (cfg.calibrate.executor == "dask" and cfg.dask.address):
         for run in runs.values():
             while not run.done:
-                run.finish([_run_task(model, t) for t in run.plan()])
+                run.finish([_run_any(model, t) for t in run.plan()])
                 if progress:
                     progress(sum(r.k for r in runs.values()), total)
     else:

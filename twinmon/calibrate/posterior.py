@@ -58,6 +58,8 @@ class UnitPosterior:
     surrogate_var_ratio: np.ndarray = field(default_factory=lambda: np.zeros(0))
     #: Goodness of fit per year (see :func:`year_fit`); empty for posteriors written before.
     fit: dict = field(default_factory=dict)
+    #: Trend posterior of the joint method (``joint.TREND_FIELDS``); empty for sequential.
+    trend: dict = field(default_factory=dict)
     #: Channels in the likelihood when there were several: name -> {"std", "source"} (the
     #: output first); empty when the output alone was used. ``fit["channel_rms"]`` [year,
     #: channel] then holds each channel's residual RMS, in its noise sd.
@@ -274,9 +276,30 @@ def write_posterior(path, posterior: dict[str, UnitPosterior], input_names: list
                 elif data.dtype == bool:
                     data = data.astype(np.int8)
                 artifacts.put(g, f"fit/{key}", data, units, desc)
+            if p.trend:         # the joint method's trend posterior
+                _put_trend(g, p.trend, keep)
         f.attrs["fit_windows"] = json.dumps(list(cfg.diagnose_windows()))
         f.attrs["channels"] = json.dumps(list(dict.fromkeys(
             c for p in posterior.values() for c in p.channels)) or [cfg.model.output.name])
+
+
+def _put_trend(g: h5py.Group, trend: dict, keep: int) -> None:
+    """``/units/<U>/trend/<field>`` (``joint.TREND_FIELDS``); the draws thinned like the
+    years' (:func:`thin_indices`), their diagnostics of all the draws."""
+    from .joint import TREND_DRAWS, TREND_FIELDS
+    for key, (units, desc) in TREND_FIELDS.items():
+        data = np.asarray(trend[key])
+        if key in TREND_DRAWS:
+            data = data[thin_indices(len(data), keep)]
+        artifacts.put(g, f"trend/{key}", data, units, desc)
+
+
+def _get_trend(g: h5py.Group, path: Path) -> dict:
+    """The trend posterior of one unit; empty when it has none (the sequential method)."""
+    from .joint import TREND_FIELDS
+    if "trend" not in g:
+        return {}
+    return {key: artifacts.get(g["trend"], key, path) for key in TREND_FIELDS}
 
 
 def _put_draws(g: h5py.Group, samples: np.ndarray, keep: int, desc: str) -> None:
@@ -352,4 +375,4 @@ def _read_unit(f: h5py.File, unit: str, path: Path, names: list[str]) -> UnitPos
         fit["channel_rms"] = artifacts.get(g["fit"], "channel_rms", path)
     arrs.update({n: artifacts.get(g, n, path) for n in _CONTINUATION if n in g})
     return UnitPosterior(noise_source=src.decode() if isinstance(src, bytes) else str(src),
-                         fit=fit, channels=channels, **arrs)
+                         fit=fit, channels=channels, trend=_get_trend(g, path), **arrs)

@@ -1,0 +1,206 @@
+"""calibrate, joint method: a unit's years and their linear trend in one posterior (OpenTURNS
+Gibbs) through a real surrogate; maintenance events; the trend in the posterior artifact."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from twinmon import artifacts
+from twinmon.calibrate import calibrate, read_posterior, write_posterior
+from twinmon.calibrate.joint import (TREND_FIELDS, calibrate_unit_joint, design_matrix,
+                                     segment_starts, trend_predictive)
+from twinmon.config import load_config
+from twinmon.errors import ConfigError
+from twinmon.observations import Observations, UnitObservations, write_observations
+from twinmon.reduce import read_surrogate, reduce
+from twinmon.simulate import simulate
+
+from ..conftest import CONFIGS, write_yaml
+
+NOISE = 4.0  # kg/s, 1 % of the nominal flow as in the shipped fleet
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory, fmu_path):
+    """A real surrogate (FMU runs + reduce) and a config for short joint chains."""
+    tmp = tmp_path_factory.mktemp("joint")
+    cfg_path = write_yaml(tmp / "c.yaml", {
+        "extends": str(CONFIGS / "pump.yaml"),
+        "simulate": {"train_size": 64, "test_size": 8},
+        "calibrate": {"method": "joint", "chains": 3, "samples": 400, "burn_in": 150,
+                      "workers": 1, "ess_warn": 100, "max_extensions": 1}})
+    cfg = load_config(cfg_path)
+    simulate(cfg, tmp / "sims.h5")
+    reduce(cfg, tmp / "sims.h5", tmp / "sur.h5")
+    return cfg, cfg_path, tmp, read_surrogate(tmp / "sur.h5")
+
+
+def _observe(surrogate, X, seed=0):
+    """Synthetic flows [n, n_t]: surrogate transients plus Gaussian noise."""
+    rng = np.random.default_rng(seed)
+    clean = surrogate.predict(np.atleast_2d(X))
+    return clean + NOISE * rng.standard_normal(clean.shape)
+
+
+#: A unit on straight lines: motor damping +0.8 a year from 10, pump coefficient -0.06 a
+#: year from 3.75 (years 1..6), with a little year-to-year scatter.
+YEARS = np.arange(1, 7)
+SLOPES = np.array([0.8, -0.06])
+
+
+def _trend_unit(seed=2):
+    rng = np.random.default_rng(seed)
+    X = np.array([10.0, 3.75]) + np.outer(YEARS - 1, SLOPES)
+    return X + rng.normal(0.0, [0.1, 0.005], X.shape)
+
+
+@pytest.fixture(scope="module")
+def trend_posterior(setup):
+    cfg, _, _, sur = setup
+    truth = _trend_unit()
+    return truth, calibrate_unit_joint(sur, cfg, YEARS, _observe(sur, truth, seed=3), NOISE,
+                                       rng_seed=11)
+
+
+def test_known_trend_is_recovered(setup, trend_posterior):
+    cfg = setup[0]
+    truth, p = trend_posterior
+    slope = p.trend["slope"][:, 0, :]
+    lo, hi = np.quantile(slope, [0.01, 0.99], axis=0)
+    assert np.all((lo < SLOPES) & (SLOPES < hi)), (lo, hi)
+    # The damping's rise is told apart from no trend at all; the pump's fall (0.3 in five
+    # years, against a single year's posterior sd of ~0.1) is only leaned towards.
+    assert lo[0] > 0 and np.median(slope[:, 1]) < 0
+    assert np.all(np.abs(p.mean - truth) / truth < 0.04), p.mean
+    sd = p.samples.std(axis=1)
+    assert np.all(np.abs(p.mean - truth) < 3.5 * sd)
+    # sigma mixes slowest (rows: intercept, slope, sigma); these chains are short.
+    assert np.all(p.rhat < 1.1) and np.all(p.trend["rhat"][:2] < 1.1)
+    assert np.all((p.acceptance > 0.1) & (p.acceptance < 0.7))
+    assert np.all((p.trend["acceptance"] > 0.1) & (p.trend["acceptance"] < 0.7))
+    # A sigma well below the design's year-to-year scale (0.05 of the range) is found.
+    span = np.diff(cfg.model.bounds, axis=1).ravel()
+    assert np.all(np.median(p.trend["sigma"], axis=0) < cfg.calibrate.prior_width * span)
+
+
+def test_the_years_are_shaped_as_the_sequential_methods(setup, trend_posterior):
+    cfg, _, _, _ = setup
+    _, p = trend_posterior
+    n_s = cfg.calibrate.chains * cfg.calibrate.samples
+    K = len(YEARS)
+    assert p.samples.shape == (K, n_s, 2) and p.mean.shape == (K, 2)
+    assert p.acceptance.shape == (K, cfg.calibrate.chains)
+    assert np.all(p.q05 < p.median) and np.all(p.median < p.q95)
+    assert list(p.status) == ["ok"] * K
+    assert len(set(p.fit["extensions"])) == 1       # the unit is lengthened as a whole
+    assert p.var.shape == (K, 2) and p.chain_end.shape == (K, cfg.calibrate.chains, 2)
+    t = p.trend
+    assert t["start"].tolist() == [[1, 1]]
+    assert t["intercept"].shape == t["slope"].shape == (n_s, 1, 2)
+    assert t["sigma"].shape == (n_s, 2) and np.all(t["sigma"] >= 0)
+    assert t["rhat"].shape == t["ess"].shape == (3, 2)
+
+
+def test_same_seed_same_draws(setup):
+    cfg, cfg_path, _, sur = setup
+    quick = load_config(cfg_path, ["calibrate.samples=100", "calibrate.burn_in=40",
+                                   "calibrate.chains=2", "calibrate.max_extensions=0"])
+    flows = _observe(sur, _trend_unit()[:3], seed=3)
+    a = calibrate_unit_joint(sur, quick, YEARS[:3], flows, NOISE, rng_seed=5)
+    b = calibrate_unit_joint(sur, quick, YEARS[:3], flows, NOISE, rng_seed=5)
+    assert np.array_equal(a.samples, b.samples)
+    assert np.array_equal(a.trend["slope"], b.trend["slope"])
+    c = calibrate_unit_joint(sur, quick, YEARS[:3], flows, NOISE, rng_seed=6)
+    assert not np.array_equal(a.samples, c.samples)
+
+
+def test_segment_starts_follow_the_events(setup):
+    cfg, _, _, _ = setup
+    years = np.array([1, 2, 3, 5, 6, 8])
+    # pump_coef's component is "pump", motor_damping's "motor" (configs/pump.yaml).
+    starts = segment_starts(cfg, years, [(4, "pump"), (6, "motor"), (9, "motor"),
+                                         (2, "valve")])
+    assert [s.tolist() for s in starts] == [[1, 6], [1, 5]]
+    X, centres = design_matrix(years, starts[1])
+    assert centres.tolist() == [2.0, 19 / 3]
+    assert X[:, 0].tolist() == [1, 1, 1, 0, 0, 0] and X[:, 2].tolist() == [0, 0, 0, 1, 1, 1]
+    assert np.allclose(X[:3, 1], [-1, 0, 1]) and np.allclose(X[:3, 3], 0)
+    # Events as the observations file gives them (objects with year and component).
+    from twinmon.observations import Event
+    assert segment_starts(cfg, years, [Event(5, "pump")])[1].tolist() == [1, 5]
+
+
+def test_a_replaced_part_restarts_its_trend(setup):
+    """The pump is replaced in year 4: its coefficient jumps back up and declines again; the
+    motor's damping keeps one line."""
+    cfg, cfg_path, _, sur = setup
+    quick = load_config(cfg_path, ["calibrate.samples=250", "calibrate.burn_in=100",
+                                   "calibrate.max_extensions=0"])
+    years = np.arange(1, 8)
+    truth = np.column_stack([10.0 + 0.5 * (years - 1),
+                             np.where(years < 4, 3.75 - 0.15 * (years - 1),
+                                      3.8 - 0.05 * (years - 4))])
+    flows = _observe(sur, truth, seed=4)
+    p = calibrate_unit_joint(sur, quick, years, flows, NOISE, rng_seed=3,
+                             events=[(4, "pump")])
+    t = p.trend
+    assert t["start"].tolist() == [[1, 1], [-1, 4]]
+    assert np.all(np.isnan(t["slope"][:, 1, 0])) and not np.any(np.isnan(t["slope"][:, 1, 1]))
+    # The new pump's line starts near 3.8 in year 4, well above where the old one ended
+    # (the truth jumps by 0.35).
+    new_level = np.median(t["intercept"][:, 1, 1])
+    assert abs(new_level - 3.8) < 0.1
+    assert p.mean[3, 1] - p.mean[2, 1] > 0.15
+    assert np.all(np.abs(p.mean - truth) / truth < 0.05)
+    # The predictive extrapolates each input's last segment.
+    draws = trend_predictive(t, [10], np.random.default_rng(0))
+    assert draws.shape == (len(t["sigma"]), 1, 2)
+    expect = np.median(t["intercept"][:, 1, 1] + t["slope"][:, 1, 1] * 6)
+    assert abs(np.median(draws[:, 0, 1]) - expect) < 0.05
+
+
+def test_calibrate_stage_writes_the_trend_and_reads_it_back(setup, tmp_path):
+    cfg, cfg_path, tmp, sur = setup
+    flows = _observe(sur, _trend_unit()[:4], seed=6)
+    obs = tmp_path / "obs.h5"
+    write_observations(obs, Observations(sur.time, {"A": UnitObservations(
+        YEARS[:4], {"m_flow": flows}, {"m_flow": NOISE})}, obs))
+    quick_set = ["calibrate.samples=150", "calibrate.burn_in=50", "calibrate.chains=2",
+                 "calibrate.keep_draws=100"]
+    quick = load_config(cfg_path, quick_set)
+    s = calibrate(quick, tmp / "sur.h5", obs, tmp_path / "post.h5")
+    p = s.posterior["A"]
+    q = read_posterior(tmp_path / "post.h5").units["A"]
+    assert set(q.trend) == set(TREND_FIELDS)
+    assert np.array_equal(q.trend["start"], p.trend["start"])
+    for key in ("rhat", "ess", "acceptance"):
+        assert np.array_equal(q.trend[key], p.trend[key]), key
+    # Draws are thinned to keep_draws like the years'; the kept ones are the run's.
+    assert q.trend["slope"].shape == (100, 1, 2) and q.samples.shape[1] == 100
+    assert np.isin(q.trend["slope"][:, 0, 0], p.trend["slope"][:, 0, 0]).all()
+    assert np.array_equal(q.mean, p.mean)
+    prov = artifacts.read_provenance(tmp_path / "post.h5")
+    assert "method: joint" in prov["config"]
+    # The unit's chains in worker processes: the same arrays.
+    two = calibrate(load_config(cfg_path, quick_set + ["calibrate.workers=2"]), tmp / "sur.h5",
+                    obs, tmp_path / "post2.h5").posterior["A"]
+    assert np.array_equal(two.samples, p.samples)
+    assert np.array_equal(two.trend["slope"], p.trend["slope"])
+    # A sequential posterior has no trend.
+    seq = load_config(cfg_path, ["calibrate.method=sequential", "calibrate.samples=100",
+                                 "calibrate.burn_in=20", "calibrate.chains=2"])
+    calibrate(seq, tmp / "sur.h5", obs, tmp_path / "seq.h5")
+    assert read_posterior(tmp_path / "seq.h5").units["A"].trend == {}
+    write_posterior(tmp_path / "again.h5", {"A": p}, quick.model.input_names, quick, [])
+    assert np.array_equal(read_posterior(tmp_path / "again.h5").units["A"].trend["sigma"],
+                          q.trend["sigma"])
+
+
+@pytest.mark.parametrize("override, message", [
+    ("calibrate.method=both", r"calibrate.method: expected one of sequential, joint"),
+    ("calibrate.joint_trend_moves=0", r"calibrate.joint_trend_moves: must be >= 1"),
+])
+def test_method_is_validated(override, message):
+    with pytest.raises(ConfigError, match=message):
+        load_config(CONFIGS / "pump.yaml", [override])
+    assert load_config(CONFIGS / "pump.yaml").calibrate.method == "sequential"
