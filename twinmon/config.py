@@ -538,9 +538,14 @@ class ForecastConfig:
     withhold_years: int = 2
     #: Give the prognosis of such units anyway (experts; labelled "forced" everywhere).
     force_prognosis: bool = False
-    #: A degrading unit's verdict names components only when the most probable set of
-    #: abnormal components has at least this probability; below, it is "ambiguous".
+    #: A degrading unit's verdict names the components abnormal with at least this
+    #: probability; when none is, it is "ambiguous" (with the probabilities).
     attribution_confidence: float = 0.8
+    #: What the future inputs are drawn from: ``state`` (the unit's true inputs: the trend
+    #: line's uncertainty, including estimation errors carried from year to year, plus the
+    #: year-to-year variation beyond estimation error) or ``estimate`` (the paper's Student t
+    #: interval for a new yearly estimate).
+    predictive: Literal["state", "estimate"] = "state"
 
     def _check(self):
         if not 0.5 <= self.attribution_confidence < 1:
@@ -710,9 +715,9 @@ class Config:
     backtest: BacktestConfig = BacktestConfig()
     diagnose: DiagnoseConfig = DiagnoseConfig()
     fabricate: Optional[FabricateConfig] = None
-    report: ReportConfig = ReportConfig()
     #: The Dask cluster of ``executor: dask`` (never changes a result).
     dask: DaskConfig = DaskConfig()
+    report: ReportConfig = ReportConfig()
     #: Where this config came from (not a YAML key).
     source: Path = field(default=Path("<memory>"), compare=False)
     #: The merged mapping after overrides (not a YAML key): a base for derived configs.

@@ -45,7 +45,7 @@ from .config import Config
 from .errors import ArtifactError, CalibrationError
 from .prognosis import (AMBIGUOUS, HEALTHY, Attribution, IndicatorDrift, attribute, box_test,
                         gradient_from, gradient_points, indicator_drift, mid_state,
-                        separating_channel, slope_covariance)
+                        separating_channel, slope_covariance, cover)
 
 #: Config sections recorded in the artifact (and compared by ``twinmon run``).
 SECTIONS = ("model", "forecast", "safety", "seed")
@@ -387,6 +387,85 @@ def sample_predictive(trends: list[Trend], years: np.ndarray, corr: np.ndarray, 
     for i, t in enumerate(trends):
         loc[:, i], _, _, scale[:, i] = t.predict(years)
     return loc[:, None, :] + scale[:, None, :] * z / w
+
+
+@dataclass
+class StatePredictive:
+    """Predictive distribution of a unit's true inputs in future years.
+
+    ``loc`` [h, d] on the trend lines; ``cov`` [h, d, d]; multivariate Student t with
+    ``dof`` degrees of freedom (the trends' ``n - 2``)."""
+
+    loc: np.ndarray
+    cov: np.ndarray
+    dof: int
+
+
+def state_predictive(trends: list, years: np.ndarray, residuals: np.ndarray,
+                     post_cov: np.ndarray, future: np.ndarray) -> StatePredictive:
+    """Where the unit's inputs will truly be, not where next year's estimate will fall.
+
+    The yearly estimates scatter around the trend by the true year-to-year variation *and*
+    by their own estimation error; the paper's interval for a new observation counts both,
+    so it is too wide for the state (and the failure year comes early). Here, with
+    ``c(x0) = 1/n + (x0 - xbar)^2 / Sxx`` and the slope weights ``a_k(x0) = 1/n + (x0 -
+    xbar)(k - xbar) / Sxx``::
+
+        cov(x0) = cover(c(x0) S, sum_k a_k(x0)^2 P_k)  +  (S - mean_k P_k)_+
+
+    ``S`` the residual covariance (``n - 2`` dof), ``P_k`` year k's posterior covariance:
+    the line's uncertainty, from the scatter or -- where larger -- from the estimation
+    errors the sequential prior carries from year to year (the residuals do not show those:
+    along a direction two inputs trade off, the estimates drift together), plus the true
+    year-to-year variation (the scatter beyond the estimation error, made positive
+    semi-definite). ``cover`` (:func:`twinmon.prognosis.cover`) takes the larger of two
+    covariances direction by direction.
+
+    Parameters
+    ----------
+    trends : list of Trend, length d
+    years : ndarray, shape [n]
+        Years the residuals and posterior covariances belong to.
+    residuals : ndarray, shape [n, d]
+    post_cov : ndarray, shape [n, d, d]
+    future : ndarray, shape [h]
+    """
+    x = np.asarray(years, float)
+    n = x.size
+    xbar, sxx = x.mean(), float(np.sum((x - x.mean()) ** 2))
+    S = residuals.T @ residuals / max(n - 2, 1)
+    Pbar = post_cov.mean(axis=0)
+    w, V = np.linalg.eigh(S - Pbar)
+    jitter = (V * np.maximum(w, 0.0)) @ V.T
+    fut = np.asarray(future, float)
+    c = 1 / n + (fut - xbar) ** 2 / sxx                                    # [h]
+    a = 1 / n + np.outer(fut - xbar, x - xbar) / sxx                       # [h, n]
+    carried = np.einsum("hk,kij->hij", a ** 2, post_cov)
+    cov = np.array([cover(c[j] * S, carried[j]) for j in range(fut.size)]) + jitter
+    loc = np.column_stack([t.intercept + t.slope * fut for t in trends])
+    return StatePredictive(loc, cov, max(n - 2, 1))
+
+
+def sample_state(sp: StatePredictive, size: int, rng: np.random.Generator) -> np.ndarray:
+    """Input samples [h, size, d] from a :class:`StatePredictive` (one chi-square draw per
+    sample shared by the inputs, as :func:`sample_predictive`)."""
+    h, d = sp.loc.shape
+    out = np.empty((h, size, d))
+    w = np.sqrt(rng.chisquare(sp.dof, (h, size, 1)) / sp.dof)
+    z = rng.standard_normal((h, size, d))
+    for j in range(h):
+        ev, V = np.linalg.eigh(sp.cov[j])
+        L = V * np.sqrt(np.maximum(ev, 0.0))
+        out[j] = sp.loc[j] + (z[j] @ L.T) / w[j]
+    return out
+
+
+def state_interval(sp: StatePredictive, i: int, confidence: float):
+    """Centre, lower and upper bound [h] of input ``i``'s predictive interval."""
+    from scipy import stats
+    q = stats.t.ppf(0.5 + confidence / 2, sp.dof)
+    sd = np.sqrt(sp.cov[:, i, i])
+    return sp.loc[:, i], sp.loc[:, i] - q * sd, sp.loc[:, i] + q * sd
 
 
 @dataclass
@@ -747,23 +826,29 @@ def maintenance_plan(trends: dict, years_future: np.ndarray,
     comps = {}
     for name, t in trends.items():
         comps.setdefault(t.component or name, []).append((name, t))
-    if attribution is not None and drift is not None and np.isfinite(drift.p_value):
+    if attribution is not None and drift is not None:
         from .safety import Indicator
         ind = Indicator.from_config(cfg)
         probs = attribution.probabilities
+        conf = cfg.forecast.attribution_confidence
+        evidence = ""
+        if drift.abnormal:
+            evidence = drift.describe(ind.name, ind.units)
+            evidence += f"; inputs' slopes vs normal ageing jointly p = {drift.p_inputs:.2g}"
         if attribution.verdict == AMBIGUOUS:
             faulty = sorted(probs, key=lambda c: -probs[c])
-        elif attribution.verdict == HEALTHY:
-            faulty = []
-        else:       # the most probable set of components
-            faulty = sorted(max(attribution.sets, key=attribution.sets.get).split("+"))
-        evidence = (drift.describe(ind.name, ind.units) if drift.abnormal else "")
-        if attribution.verdict == AMBIGUOUS:
             evidence += ("; the data cannot tell which component: " +
                          ", ".join(f"{c} {probs[c]:.2f}" for c in faulty) +
                          (f"; recording {attribution.separating_channel} would separate them"
                           if attribution.separating_channel else ""))
-        sound = sorted(c for c in comps if c not in faulty)
+            maybe = []
+        else:
+            faulty = sorted(c for c, pr in probs.items() if pr >= conf)
+            maybe = sorted(c for c, pr in probs.items() if 0.05 < pr < conf)
+            if maybe:
+                evidence += "; " + ", ".join(f"{c} possibly too ({probs[c]:.2f})"
+                                             for c in maybe)
+        sound = sorted(c for c in comps if c not in faulty and c not in maybe)
     else:
         faulty = sorted(c for c, ts in comps.items() if any(t.rejects for _, t in ts))
         sound = sorted(c for c in comps if c not in faulty)
@@ -923,16 +1008,33 @@ def forecast_units(cfg: Config, post, sur, *, posterior_path="<memory>", truth=N
         # detection's normal-ageing band), evaluated with every other point below.
         probe, step = gradient_points(cfg, mid_state(trends, names))
         fut = years[-1] + np.arange(1, fc.horizon + 1)
-        X = sample_predictive([trends[n] for n in names], fut, corr, fc.samples,
-                              _unit_rng(cfg, unit, 0))
         samples_post = np.asarray(up.samples, float)
+        post_cov = np.array([np.cov(samples_post[k], rowvar=False).reshape(d, d)
+                             for k in range(years.size)])
+        state = None
+        trend_post = getattr(up, "trend", None) or {}
+        if trend_post:
+            # The joint method sampled the trend itself: draw the future from its posterior
+            # predictive (levels, slopes and year-to-year sd), not from lines refitted to
+            # the yearly means.
+            from .calibrate.joint import trend_predictive
+            rng = _unit_rng(cfg, unit, 0)
+            draws = trend_predictive(trend_post, fut, rng)          # [n, h, d]
+            X = draws[rng.integers(0, draws.shape[0], fc.samples)].transpose(1, 0, 2)
+            state = "trend"
+        elif fc.predictive == "state":
+            state = state_predictive([trends[n] for n in names], years[common], resid,
+                                     post_cov[common], fut)
+            X = sample_state(state, fc.samples, _unit_rng(cfg, unit, 0))
+        else:
+            X = sample_predictive([trends[n] for n in names], fut, corr, fc.samples,
+                                  _unit_rng(cfg, unit, 0))
         n_o = min(fc.observed_samples, samples_post.shape[1])
         pick = np.sort(_unit_rng(cfg, unit, 1).choice(samples_post.shape[1], n_o, replace=False))
         Xo = samples_post[:, pick, :]
         plans[unit] = dict(years=years, mean=mean, trends=trends, fut=fut, X=X, Xo=Xo,
                            corr=corr, resid=resid, step=step, since=max(since.values()),
-                           post_cov=np.array([np.cov(samples_post[k], rowvar=False).reshape(d, d)
-                                              for k in range(years.size)]))
+                           post_cov=post_cov, state=state)
         points += [X.reshape(-1, d), Xo.reshape(-1, d), probe]
 
     if executor is None:
@@ -961,8 +1063,15 @@ def forecast_units(cfg: Config, post, sur, *, posterior_path="<memory>", truth=N
                                    set(getattr(post.units[unit], "channels", None) or ()))
         cause = attribution.verdict
         pm, plo, phi = {}, {}, {}
-        for name, t in trends.items():
-            pm[name], plo[name], phi[name], _ = t.predict(p["fut"], fc.confidence)
+        for i, (name, t) in enumerate(trends.items()):
+            if isinstance(p["state"], str):      # the joint method's trend draws
+                q = np.quantile(p["X"][:, :, i], [0.5, (1 - fc.confidence) / 2,
+                                                  (1 + fc.confidence) / 2], axis=1)
+                pm[name], plo[name], phi[name] = q
+            elif p["state"] is not None:
+                pm[name], plo[name], phi[name] = state_interval(p["state"], i, fc.confidence)
+            else:
+                pm[name], plo[name], phi[name], _ = t.predict(p["fut"], fc.confidence)
         uf = UnitForecast(
             years_observed=p["years"], estimates={n: p["mean"][:, i] for i, n in enumerate(names)},
             years_future=p["fut"], trends=trends, pred_mean=pm, pred_lo=plo, pred_hi=phi,

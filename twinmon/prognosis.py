@@ -20,9 +20,9 @@ data do identify -- drifts abnormally. So a unit is judged in two steps:
    yearly estimates -- this carries the inputs' trade-off -- Student t, ``n - 2`` dof) is
    split into the regions "these components beyond their normal band, the others within":
    the probability of each set of components, given that at least one is abnormal. The verdict
-   names the components when the most probable set reaches
-   ``forecast.attribution_confidence``; otherwise it is ``ambiguous``, with the
-   probabilities and the unobserved channel that would tell the leading explanations apart.
+   names the components whose probability reaches ``forecast.attribution_confidence``;
+   when none does, it is ``ambiguous``, with the probabilities and the unobserved channel
+   that would tell the leading explanations apart.
 
 A repaired component's inputs are fitted from the repair on (see ``forecast``): their pre-repair
 history does not make the unit degrading.
@@ -237,20 +237,20 @@ def slope_covariance(trends: list, residuals: np.ndarray, years: Optional[np.nda
     """Covariance [d, d] of the inputs' OLS slopes.
 
     ``S / Sxx`` with ``S`` the covariance of the regression residuals [n, d] (``n - 2`` dof;
-    all inputs share one design), plus, with the yearly posterior covariances ``post_cov``
-    [n, d, d] of ``years`` [n], ``sum_k w_k^2 P_k`` (``w_k = (k - kbar) / Sxx``, the slope's
-    weights). The second term matters: along a direction the data barely identify (two
+    all inputs share one design), widened (:func:`cover`) to cover, with the yearly
+    posterior covariances ``post_cov`` [n, d, d] of ``years`` [n], ``sum_k w_k^2 P_k``
+    (``w_k = (k - kbar) / Sxx``, the slope's weights). The second matters: along a direction the data barely identify (two
     inputs trading off), the sequential prior carries each year's error into the next, so the
     estimates drift together and the residual scatter does not show it."""
     n = residuals.shape[0]
     se = np.array([t.slope_se for t in trends])
-    extra = 0.0
+    post = None
     if post_cov is not None and years is not None and len(years) >= 3:
         x = np.asarray(years, float)
         w = (x - x.mean()) / np.sum((x - x.mean()) ** 2)
-        extra = np.einsum("k,kij->ij", w ** 2, np.asarray(post_cov, float))
+        post = np.einsum("k,kij->ij", w ** 2, np.asarray(post_cov, float))
     if n < 3:       # too few common years (a recent repair) to estimate the correlation
-        return np.diag(se ** 2) + extra
+        return cover(np.diag(se ** 2), post)
     S = residuals.T @ residuals / max(n - 2, 1)
     C = S / trends[0].sxx
     # Keep the per-input variances exactly those of the single-input fits.
@@ -260,7 +260,18 @@ def slope_covariance(trends: list, residuals: np.ndarray, years: Optional[np.nda
     R = (V * np.maximum(w, 1e-9)) @ V.T
     dg2 = np.sqrt(np.diag(R))
     R = R / np.outer(dg2, dg2)
-    return R * np.outer(se, se) + extra
+    return cover(R * np.outer(se, se), post)
+
+
+def cover(A: np.ndarray, B: Optional[np.ndarray]) -> np.ndarray:
+    """The smallest "A + PSD" covariance that also covers ``B`` in every direction:
+    ``A + (B - A)_+`` (positive part by eigenvalues). Used to take the larger of two
+    estimates of one uncertainty -- from the residual scatter and from the posteriors --
+    without counting the estimation error twice."""
+    if B is None:
+        return A
+    w, V = np.linalg.eigh(B - A)
+    return A + (V * np.maximum(w, 0.0)) @ V.T
 
 
 def box_test(b: np.ndarray, C: np.ndarray, dof: int, normal_rate, tolerance,
@@ -344,10 +355,12 @@ def attribute(trends: list, names: list, components: list, C: np.ndarray,
         if sel.any():
             means[label] = draws[sel].mean(axis=0)
     probs = {c: float(comp_bad[some, k].mean()) for k, c in enumerate(comps)}
-    best = max(sets, key=sets.get)
-    if sets[best] >= confidence:
-        verdict = best if "+" not in best else SEVERAL
-        return Attribution(verdict, probs, sets)
+    # The components abnormal with probability >= confidence are named (a motor fault whose
+    # pump is only possibly degrading too is a motor fault, the pump's probability shown);
+    # with none, the data cannot say which: ambiguous.
+    sure = [c for c in comps if probs[c] >= confidence]
+    if sure:
+        return Attribution(sure[0] if len(sure) == 1 else SEVERAL, probs, sets)
     ranked = sorted((s for s in sets if s in means), key=sets.get, reverse=True)
     lead = np.array([means[s] for s in ranked[:2]]) if len(ranked) >= 2 else None
     return Attribution(AMBIGUOUS, probs, sets, leading_slopes=lead)

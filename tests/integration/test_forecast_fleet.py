@@ -58,15 +58,12 @@ def test_predicted_failure_years_within_one_year_of_truth(fleet):
     assert s.units["Monk"].true_failure_year is not None
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "known gap: on the shipped fleet Monk's last two calibrated years come out low in both "
-    "inputs (~2 posterior sd), so both of Monk's trend lines extrapolate below the truth for "
-    "all 7 future years: 67 % of true values inside, not 75 %. Root causes and failure "
-    "years are still right; fixing it needs forecast to weight years by posterior variance."))
 def test_true_inputs_mostly_inside_the_prediction_intervals(fleet):
     # The paper: "the parameters' true values lie in the confidence interval". The
     # calibrated damping of a unit can carry a bias (damping and pump coefficient trade
     # off), so the check is on the share over all units, inputs and years.
+    # (A strict xfail until forecast drew the unit's true state -- forecast.predictive:
+    # state -- instead of a new yearly estimate: 67 % then, 83 % now.)
     _, tmp, s = fleet
     f = read_forecast(tmp / "fc.h5")
     inside = [(f.units[u].pred_lo[n] <= f.units[u].true_inputs[n])

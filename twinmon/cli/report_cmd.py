@@ -9,7 +9,7 @@ from . import main
 from .common import config_options, emit_json, json_option, load, say
 
 #: Artifacts looked up in ``--workdir`` when not given explicitly.
-_WORKDIR_ARTIFACTS = ("simulations", "surrogate", "posterior", "forecast", "gap")
+_WORKDIR_ARTIFACTS = ("simulations", "surrogate", "posterior", "forecast", "backtest", "gap")
 
 
 def _from_workdir(workdir: Path, given: dict, explicit: bool) -> None:
@@ -71,7 +71,7 @@ def report(config_path, overrides, workdir, observations, simulations, surrogate
     from ..report import report as run
     cfg = load(config_path, overrides)
     given = {"simulations": simulations, "surrogate": surrogate, "posterior": posterior,
-             "forecast": forecast, "gap": gap}
+             "forecast": forecast, "backtest": None, "gap": gap}
     if workdir is not None:
         _from_workdir(Path(workdir), given, explicit=any(
             v is not None for v in (*given.values(), observations, truth)))

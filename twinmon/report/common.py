@@ -21,12 +21,13 @@ UNIT_COLOURS = ["#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd", "#8c564b", "#e377c2"
                 "#7f7f7f", "#bcbd22", "#17becf"]
 LIMIT_COLOUR = "#d62728"
 
-SECTIONS = ("observations", "surrogate", "calibration", "forecast", "diagnose")
+SECTIONS = ("observations", "surrogate", "calibration", "forecast", "backtest", "diagnose")
 SECTION_TITLES = {
     "observations": "Observations",
     "surrogate": "Reduced model (surrogate) against the FMU",
     "calibration": "Calibration: degradation inputs per year",
     "forecast": "Forecast: trends, failure probability, time to failure",
+    "backtest": "Back-test: how good past forecasts were on this history",
     "diagnose": "Sim-to-real gap (diagnose)",
 }
 SKIP_HINTS = {
@@ -34,6 +35,7 @@ SKIP_HINTS = {
     "surrogate": "no surrogate artifact given (run `twinmon reduce`)",
     "calibration": "no posterior artifact given (run `twinmon calibrate`)",
     "forecast": "no forecast artifact given (run `twinmon forecast`)",
+    "backtest": "no back-test artifact given (run `twinmon backtest`)",
     "diagnose": "no gap artifact given (run `twinmon diagnose`)",
 }
 
@@ -125,6 +127,8 @@ def state_words(root_cause: Optional[str]) -> str:
         return "healthy"
     if root_cause == "both":
         return "several faults"
+    if root_cause == "ambiguous":
+        return "degrading, component ambiguous"
     return f"{root_cause} fault"
 
 

@@ -28,6 +28,7 @@ class Inputs:
     validation: Optional[dict] = None
     posterior: Any = None
     forecast: Any = None
+    backtest: Any = None
     gap: Any = None
     truth: Any = None
     paths: dict = field(default_factory=dict)
@@ -71,6 +72,9 @@ def load(cfg: Config, paths: dict) -> Inputs:
     if paths.get("forecast") is not None:
         from ..forecast import read_forecast
         inp.forecast = read_forecast(paths["forecast"])
+    if paths.get("backtest") is not None:
+        from ..backtest import read_backtest
+        inp.backtest = read_backtest(paths["backtest"])
     if paths.get("gap") is not None:
         inp.gap = read_gap(paths["gap"])
         diagnosed = artifacts.read_provenance(paths["gap"]).get("inputs", [])

@@ -13,6 +13,7 @@ from .. import artifacts
 from ..config import Config
 from .common import SKIP_HINTS, UNIT_COLOURS, Figures, plain
 from .fig_calibration import fig_estimates
+from .fig_backtest import fig_backtest
 from .fig_diagnose import fig_candidates, fig_overlay, fig_residual_map, gap_title
 from .fig_fleet import fig_fleet_failure
 from .fig_forecast import fig_indicator_forecast, fig_marginals, fig_trends
@@ -36,6 +37,7 @@ def report(cfg: Config, output_dir: str | os.PathLike, *,
            posterior: str | os.PathLike | None = None,
            forecast: str | os.PathLike | None = None,
            gap: str | os.PathLike | None = None,
+           backtest: str | os.PathLike | None = None,
            truth: str | os.PathLike | None = None,
            units: Sequence[str] = ()) -> ReportSummary:
     """Make the health report from whichever artifacts are given.
@@ -48,7 +50,7 @@ def report(cfg: Config, output_dir: str | os.PathLike, *,
     output_dir : path-like
         Folder to write ``index.html`` (self-contained), ``figures/*.png`` and
         ``summary.json`` into; created if needed. Files of an earlier report are replaced.
-    observations, simulations, surrogate, posterior, forecast, gap, truth : path-like, optional
+    observations, simulations, surrogate, posterior, forecast, gap, backtest, truth : path-like, optional
         Artifacts (``twinmon.<kind>/1``); ``None`` skips the sections that need it. The
         surrogate figure needs both ``simulations`` (the test runs) and ``surrogate``.
     units : sequence of str
@@ -71,7 +73,8 @@ def report(cfg: Config, output_dir: str | os.PathLike, *,
     """
     import matplotlib
     paths = {"observations": observations, "simulations": simulations, "surrogate": surrogate,
-             "posterior": posterior, "forecast": forecast, "gap": gap, "truth": truth}
+             "posterior": posterior, "forecast": forecast, "gap": gap, "truth": truth,
+             "backtest": backtest}
     inp = load(cfg, paths)
     check_consistency(cfg, inp)
     provenance = {role: artifacts.read_provenance(p) for role, p in inp.paths.items()}
@@ -179,6 +182,12 @@ def _render(cfg: Config, inp: Inputs, tmp: Path, out: Path, provenance: dict,
         sections["forecast"] = "rendered"
     else:
         sections["forecast"] = f"skipped: {SKIP_HINTS['forecast']}"
+
+    if inp.backtest is not None:
+        fig_backtest(figs, inp, colours)
+        sections["backtest"] = "rendered"
+    else:
+        sections["backtest"] = f"skipped: {SKIP_HINTS['backtest']}"
 
     if inp.gap is not None:
         if inp.gap_other_source is not None:

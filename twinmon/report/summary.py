@@ -236,8 +236,20 @@ def calibration_diagnostics(inp: Inputs) -> dict:
 
 
 def faulty_components(cfg: Config, uf) -> list[str]:
-    """Components of the inputs whose drift the root-cause test rejects (the config's
-    ``component`` words; the input's name when it has none)."""
+    """Components the forecast's attribution names, with their probabilities when the data
+    cannot tell which ("pump 0.62 or motor 0.38"); for forecasts made before attribution,
+    the components of the inputs whose slope test rejects (the config's ``component``
+    words; the input's name when it has none)."""
+    att = getattr(uf, "attribution", None)
+    if att is not None and att.verdict != "withheld":
+        probs = att.probabilities
+        if att.verdict == "healthy":
+            return []
+        if att.verdict == "ambiguous":
+            return [" or ".join(f"{c} {probs[c]:.2f}" for c in
+                                sorted(probs, key=lambda c: -probs[c])) + " (ambiguous)"]
+        conf = cfg.forecast.attribution_confidence
+        return sorted(c for c, p in probs.items() if p >= conf)
     out = set()
     for name, t in uf.trends.items():
         if t.rejects:
