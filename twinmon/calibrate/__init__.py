@@ -323,9 +323,9 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
     workers = min(cfg.calibrate.workers or len(os.sched_getaffinity(0)), n_tasks)
     for unit, p in resume.items():
         if len(p.years) == len(runs[unit].years):
-            runs[unit] = Kept(p)          # nothing new: kept as it is
+            runs[unit] = Kept(p)          # nothing new: kept as it is (either method)
         else:
-            runs[unit].resume(p)          # continue after the stored years
+            runs[unit].resume(p)          # sequential: continue after the stored years
     if cfg.calibrate.sampler == "vectorised" and cfg.calibrate.method == "sequential":
         # every run finished by the vectorised sampler
         from .vectorised import run_vectorised
