@@ -48,6 +48,7 @@ def fleet(tmp_path_factory, fmu_path):
         "extends": str(CONFIGS / "fleet.yaml"),
         "simulate": {"train_size": 40, "test_size": 8, "executor": "serial"},
         "calibrate": {"chains": 2, "samples": 300, "burn_in": 150, "workers": 1,
+                      "sampler": "openturns",  # a fixed draw count (the thinning test)
                       "ess_warn": 100.0, "max_extensions": 1},
         "forecast": {"samples": 100, "observed_samples": 20, "horizon": 5},
         "report": {"detail_units": DETAIL},
