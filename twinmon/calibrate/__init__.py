@@ -12,7 +12,10 @@ inference, as in the paper (section V):
 * sampling: OpenTURNS' random-walk Metropolis-Hastings, several chains started around the
   maximum a posteriori (MAP) point with a proposal shaped on the Laplace (Gauss-Newton)
   covariance there; OpenTURNS returns the burn-in with the chain, so it is cut here; the
-  chains of all units' same year run in parallel processes;
+  chains of all units' same year run in parallel processes (``calibrate.sampler:
+  openturns``, the reference). The default ``vectorised`` sampler (:mod:`.vectorised`)
+  moves every chain of every unit's same year in one numpy step and runs them until the
+  ESS is met; ``--update`` (:mod:`.update`) samples only the years added since;
 * diagnostics: rank-normalised split R-hat and bulk effective sample size (Vehtari et al.
   2021) and the acceptance rate per chain, with warnings when they are poor.
 
