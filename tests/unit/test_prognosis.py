@@ -117,3 +117,26 @@ def test_ttf_scores_follow_the_alpha_lambda_definition():
     s = ttf_scores(cuts, np.array([-1, -1, -1, -1, -1]), 12, 1)
     assert not s.alpha_lambda and s.prognostic_horizon == 0.0
     assert ttf_scores(cuts, np.zeros(5, int), 4, 7) is None
+
+
+def test_a_repair_restarts_the_component_trend():
+    """A replaced part: its inputs' trend starts at the repair; with fewer than 3 years since,
+    normal ageing is assumed and the slope test never rejects."""
+    from types import SimpleNamespace
+
+    from twinmon.config import load_config
+    from twinmon.forecast import repair_years, segment_trend
+
+    from ..conftest import CONFIGS
+    cfg = load_config(CONFIGS / "pump.yaml")
+    comp = cfg.model.inputs[cfg.model.input_names[1]].component
+    name = cfg.model.input_names[1]
+    spec = cfg.model.inputs[name]
+    since = repair_years(cfg, SimpleNamespace(events=[(6, comp, "replaced")]), YEARS)
+    assert since[name] == 6 and since[cfg.model.input_names[0]] == 1
+    # worn fast before the repair, new part after: the fit sees only years 6..10
+    vals = np.where(YEARS < 6, 3.6 - 0.2 * (YEARS - 1), 3.6 + spec.normal_rate * (YEARS - 6))
+    t = segment_trend(YEARS, vals, 6, spec)
+    assert abs(t.slope - spec.normal_rate) < 1e-9 and t.n == 5
+    t = segment_trend(YEARS, vals, 9, spec)            # two years since: assumed
+    assert t.slope == spec.normal_rate and not t.rejects and "repaired in year 9" in t.test

@@ -375,6 +375,9 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
     posterior = {unit: run.result() for unit, run in runs.items()}
     for unit, p in posterior.items():
         p.digest = np.array(digests[unit])
+    for unit, p in posterior.items():
+        # Recorded with the posterior: forecast restarts a repaired component's trend.
+        p.events = [(e.year, e.component, e.action) for e in obs.units[unit].events]
     for unit, info in channel_info.items():
         posterior[unit].channels = info
 

@@ -64,6 +64,8 @@ class UnitPosterior:
     #: output first); empty when the output alone was used. ``fit["channel_rms"]`` [year,
     #: channel] then holds each channel's residual RMS, in its noise sd.
     channels: dict = field(default_factory=dict)
+    #: Maintenance events of the unit, (year, component, action), from the observations.
+    events: list = field(default_factory=list)
     #: Posterior variance of all the draws [year, input] and each chain's last state [year,
     #: chain, input]: what ``calibrate --update`` continues from (the next year's prior and
     #: the vectorised sampler's warm start); empty in posteriors written before.
@@ -258,6 +260,8 @@ def write_posterior(path, posterior: dict[str, UnitPosterior], input_names: list
                     continue
                 artifacts.put(g, name, np.asarray(getattr(p, name)), units, desc)
             g.attrs["noise_source"] = p.noise_source
+            if p.events:
+                g.attrs["events"] = json.dumps([[int(y), str(c), str(a)] for y, c, a in p.events])
             for name, (units, desc) in _CONTINUATION.items():
                 if np.size(getattr(p, name)):
                     data = getattr(p, name)
@@ -375,4 +379,5 @@ def _read_unit(f: h5py.File, unit: str, path: Path, names: list[str]) -> UnitPos
         fit["channel_rms"] = artifacts.get(g["fit"], "channel_rms", path)
     arrs.update({n: artifacts.get(g, n, path) for n in _CONTINUATION if n in g})
     return UnitPosterior(noise_source=src.decode() if isinstance(src, bytes) else str(src),
-                         fit=fit, channels=channels, trend=_get_trend(g, path), **arrs)
+                         fit=fit, channels=channels, trend=_get_trend(g, path), **arrs,
+                         events=[tuple(e) for e in json.loads(g.attrs.get("events", "[]"))])
