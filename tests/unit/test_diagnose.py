@@ -93,6 +93,31 @@ def test_vanishing_lag_runs_as_the_baseline(twin):
     assert np.abs(twin.predict(theta, {"sensor.tau": 0.5}) - twin.predict(theta)).max() > 1.0
 
 
+def test_a_repeated_run_comes_from_the_cache_with_the_fmus_bits(cfg, fmu, monkeypatch):
+    import twinmon.diagnose.twin as tw
+    monkeypatch.setattr(tw, "CACHE_RUNS", 2)
+    args = (cfg, fmu, ["m_flow"], cfg.model.output.times.times, {"m_flow": SIGMA},
+            list(cfg.model.effects))
+    t, fresh = Twin(*args), Twin(*args)
+    try:
+        theta, eff = np.array([12.0, 3.4]), {"valve.opening_time": 4.0}
+        first = t.run(theta, eff)
+        first["sensor.m_flow"][:] = 0.0          # a caller's in-place work stays its own
+        again = t.run(theta, eff)
+        assert t.runs == 1
+        ref = fresh.run(theta, eff)
+        for name in ref:
+            np.testing.assert_array_equal(again[name], ref[name])
+        t.run(theta)
+        t.run(theta + 0.5)                       # evicts the oldest: at most CACHE_RUNS kept
+        assert len(t._cache) == 2 and t.runs == 3
+        t.run(theta, eff)
+        assert t.runs == 4
+    finally:
+        t.close()
+        fresh.close()
+
+
 def test_base_fit_recovers_the_inputs(twin):
     truth = np.array([14.0, 3.3])
     y = twin.predict(truth)[None]

@@ -6,6 +6,7 @@ and test downstream works on residuals of unit variance.
 """
 from __future__ import annotations
 
+from collections import OrderedDict
 from typing import Sequence
 
 import numpy as np
@@ -16,6 +17,14 @@ from ..config import Config
 #: the baseline itself: a vanishing lag (sensor.tau -> 0) makes the FMU's equations stiff
 #: (seconds per run) while its output equals the baseline's to far below the noise.
 SNAP = 1e-3
+
+#: FMU results a twin remembers, by exact parameter values. The fits of one unit come back
+#: to the same points -- a candidate's fits from neighbouring onsets share their later years'
+#: start, the screening's base run is the same for every candidate, least_squares ends on a
+#: point whose Jacobian it has run -- about 15 % of the runs (1890 of 13050 on 4 units of
+#: benchmarks/fleet_scale.py). The FMU is deterministic after a reset, so the result is the
+#: same; 4096 runs of a few outputs are a few MB.
+CACHE_RUNS = 4096
 
 
 class Twin:
@@ -61,7 +70,9 @@ class Twin:
         self.in_lo = np.where(box[:, 0] > 0, np.maximum(lo, 0.05 * box[:, 0]), lo)
         self.in_hi = box[:, 1] + cfg.diagnose.fit_margin * width
         self.effects = {e: cfg.model.effects[e] for e in effects}
+        #: FMU runs made (not those answered from the cache).
         self.runs = 0
+        self._cache: OrderedDict = OrderedDict()
 
     # -- parameter maps ---------------------------------------------------------------
     def theta_of(self, u: np.ndarray) -> np.ndarray:
@@ -89,8 +100,19 @@ class Twin:
             if e is not None and abs(v - e.baseline) < SNAP * (e.high - e.low):
                 v = e.baseline
             p[k] = float(v)
-        self.runs += 1
-        return self.model.run(p)
+        # The values' bits, not their float equality (0.0 == -0.0).
+        key = (tuple(p), np.array(list(p.values())).tobytes())
+        out = self._cache.get(key)
+        if out is None:
+            self.runs += 1
+            out = self.model.run(p)
+            self._cache[key] = out
+            if len(self._cache) > CACHE_RUNS:
+                self._cache.popitem(last=False)
+        else:
+            self._cache.move_to_end(key)
+        # Copies: a caller may work on the arrays in place.
+        return {name: x.copy() for name, x in out.items()}
 
     def predict(self, theta: np.ndarray, effects: dict | None = None) -> np.ndarray:
         """Whitened prediction of the observed channels, shape [n_ch * n_t] (channel-major)."""
