@@ -348,30 +348,14 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
     else:
         # Years of one unit are sequential (each prior is centred on the previous estimate),
         # so the parallel grain is the chain: every unit's chains of the same year at once.
-        from concurrent.futures.process import BrokenProcessPool
-
-        from ..executors import InterruptGuard, open_pool, stop_pool
+        from ..executors import InterruptGuard, open_pool
         # A forked worker has the surrogate already; a Dask worker gets it sent, once.
         fork = hasattr(os, "fork") or cfg.calibrate.executor == "dask"
         start_pool = partial(open_pool, cfg, "calibrate")      # process or Dask pool
         pool = start_pool(workers, _init_worker, (model if fork else None, str(surrogate_path),
                                                   cfg.model.output.name, tuple(channels)))
-        ok = False
-        try:
-            with InterruptGuard() as guard:
-                _run_parallel(pool, runs, total, progress, guard)
-            ok = True
-        except KeyboardInterrupt:
-            raise Interrupted(f"{output}: interrupted; nothing was written") from None
-        except BrokenProcessPool:
-            raise CalibrationError(f"{output}: a worker process died while sampling; nothing "
-                                   "was written; re-run with calibrate.workers=1 to see "
-                                   "why") from None
-        finally:
-            if ok:
-                pool.shutdown(wait=True)
-            else:
-                stop_pool(pool)
+        with sampling_pool(pool, output), InterruptGuard() as guard:
+            _run_parallel(pool, runs, total, progress, guard)
     posterior = {unit: run.result() for unit, run in runs.items()}
     for unit, p in posterior.items():
         p.digest = np.array(digests[unit])
@@ -392,6 +376,16 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
     check = truth_check(posterior, truth, names) if truth is not None else None
     return CalibrateSummary(names, posterior, warnings, str(output), check, windows,
                             channels=[cfg.model.output.name] + channels, update=update_info)
+
+
+def sampling_pool(pool, output):
+    """``pool`` for calibrate's sampling (:func:`~twinmon.executors.closing_pool`): a dead
+    worker or a Ctrl-C ends the stage with one line, nothing written."""
+    from ..executors import closing_pool
+    return closing_pool(
+        pool, CalibrationError(f"{output}: a worker process died while sampling; nothing was "
+                               "written; re-run with calibrate.workers=1 to see why"),
+        Interrupted(f"{output}: interrupted; nothing was written"))
 
 
 def _run_parallel(pool, runs: dict[str, "_UnitRun"], total: int, progress, guard) -> None:

@@ -846,7 +846,6 @@ def run_vectorised(cfg: Config, surrogate, runs: dict, resume: dict, output,
     """
     import os
 
-    from ..errors import CalibrationError, Interrupted
     from .update import Kept
     total = sum(len(r.years) for r in runs.values())
     done = [sum(len(p.years) for p in resume.values())]
@@ -866,38 +865,23 @@ def run_vectorised(cfg: Config, surrogate, runs: dict, resume: dict, output,
                                        predict=make_predictor(surrogate)[0]))
     elif pending:
         from concurrent.futures import FIRST_COMPLETED, wait
-        from concurrent.futures.process import BrokenProcessPool
-
         # Imported once here, not in every forked worker.
         import scipy.special  # noqa: F401
         import scipy.stats  # noqa: F401
 
-        from ..executors import InterruptGuard, open_pool, stop_pool
+        from ..executors import InterruptGuard, open_pool
+        from . import sampling_pool
         pool = open_pool(cfg, "calibrate", max(workers, 1), *pool_args)
-        ok = False
-        try:
-            with InterruptGuard() as guard:
-                futures = {pool.submit(_work, cfg, g): g for g in _groups(pending, workers)}
-                waiting = set(futures)
-                while waiting:
-                    # Poll, so that a Ctrl-C stops the work within a fraction of a second.
-                    finished, waiting = wait(waiting, timeout=0.2, return_when=FIRST_COMPLETED)
-                    guard.check()
-                    for f in finished:
-                        results.update(f.result())
-                        tick(sum(len(u.years) - (len(u.done.years) if u.done else 0)
-                                 for u in futures[f]))
-            ok = True
-        except KeyboardInterrupt:
-            raise Interrupted(f"{output}: interrupted; nothing was written") from None
-        except BrokenProcessPool:
-            raise CalibrationError(f"{output}: a worker process died while sampling; nothing "
-                                   "was written; re-run with calibrate.workers=1 to see "
-                                   "why") from None
-        finally:
-            if ok:
-                pool.shutdown(wait=True)
-            else:
-                stop_pool(pool)
+        with sampling_pool(pool, output), InterruptGuard() as guard:
+            futures = {pool.submit(_work, cfg, g): g for g in _groups(pending, workers)}
+            waiting = set(futures)
+            while waiting:
+                # Poll, so that a Ctrl-C stops the work within a fraction of a second.
+                finished, waiting = wait(waiting, timeout=0.2, return_when=FIRST_COMPLETED)
+                guard.check()
+                for f in finished:
+                    results.update(f.result())
+                    tick(sum(len(u.years) - (len(u.done.years) if u.done else 0)
+                             for u in futures[f]))
     for name in runs:
         runs[name] = Kept(results[name])

@@ -157,28 +157,18 @@ def _map_units(cfg: Config, jobs: list, n_workers: int, fmu, progress) -> dict:
     order of ``jobs``. The workers are the project's detached pool workers (they ignore
     Ctrl-C, which the parent handles); a worker that dies (a crash in the FMU's native code)
     ends the stage at once with a one-line :class:`~twinmon.errors.SimulationError`."""
-    from concurrent.futures.process import BrokenProcessPool
-
-    from ..executors import open_pool, stop_pool
+    from ..executors import closing_pool, open_pool
 
     results = {}
     pool = open_pool(cfg, "diagnose", n_workers, files=(fmu,))
-    ok = False
-    try:
+    # After an error or an interrupt, no queued unit starts.
+    with closing_pool(pool, SimulationError(
+            f"{fmu}: a worker process died while diagnosing (a crash in the FMU's native "
+            "code?); nothing was written; re-run with -j 1 to see which unit")):
         for i, (j, g) in enumerate(zip(jobs, pool.map(_job, jobs)), 1):
             results[j[2]] = g
             if progress:
                 progress(i)
-        ok = True
-    except BrokenProcessPool:
-        raise SimulationError(f"{fmu}: a worker process died while diagnosing (a crash in the "
-                              "FMU's native code?); nothing was written; re-run with -j 1 to "
-                              "see which unit") from None
-    finally:
-        if ok:
-            pool.shutdown(wait=True)
-        else:
-            stop_pool(pool)        # start no queued unit after an error or an interrupt
     return results
 
 

@@ -9,7 +9,8 @@ Stages that fan out their own tasks (calibrate's chains, diagnose's units) take 
 pool and a Dask pool have the same ``submit``/``map``/``shutdown`` surface.
 """
 from .base import Executor, RunResult, SimulationSpec
-from .local import InterruptGuard, ProcessExecutor, SerialExecutor, start_pool, stop_pool
+from .local import (InterruptGuard, ProcessExecutor, SerialExecutor, closing_pool, start_pool,
+                    stop_pool)
 
 #: Executor names a config may give (``simulate.executor``; ``serial`` is for FMU batches).
 KINDS = ("process", "serial", "dask")
@@ -56,4 +57,4 @@ def _dask_options(dask) -> dict:
 
 
 __all__ = ["Executor", "RunResult", "SimulationSpec", "SerialExecutor", "ProcessExecutor",
-           "make_executor", "open_pool", "start_pool", "stop_pool", "InterruptGuard", "KINDS"]
+           "make_executor", "open_pool", "start_pool", "stop_pool", "closing_pool", "InterruptGuard", "KINDS"]

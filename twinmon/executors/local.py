@@ -9,7 +9,8 @@ import multiprocessing as mp
 import os
 import signal
 import sys
-from typing import Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from typing import Iterator, Mapping, Optional, Sequence
 
 from .base import Executor, RunResult, SimulationSpec, run_one
 
@@ -140,6 +141,32 @@ def stop_pool(pool) -> None:
             p.kill()
             p.join(1)
     pool.shutdown(wait=False, cancel_futures=True)
+
+
+@contextmanager
+def closing_pool(pool, broken: Exception, interrupted: Optional[Exception] = None):
+    """Use ``pool`` for one stage's work: shut down cleanly after it, stopped at once
+    (:func:`stop_pool`) after an error or a Ctrl-C, so no queued task starts.
+
+    A dead worker (``BrokenProcessPool``, also raised by the Dask pool) becomes ``broken``
+    and a Ctrl-C (``KeyboardInterrupt``) becomes ``interrupted`` when given: each a one-line
+    :class:`~twinmon.errors.TwinmonError` naming the stage's output."""
+    from concurrent.futures.process import BrokenProcessPool
+    ok = False
+    try:
+        yield pool
+        ok = True
+    except BrokenProcessPool:
+        raise broken from None
+    except KeyboardInterrupt:
+        if interrupted is None:
+            raise
+        raise interrupted from None
+    finally:
+        if ok:
+            pool.shutdown(wait=True)
+        else:
+            stop_pool(pool)
 
 
 def _init_detached(initializer, initargs) -> None:
