@@ -34,6 +34,7 @@ import os
 import time as _time
 import zlib
 from collections.abc import Mapping
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Optional
@@ -506,14 +507,18 @@ class TwinResult:
 
 def evaluate_twin(cfg: Config, surrogate, X: np.ndarray, executor=None,
                   fmu_everywhere: bool = False,
-                  progress: Optional[Callable[[int, int], None]] = None) -> TwinResult:
+                  progress: Optional[Callable[[int, int], None]] = None,
+                  predict: Optional[Callable[[np.ndarray], np.ndarray]] = None,
+                  spec=None) -> TwinResult:
     """Health indicator and non-physical flag of input points [m, d]: surrogate in its box,
     FMU outside.
 
     The surrogate has no non-physical output: inside its training box the flag is taken as 0
     (the box is checked to be physical, see :func:`box_is_physical`). ``fmu_everywhere`` sends
     every point to the FMU; so does an indicator computed from another variable than the
-    output the surrogate learnt.
+    output the surrogate learnt. ``predict`` replaces ``surrogate.predict`` (its numpy form,
+    :func:`~twinmon.calibrate.vectorised.make_predictor`); ``spec`` the config's FMU spec (a
+    worker's copy of the FMU).
     """
     from .safety import Indicator
     from .simulate import as_parameters, run_batch, spec_for
@@ -530,11 +535,11 @@ def evaluate_twin(cfg: Config, surrogate, X: np.ndarray, executor=None,
         idx = np.flatnonzero(inside)
         for lo in range(0, idx.size, 20000):
             j = idx[lo:lo + 20000]
-            value[j] = ind(surrogate.time, surrogate.predict(X[j]))
+            value[j] = ind(surrogate.time, (predict or surrogate.predict)(X[j]))
     messages = []
     out = np.flatnonzero(~inside)
     if out.size:
-        spec = spec_for(cfg)
+        spec = spec or spec_for(cfg)
         batch = run_batch(spec, as_parameters(cfg, X[out]), executor,
                           (lambda k: progress(k, out.size)) if progress else None)
         value[out] = np.where(batch.ok, ind(spec.times, batch.outputs[ind.variable]), np.nan)
@@ -632,20 +637,37 @@ class UnitForecast:
     #: Which components the drift comes from, with probabilities.
     attribution: Optional[Attribution] = None
 
+    #: Set by :meth:`slim`: the figures kept when the Monte Carlo arrays are dropped.
+    _slim: Optional[dict] = field(default=None, repr=False)
+
     @property
     def fmu_fraction(self) -> float:
         """Share of the future Monte Carlo points that went through the FMU (outside the box)."""
+        if self._slim is not None:
+            return self._slim["fmu_fraction"]
         return float(np.mean(self.source != SOURCE_SURROGATE))
 
     def indicator_quantiles(self, q) -> np.ndarray:
         """Quantiles of the indicator per future year, shape [len(q), h] (inf-aware; a failed
         run counts as an unreached level)."""
+        if self._slim is not None and tuple(q) in self._slim["quantiles"]:
+            return self._slim["quantiles"][tuple(q)]
         # The empirical (inverted-CDF) quantile never interpolates between two infinities.
         return np.quantile(np.where(np.isnan(self.indicator), np.inf, self.indicator), q, axis=1,
                            method="inverted_cdf")
 
+    def slim(self) -> "UnitForecast":
+        """A copy without the Monte Carlo arrays (samples, indicator, flags: ~0.4 MB a unit),
+        keeping what :meth:`as_dict` and the command's lines read (a fleet's summary)."""
+        from dataclasses import replace
+        q = (0.05, 0.5, 0.95)
+        keep = {"fmu_fraction": self.fmu_fraction,
+                "quantiles": {q: self.indicator_quantiles(list(q))}}
+        return replace(self, samples=None, indicator=None, nonphysical=None, source=None,
+                       indicator_observed=None, _slim=keep)
+
     def as_dict(self) -> dict:
-        q05, med, q95 = self.indicator_quantiles([0.05, 0.5, 0.95])
+        q05, med, q95 = self.indicator_quantiles((0.05, 0.5, 0.95))
         d = {
             "status": self.status,
             "status_reason": self.status_reason,
@@ -890,9 +912,13 @@ def maintenance_plan(trends: dict, years_future: np.ndarray,
 
 def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str | os.PathLike,
              output: str | os.PathLike, truth_path: str | os.PathLike | None = None,
-             executor=None,
+             executor=None, workers: Optional[int] = None,
              progress: Optional[Callable[[int, int], None]] = None) -> ForecastSummary:
     """Forecast every unit of a posterior and write ``forecast.h5``.
+
+    Units stream through: read from the posterior one chunk at a time, forecast on the pool
+    of :func:`iter_forecast`, written and dropped (the summary keeps each unit's figures, not
+    its Monte Carlo arrays), so memory does not grow with the fleet.
 
     Parameters
     ----------
@@ -906,9 +932,12 @@ def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
     truth_path : path-like, optional
         Truth file of ``fabricate``: adds each unit's true failure year.
     executor : Executor, optional
-        For the FMU runs; defaults to ``cfg.simulate.executor`` with ``cfg.simulate.workers``.
+        For the FMU runs when the units are forecast in this process (one unit, or one
+        worker); defaults to ``cfg.simulate.executor`` with ``cfg.simulate.workers``.
+    workers : int, optional
+        Processes over units (default ``cfg.simulate.workers``; 0 = one per core).
     progress : callable, optional
-        ``progress(done, total)`` over the FMU runs.
+        ``progress(done, total)`` over the units.
 
     Raises
     ------
@@ -941,30 +970,29 @@ def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
     if truth_path is not None:
         from .fabricate import read_truth
         truth = read_truth(truth_path)
-    units, directions, box_ok = forecast_units(
-        cfg, post, sur, posterior_path=posterior_path, truth=truth, truth_path=truth_path,
-        executor=executor, progress=progress)
-
-    _write(output, cfg, units, names, directions, box_ok, seed=cfg.seed + SEED_OFFSET,
-           inputs=[posterior_path, surrogate_path] + ([truth_path] if truth_path else []))
+    directions = degrading_directions(cfg, sur)
+    box_ok = box_is_physical(cfg)
+    units = {}
+    with _open_forecast(output, cfg, names, directions, box_ok, seed=cfg.seed + SEED_OFFSET,
+                        inputs=[posterior_path, surrogate_path] +
+                        ([truth_path] if truth_path else [])) as f:
+        for unit, uf in iter_forecast(cfg, post, sur, posterior_path=posterior_path,
+                                      truth=truth, truth_path=truth_path, executor=executor,
+                                      workers=workers, progress=progress,
+                                      directions=directions, box_ok=box_ok):
+            _write_unit(f, cfg, unit, uf, names)
+            units[unit] = uf.slim()
     return ForecastSummary(units, str(output), _time.perf_counter() - start, box_ok,
                            [d.note for d in directions.values() if d.note])
 
 
 def forecast_units(cfg: Config, post, sur, *, posterior_path="<memory>", truth=None,
-                   truth_path=None, executor=None, progress=None, directions=None,
-                   box_ok=None) -> tuple[dict, dict, bool]:
+                   truth_path=None, executor=None, workers: Optional[int] = None,
+                   progress=None, directions=None, box_ok=None) -> tuple[dict, dict, bool]:
     """The forecast of every unit of a loaded posterior, in memory (no file written).
 
-    ``forecast`` and ``backtest`` (which calls it on truncated histories) share it.
-
-    Parameters
-    ----------
-    post : Posterior
-    sur : Surrogate
-    truth : Truth, optional
-    directions, box_ok : optional
-        Computed once by the caller when it forecasts many times.
+    ``backtest`` (which calls it on truncated histories) and the benchmarks use it; the
+    arguments are those of :func:`iter_forecast`.
 
     Returns
     -------
@@ -972,140 +1000,339 @@ def forecast_units(cfg: Config, post, sur, *, posterior_path="<memory>", truth=N
     directions : dict input -> Direction
     box_ok : bool
     """
-    import openturns as ot
-    from .executors import make_executor
-    from .safety import failure_year as first_failure
-    fc = cfg.forecast
-    names = cfg.model.input_names
-    ot.RandomGenerator.SetSeed(cfg.seed + SEED_OFFSET)
     if directions is None:
         directions = degrading_directions(cfg, sur)
     if box_ok is None:
         box_ok = box_is_physical(cfg)
-    d = len(names)
-
-    # 1. Trends, tests and Monte Carlo points of every unit; the twin is then evaluated on
-    #    all points at once (one FMU pool for the whole fleet).
-    plans, points = {}, []
-    for unit, up in post.units.items():
-        years = np.asarray(up.years, int)
-        mean = np.asarray(up.mean, float)
-        if years.size < 3:
-            raise CalibrationError(f"{posterior_path}: unit {unit} has {years.size} year(s); a "
-                                   "trend with prediction intervals needs at least 3")
-        if mean.shape != (years.size, d) or not np.all(np.isfinite(mean)):
-            raise ArtifactError(f"{posterior_path}: /units/{unit}/mean must be finite with "
-                                f"shape ({years.size}, {d}), got shape {mean.shape}")
-        _check_plausible(posterior_path, unit, np.asarray(up.samples, float), cfg)
-        since = repair_years(cfg, up, years)
-        trends = {}
-        for i, name in enumerate(names):
-            spec = cfg.model.inputs[name]
-            t = segment_trend(years, mean[:, i], since[name], spec)
-            t.component = spec.component
-            trends[name] = t if t.test else slope_test(
-                t, spec.normal_rate, spec.normal_rate_tolerance, directions[name].sign, fc.alpha)
-        # The inputs' residuals on the years every trend covers (after the latest repair).
-        common = years >= max(since.values())
-        resid = np.column_stack([mean[common, i] - (trends[n].intercept + trends[n].slope *
-                                                    years[common]) for i, n in enumerate(names)])
-        corr = (residual_correlation(resid) if fc.correlate and common.sum() >= 3
-                else np.eye(d))
-        # Probe points of the indicator's gradient at the unit's mid-history state (the
-        # detection's normal-ageing band), evaluated with every other point below.
-        probe, step = gradient_points(cfg, mid_state(trends, names))
-        fut = years[-1] + np.arange(1, fc.horizon + 1)
-        samples_post = np.asarray(up.samples, float)
-        post_cov = np.array([np.cov(samples_post[k], rowvar=False).reshape(d, d)
-                             for k in range(years.size)])
-        state = None
-        trend_post = getattr(up, "trend", None) or {}
-        if trend_post:
-            # The joint method sampled the trend itself: draw the future from its posterior
-            # predictive (levels, slopes and year-to-year sd), not from lines refitted to
-            # the yearly means.
-            from .calibrate.joint import trend_predictive
-            rng = _unit_rng(cfg, unit, 0)
-            draws = trend_predictive(trend_post, fut, rng)          # [n, h, d]
-            X = draws[rng.integers(0, draws.shape[0], fc.samples)].transpose(1, 0, 2)
-            state = "trend"
-        elif fc.predictive == "state":
-            state = state_predictive([trends[n] for n in names], years[common], resid,
-                                     post_cov[common], fut)
-            X = sample_state(state, fc.samples, _unit_rng(cfg, unit, 0))
-        else:
-            X = sample_predictive([trends[n] for n in names], fut, corr, fc.samples,
-                                  _unit_rng(cfg, unit, 0))
-        n_o = min(fc.observed_samples, samples_post.shape[1])
-        pick = np.sort(_unit_rng(cfg, unit, 1).choice(samples_post.shape[1], n_o, replace=False))
-        Xo = samples_post[:, pick, :]
-        plans[unit] = dict(years=years, mean=mean, trends=trends, fut=fut, X=X, Xo=Xo,
-                           corr=corr, resid=resid, step=step, since=max(since.values()),
-                           post_cov=post_cov, state=state)
-        points += [X.reshape(-1, d), Xo.reshape(-1, d), probe]
-
-    if executor is None:
-        executor = make_executor(cfg.simulate.executor, cfg.simulate.workers, cfg.dask)
-    twin = evaluate_twin(cfg, sur, np.concatenate(points), executor,
-                         fmu_everywhere=not box_ok, progress=progress)
-    unsafe_all = twin.unsafe(cfg.safety)
-
-    # 2. Per unit: probabilities, failure year, verdict, plan, truth.
-    units, offset = {}, 0
-    for unit, p in plans.items():
-        h, n_s = p["X"].shape[:2]
-        n_y, n_o = p["Xo"].shape[:2]
-        sl = slice(offset, offset + h * n_s)
-        so = slice(sl.stop, sl.stop + n_y * n_o)
-        sg = slice(so.stop, so.stop + 2 * d)
-        offset = sg.stop
-        value = twin.value[sl].reshape(h, n_s)
-        p_unsafe = unsafe_all[sl].reshape(h, n_s).mean(axis=1)
-        p_obs = unsafe_all[so].reshape(n_y, n_o).mean(axis=1)
-        fyear = first_failure(p["fut"], p_unsafe, cfg.safety)
-        trends = p["trends"]
-        ind_obs = twin.value[so].reshape(n_y, n_o)
-        drift, attribution = judge(cfg, unit, p, ind_obs, gradient_from(twin.value[sg], p["step"]),
-                                   directions,
-                                   set(getattr(post.units[unit], "channels", None) or ()))
-        cause = attribution.verdict
-        pm, plo, phi = {}, {}, {}
-        for i, (name, t) in enumerate(trends.items()):
-            if isinstance(p["state"], str):      # the joint method's trend draws
-                q = np.quantile(p["X"][:, :, i], [0.5, (1 - fc.confidence) / 2,
-                                                  (1 + fc.confidence) / 2], axis=1)
-                pm[name], plo[name], phi[name] = q
-            elif p["state"] is not None:
-                pm[name], plo[name], phi[name] = state_interval(p["state"], i, fc.confidence)
-            else:
-                pm[name], plo[name], phi[name], _ = t.predict(p["fut"], fc.confidence)
-        uf = UnitForecast(
-            years_observed=p["years"], estimates={n: p["mean"][:, i] for i, n in enumerate(names)},
-            years_future=p["fut"], trends=trends, pred_mean=pm, pred_lo=plo, pred_hi=phi,
-            samples=p["X"], indicator=value, nonphysical=twin.nonphysical[sl].reshape(h, n_s),
-            source=twin.source[sl].reshape(h, n_s), p_unsafe=p_unsafe,
-            indicator_observed=ind_obs, p_unsafe_observed=p_obs,
-            failure_year=fyear, root_cause=cause,
-            fmu_failures=int(np.sum(twin.source[sl] == SOURCE_FAILED)),
-            drift=drift, attribution=attribution)
-        uf.plan = maintenance_plan(trends, p["fut"], p_unsafe, fyear,
-                                   int(p["years"][-1]), float(p_obs[-1]), cfg.safety,
-                                   drift=drift, attribution=attribution, cfg=cfg)
-        uf.status, uf.status_reason = prognosis_status(post.units[unit], cfg, post.fit_windows)
-        if uf.status == STATUS_WITHHELD:
-            if fc.force_prognosis:
-                uf.forced = True
-                uf.plan = f"FORCED despite: {uf.status_reason}. {uf.plan}"
-            else:
-                # A twin that misses the data predicts nothing about the plant.
-                uf.failure_year, uf.root_cause, uf.plan = None, STATUS_WITHHELD, \
-                    uf.status_reason[0].upper() + uf.status_reason[1:] + "."
-        elif uf.status == STATUS_UNRELIABLE:
-            uf.plan = f"{uf.plan} ({uf.status_reason}.)"
-        if truth is not None:
-            _add_truth(cfg, uf, unit, truth, truth_path)
-        units[unit] = uf
+    units = dict(iter_forecast(cfg, post, sur, posterior_path=posterior_path, truth=truth,
+                               truth_path=truth_path, executor=executor, workers=workers,
+                               progress=progress, directions=directions, box_ok=box_ok))
     return units, directions, box_ok
+
+
+#: Units per pool task: big enough that a task's FMU and surrogate batches amortise their
+#: set-up, small enough that a few tasks in flight per worker hold little memory.
+CHUNK_UNITS = 8
+#: Tasks in flight per worker (the results wait in order to be written).
+TASKS_PER_WORKER = 2
+
+
+def iter_forecast(cfg: Config, post, sur, *, directions: dict, box_ok: bool,
+                  posterior_path="<memory>", truth=None, truth_path=None, executor=None,
+                  workers: Optional[int] = None, progress=None):
+    """Forecast the units of ``post`` one chunk at a time; yields ``(unit, UnitForecast)`` in
+    the posterior's order.
+
+    With several units and workers, chunks of units go to a pool of worker processes
+    (``cfg.simulate.executor``: ``process`` or ``dask``), each with the surrogate in numpy
+    form and its own FMU instance for the points outside the surrogate's box; a few chunks
+    are in flight at a time, so memory stays flat however many units. Otherwise the units
+    are forecast here, the FMU runs on ``executor``. Every unit's random streams are keyed
+    by its name, and a point's prediction does not depend on the other points of its batch:
+    the result is the same whatever the workers and chunks.
+
+    Parameters
+    ----------
+    post : Posterior
+        ``post.units`` may be lazy (read one unit at a time).
+    sur : Surrogate
+    directions : dict input -> Direction
+        From :func:`degrading_directions`.
+    box_ok : bool
+        From :func:`box_is_physical`.
+    truth : Truth, optional
+    executor : Executor, optional
+        FMU runs of in-process forecasts; defaults to ``cfg.simulate.executor``.
+    workers : int, optional
+        Processes over units (default ``cfg.simulate.workers``; 0 = one per core).
+    progress : callable, optional
+        ``progress(done, total)`` over the units.
+
+    Raises
+    ------
+    CalibrationError, ArtifactError
+        A unit's posterior cannot be forecast (checked before any work is sent out).
+    SimulationError
+        A worker process died.
+    """
+    from .executors import make_executor
+    from .simulate import spec_for
+    unit_names = list(post.units)
+    n = len(unit_names)
+    n_workers = cfg.simulate.workers if workers is None else workers
+    n_workers = min(n_workers or len(os.sched_getaffinity(0)), n)
+    if cfg.simulate.executor == "serial":
+        n_workers = 1
+    spec = spec_for(cfg)
+    context = dict(directions=directions, box_ok=box_ok, fit_windows=post.fit_windows,
+                   truth_path=truth_path)
+
+    def chunk_of(names_):
+        ups = []
+        for u in names_:
+            up = post.units[u]
+            _check_unit(cfg, posterior_path, u, up)
+            ups.append((u, up, _truth_of(truth, truth_path, u)))
+        return ups
+
+    size = _chunk_size(n, n_workers)
+    chunks = [unit_names[i:i + size] for i in range(0, n, size)]
+    done = 0
+    if n_workers <= 1 and not (cfg.simulate.executor == "dask" and cfg.dask.address):
+        own = executor is None
+        if own:
+            executor = make_executor(cfg.simulate.executor, cfg.simulate.workers, cfg.dask)
+        try:
+            # One unit, or one worker: the FMU runs fan out on the executor instead.
+            state = _TwinState(cfg, sur, spec, executor)
+            for names_ in chunks:
+                for unit, uf in _forecast_chunk(state, chunk_of(names_), **context):
+                    done += 1
+                    if progress:
+                        progress(done, n)
+                    yield unit, uf
+        finally:
+            if own:
+                executor.close()
+        return
+    yield from _pooled(cfg, sur, spec, chunks, chunk_of, context, n_workers, progress)
+
+
+def _chunk_size(n_units: int, n_workers: int) -> int:
+    """Units per chunk: up to ``CHUNK_UNITS``, at least four chunks per worker when the
+    fleet is small (the workers finish together)."""
+    return max(1, min(CHUNK_UNITS, -(-n_units // (4 * max(n_workers, 1)))))
+
+
+def _pooled(cfg, sur, spec, chunks, chunk_of, context, n_workers, progress):
+    """:func:`iter_forecast` on a pool: ``TASKS_PER_WORKER`` chunks in flight per worker,
+    results yielded in the chunks' order."""
+    from collections import deque
+
+    from .errors import Interrupted, SimulationError
+    from .executors import closing_pool, open_pool
+    pool = open_pool(cfg, "simulate", n_workers, _init_worker, (cfg, sur, spec),
+                     files=(spec.fmu,))
+    n, done = sum(len(c) for c in chunks), 0
+    with closing_pool(pool, SimulationError(
+            f"{spec.fmu}: a worker process died while forecasting (a crash in the FMU's native "
+            "code?); nothing was written; re-run with simulate.workers=1 to see which unit"),
+            Interrupted("forecast: interrupted; nothing was written")):
+        queue, todo = deque(), iter(chunks)
+        for names_ in todo:
+            queue.append(pool.submit(_chunk_task, chunk_of(names_), context))
+            if len(queue) >= TASKS_PER_WORKER * n_workers:
+                break
+        while queue:
+            results = queue.popleft().result()
+            nxt = next(todo, None)
+            if nxt is not None:
+                queue.append(pool.submit(_chunk_task, chunk_of(nxt), context))
+            for unit, uf in results:
+                done += 1
+                if progress:
+                    progress(done, n)
+                yield unit, uf
+
+
+class _TwinState:
+    """What forecasting a chunk needs once per process: the config, the surrogate and its
+    numpy form (:class:`~twinmon.calibrate.vectorised.GPBatch`, checked against OpenTURNS
+    when built), the FMU spec and the executor of the FMU runs."""
+
+    def __init__(self, cfg: Config, sur, spec, executor):
+        from .calibrate.vectorised import make_predictor
+        self.cfg, self.sur, self.spec, self.executor = cfg, sur, spec, executor
+        self.predict = make_predictor(sur)[0]
+
+
+_worker_state: Optional[_TwinState] = None
+
+
+def _init_worker(cfg: Config, sur, spec) -> None:
+    """Pool initializer: the worker's twin, its FMU instance kept open from chunk to chunk."""
+    global _worker_state
+    from multiprocessing.util import Finalize
+
+    from .executors import SerialExecutor
+    ex = SerialExecutor(keep_open=True)
+    _worker_state = _TwinState(cfg, sur, spec, ex)
+    # Pool workers leave by os._exit: only multiprocessing's finalizers close the FMU.
+    Finalize(ex, ex.close, exitpriority=10)
+
+
+def _chunk_task(units: list, context: dict) -> list:
+    return _forecast_chunk(_worker_state, units, **context)
+
+
+def _check_unit(cfg: Config, posterior_path, unit: str, up) -> None:
+    """A unit's posterior must allow a forecast (raised before any work is sent out)."""
+    years = np.asarray(up.years, int)
+    mean = np.asarray(up.mean, float)
+    d = len(cfg.model.input_names)
+    if years.size < 3:
+        raise CalibrationError(f"{posterior_path}: unit {unit} has {years.size} year(s); a "
+                               "trend with prediction intervals needs at least 3")
+    if mean.shape != (years.size, d) or not np.all(np.isfinite(mean)):
+        raise ArtifactError(f"{posterior_path}: /units/{unit}/mean must be finite with "
+                            f"shape ({years.size}, {d}), got shape {mean.shape}")
+    _check_plausible(posterior_path, unit, np.asarray(up.samples, float), cfg)
+
+
+def _truth_of(truth, truth_path, unit: str):
+    """The unit's (years, inputs) of the truth file, or None without one."""
+    if truth is None:
+        return None
+    if unit not in truth.inputs:
+        raise ArtifactError(f"{truth_path}: unit {unit} is missing from the truth file")
+    return np.asarray(truth.years[unit], float), truth.inputs[unit]
+
+
+def _forecast_chunk(state: _TwinState, units: list, *, directions: dict, box_ok: bool,
+                    fit_windows: list, truth_path) -> list:
+    """Forecast a chunk of units: their Monte Carlo points go through the twin in one batch.
+
+    Parameters
+    ----------
+    state : _TwinState
+    units : list of (unit, UnitPosterior, truth or None)
+
+    Returns
+    -------
+    list of (unit, UnitForecast)
+    """
+    cfg = state.cfg
+    plans, points = [], []
+    for unit, up, _ in units:
+        p, pts = _plan_unit(cfg, unit, up, directions)
+        plans.append(p)
+        points += pts
+    twin = evaluate_twin(cfg, state.sur, np.concatenate(points), state.executor,
+                         fmu_everywhere=not box_ok, predict=state.predict, spec=state.spec)
+    unsafe_all = twin.unsafe(cfg.safety)
+    out, offset = [], 0
+    for (unit, up, tr), p in zip(units, plans):
+        uf, offset = _finish_unit(cfg, unit, up, p, twin, unsafe_all, offset, directions,
+                                  fit_windows)
+        if tr is not None:
+            _add_truth(cfg, uf, unit, tr, truth_path, state.spec, state.executor)
+        out.append((unit, uf))
+    return out
+
+
+def _plan_unit(cfg: Config, unit: str, up, directions: dict) -> tuple[dict, list]:
+    """A unit's trends, tests and Monte Carlo points (future states, posterior draws of the
+    observed years, the probes of the indicator's gradient) before the twin runs."""
+    fc = cfg.forecast
+    names = cfg.model.input_names
+    d = len(names)
+    years = np.asarray(up.years, int)
+    mean = np.asarray(up.mean, float)
+    since = repair_years(cfg, up, years)
+    trends = {}
+    for i, name in enumerate(names):
+        spec = cfg.model.inputs[name]
+        t = segment_trend(years, mean[:, i], since[name], spec)
+        t.component = spec.component
+        trends[name] = t if t.test else slope_test(
+            t, spec.normal_rate, spec.normal_rate_tolerance, directions[name].sign, fc.alpha)
+    # The inputs' residuals on the years every trend covers (after the latest repair).
+    common = years >= max(since.values())
+    resid = np.column_stack([mean[common, i] - (trends[n].intercept + trends[n].slope *
+                                                years[common]) for i, n in enumerate(names)])
+    corr = (residual_correlation(resid) if fc.correlate and common.sum() >= 3
+            else np.eye(d))
+    # Probe points of the indicator's gradient at the unit's mid-history state (the
+    # detection's normal-ageing band), evaluated with every other point.
+    probe, step = gradient_points(cfg, mid_state(trends, names))
+    fut = years[-1] + np.arange(1, fc.horizon + 1)
+    samples_post = np.asarray(up.samples, float)
+    post_cov = np.array([np.cov(samples_post[k], rowvar=False).reshape(d, d)
+                         for k in range(years.size)])
+    state = None
+    trend_post = getattr(up, "trend", None) or {}
+    if trend_post:
+        # The joint method sampled the trend itself: draw the future from its posterior
+        # predictive (levels, slopes and year-to-year sd), not from lines refitted to
+        # the yearly means.
+        from .calibrate.joint import trend_predictive
+        rng = _unit_rng(cfg, unit, 0)
+        draws = trend_predictive(trend_post, fut, rng)          # [n, h, d]
+        X = draws[rng.integers(0, draws.shape[0], fc.samples)].transpose(1, 0, 2)
+        state = "trend"
+    elif fc.predictive == "state":
+        state = state_predictive([trends[n] for n in names], years[common], resid,
+                                 post_cov[common], fut)
+        X = sample_state(state, fc.samples, _unit_rng(cfg, unit, 0))
+    else:
+        X = sample_predictive([trends[n] for n in names], fut, corr, fc.samples,
+                              _unit_rng(cfg, unit, 0))
+    n_o = min(fc.observed_samples, samples_post.shape[1])
+    pick = np.sort(_unit_rng(cfg, unit, 1).choice(samples_post.shape[1], n_o, replace=False))
+    Xo = samples_post[:, pick, :]
+    plan = dict(years=years, mean=mean, trends=trends, fut=fut, X=X, Xo=Xo, corr=corr,
+                resid=resid, step=step, since=max(since.values()), post_cov=post_cov,
+                state=state)
+    return plan, [X.reshape(-1, d), Xo.reshape(-1, d), probe]
+
+
+def _finish_unit(cfg: Config, unit: str, up, p: dict, twin: TwinResult,
+                 unsafe_all: np.ndarray, offset: int, directions: dict,
+                 fit_windows: list) -> tuple[UnitForecast, int]:
+    """A unit's forecast from its plan and its slice of the chunk's twin results (starting at
+    ``offset``): probabilities, failure year, verdict, plan, status. Returns it and the
+    offset of the next unit."""
+    from .safety import failure_year as first_failure
+    fc = cfg.forecast
+    names = cfg.model.input_names
+    d = len(names)
+    h, n_s = p["X"].shape[:2]
+    n_y, n_o = p["Xo"].shape[:2]
+    sl = slice(offset, offset + h * n_s)
+    so = slice(sl.stop, sl.stop + n_y * n_o)
+    sg = slice(so.stop, so.stop + 2 * d)
+    value = twin.value[sl].reshape(h, n_s)
+    p_unsafe = unsafe_all[sl].reshape(h, n_s).mean(axis=1)
+    p_obs = unsafe_all[so].reshape(n_y, n_o).mean(axis=1)
+    fyear = first_failure(p["fut"], p_unsafe, cfg.safety)
+    trends = p["trends"]
+    ind_obs = twin.value[so].reshape(n_y, n_o)
+    drift, attribution = judge(cfg, unit, p, ind_obs, gradient_from(twin.value[sg], p["step"]),
+                               directions, set(getattr(up, "channels", None) or ()))
+    pm, plo, phi = {}, {}, {}
+    for i, (name, t) in enumerate(trends.items()):
+        if isinstance(p["state"], str):      # the joint method's trend draws
+            q = np.quantile(p["X"][:, :, i], [0.5, (1 - fc.confidence) / 2,
+                                              (1 + fc.confidence) / 2], axis=1)
+            pm[name], plo[name], phi[name] = q
+        elif p["state"] is not None:
+            pm[name], plo[name], phi[name] = state_interval(p["state"], i, fc.confidence)
+        else:
+            pm[name], plo[name], phi[name], _ = t.predict(p["fut"], fc.confidence)
+    uf = UnitForecast(
+        years_observed=p["years"], estimates={n: p["mean"][:, i] for i, n in enumerate(names)},
+        years_future=p["fut"], trends=trends, pred_mean=pm, pred_lo=plo, pred_hi=phi,
+        samples=p["X"], indicator=value, nonphysical=twin.nonphysical[sl].reshape(h, n_s),
+        source=twin.source[sl].reshape(h, n_s), p_unsafe=p_unsafe,
+        indicator_observed=ind_obs, p_unsafe_observed=p_obs,
+        failure_year=fyear, root_cause=attribution.verdict,
+        fmu_failures=int(np.sum(twin.source[sl] == SOURCE_FAILED)),
+        drift=drift, attribution=attribution)
+    uf.plan = maintenance_plan(trends, p["fut"], p_unsafe, fyear,
+                               int(p["years"][-1]), float(p_obs[-1]), cfg.safety,
+                               drift=drift, attribution=attribution, cfg=cfg)
+    uf.status, uf.status_reason = prognosis_status(up, cfg, fit_windows)
+    if uf.status == STATUS_WITHHELD:
+        if fc.force_prognosis:
+            uf.forced = True
+            uf.plan = f"FORCED despite: {uf.status_reason}. {uf.plan}"
+        else:
+            # A twin that misses the data predicts nothing about the plant.
+            uf.failure_year, uf.root_cause, uf.plan = None, STATUS_WITHHELD, \
+                uf.status_reason[0].upper() + uf.status_reason[1:] + "."
+    elif uf.status == STATUS_UNRELIABLE:
+        uf.plan = f"{uf.plan} ({uf.status_reason}.)"
+    return uf, sg.stop
 
 
 def _check_plausible(path, unit: str, samples: np.ndarray, cfg: Config) -> None:
@@ -1125,21 +1352,21 @@ def _check_plausible(path, unit: str, samples: np.ndarray, cfg: Config) -> None:
                             "a damaged or foreign posterior; re-run calibrate")
 
 
-def _add_truth(cfg: Config, uf: UnitForecast, unit: str, truth, truth_path) -> None:
-    """True failure year: each true trajectory's fitted line extended, run through the FMU."""
+def _add_truth(cfg: Config, uf: UnitForecast, unit: str, truth_unit, truth_path, spec,
+               executor) -> None:
+    """True failure year: each true trajectory's fitted line extended, run through the FMU.
+
+    ``truth_unit``: the unit's years [n_y] and inputs {name: [n_y]} from the truth file."""
     from .safety import Indicator, is_unsafe
-    from .simulate import as_parameters, run_batch, spec_for
-    if unit not in truth.inputs:
-        raise ArtifactError(f"{truth_path}: unit {unit} is missing from the truth file")
-    ty = np.asarray(truth.years[unit], float)
+    from .simulate import as_parameters, run_batch
+    ty, inputs = truth_unit
     Xt = np.empty((uf.years_future.size, len(cfg.model.inputs)))
     for i, name in enumerate(cfg.model.input_names):
-        if name not in truth.inputs[unit]:
+        if name not in inputs:
             raise ArtifactError(f"{truth_path}: /units/{unit}/inputs/{name} is missing")
-        slope, icpt = np.polyfit(ty, np.asarray(truth.inputs[unit][name], float), 1)
+        slope, icpt = np.polyfit(ty, np.asarray(inputs[name], float), 1)
         Xt[:, i] = icpt + slope * uf.years_future
-    spec = spec_for(cfg)
-    batch = run_batch(spec, as_parameters(cfg, Xt))  # a handful of runs: no pool
+    batch = run_batch(spec, as_parameters(cfg, Xt), executor)
     ind = Indicator.from_config(cfg)
     value = np.where(batch.ok, ind(spec.times, batch.outputs[ind.variable]), np.nan)
     nph = (batch.outputs[cfg.model.nonphysical][:, -1] > 0.5) if cfg.model.nonphysical else None
@@ -1154,10 +1381,12 @@ def _add_truth(cfg: Config, uf: UnitForecast, unit: str, truth, truth_path) -> N
 # ---------------------------------------------------------------------------------------
 # The artifact
 # ---------------------------------------------------------------------------------------
-def _write(path, cfg: Config, units: dict, names: list, directions: dict, box_ok: bool, *,
-           seed: int, inputs: list) -> None:
+@contextmanager
+def _open_forecast(path, cfg: Config, names: list, directions: dict, box_ok: bool, *,
+                   seed: int, inputs: list):
+    """The forecast artifact being written, its fleet-wide attributes set; yields the open
+    (temporary) file for :func:`_write_unit`, renamed into place when the block ends well."""
     from .safety import Indicator
-    put = artifacts.put
     ind = Indicator.from_config(cfg)
     section = cfg.section_yaml(*SECTIONS)
     with artifacts.write_artifact(path, "forecast", config=section, inputs=inputs,
@@ -1175,69 +1404,76 @@ def _write(path, cfg: Config, units: dict, names: list, directions: dict, box_ok
              "sense": ind.sense, "variable": ind.variable, "kind": ind.spec.kind})
         f.attrs["failure_probability"] = cfg.safety.failure_probability
         f.attrs["box_physical"] = box_ok
-        for unit, u in units.items():
-            g = f.create_group(f"units/{unit}")
-            g.attrs["status"], g.attrs["status_reason"] = u.status, u.status_reason
-            g.attrs["forced"] = u.forced
-            g.attrs["root_cause"] = u.root_cause
-            if u.drift is not None:
-                g.attrs["detection"] = artifacts.json_attr(_drift_state(u.drift))
-            if u.attribution is not None:
-                a = u.attribution
-                g.attrs["attribution"] = artifacts.json_attr(
-                    {"verdict": a.verdict, "probabilities": a.probabilities, "sets": a.sets,
-                     "separating_channel": a.separating_channel,
-                     "channel_scores": a.channel_scores})
-            g.attrs["failure_year"] = -1 if u.failure_year is None else u.failure_year
-            g.attrs["plan"] = u.plan
-            g.attrs["fmu_fraction"] = u.fmu_fraction
-            g.attrs["fmu_failures"] = u.fmu_failures
-            put(g, "years_observed", u.years_observed.astype(np.int64), "year",
-                "observed years (1 = first year of service)")
-            put(g, "years_future", u.years_future.astype(np.int64), "year", "forecast years")
-            for i, name in enumerate(names):
-                t, un = u.trends[name], cfg.model.inputs[name].units
-                tg = g.create_group(f"trends/{name}")
-                for key in ("intercept", "slope", "slope_se", "residual_std", "x_mean", "sxx",
-                            "normal_rate", "tolerance", "p_value"):
-                    tg.attrs[key] = float(getattr(t, key))
-                tg.attrs["n"], tg.attrs["direction"] = t.n, t.direction
-                tg.attrs["slope_ci90"] = np.array(t.slope_ci, float)
-                tg.attrs["test"], tg.attrs["rejects"] = t.test, t.rejects
-                tg.attrs["component"] = t.component
-                put(tg, "estimate", u.estimates[name], un,
-                    f"posterior mean of {name} per observed year (regression data)")
-                put(tg, "pred_mean", u.pred_mean[name], un, f"trend line of {name}, future years")
-                c = f"{100 * cfg.forecast.confidence:g} %"
-                put(tg, "pred_lo", u.pred_lo[name], un,
-                    f"lower {c} prediction bound (Student t, new observation)")
-                put(tg, "pred_hi", u.pred_hi[name], un,
-                    f"upper {c} prediction bound (Student t, new observation)")
-            # The Monte Carlo arrays: one compressed chunk per year (see _put_per_year).
-            _put_per_year(g, "samples", u.samples, "input units",
-                          "Monte Carlo input samples [future year, sample, input]")
-            _put_per_year(g, "indicator", u.indicator, ind.units, f"{ind.name} per future "
-                          "year and sample; inf = level never reached, NaN = FMU run failed")
-            _put_per_year(g, "nonphysical", u.nonphysical.astype(np.int8), "1",
-                          "1 where the FMU reported the non-physical mode")
-            _put_per_year(g, "source", u.source, "1", "0 surrogate, 1 FMU (outside the box), "
-                          "2 FMU run failed (counted unsafe)")
-            put(g, "p_unsafe", u.p_unsafe, "1", "probability of being unsafe per future year")
-            _put_per_year(g, "indicator_observed", u.indicator_observed, ind.units,
-                          f"{ind.name} of posterior samples per observed year [year, sample]")
-            put(g, "p_unsafe_observed", u.p_unsafe_observed, "1",
-                "probability of being unsafe per observed year (posterior samples)")
-            if u.has_truth:
-                g.attrs["true_failure_year"] = (-1 if u.true_failure_year is None
-                                                else u.true_failure_year)
-                put(g, "truth/indicator", u.true_indicator, ind.units,
-                    f"{ind.name} of the true trajectories' fitted lines, future years (FMU)")
-                put(g, "truth/unsafe", u.true_unsafe.astype(np.int8), "1",
-                    "1 where the true unit is unsafe, future years")
-                for name in names:
-                    put(g, f"truth/inputs/{name}", u.true_inputs[name],
-                        cfg.model.inputs[name].units,
-                        f"true {name} extended linearly over the future years")
+        yield f
+
+
+def _write_unit(f, cfg: Config, unit: str, u: UnitForecast, names: list) -> None:
+    """One unit's group of the forecast artifact."""
+    from .safety import Indicator
+    put = artifacts.put
+    ind = Indicator.from_config(cfg)
+    g = f.create_group(f"units/{unit}")
+    g.attrs["status"], g.attrs["status_reason"] = u.status, u.status_reason
+    g.attrs["forced"] = u.forced
+    g.attrs["root_cause"] = u.root_cause
+    if u.drift is not None:
+        g.attrs["detection"] = artifacts.json_attr(_drift_state(u.drift))
+    if u.attribution is not None:
+        a = u.attribution
+        g.attrs["attribution"] = artifacts.json_attr(
+            {"verdict": a.verdict, "probabilities": a.probabilities, "sets": a.sets,
+             "separating_channel": a.separating_channel,
+             "channel_scores": a.channel_scores})
+    g.attrs["failure_year"] = -1 if u.failure_year is None else u.failure_year
+    g.attrs["plan"] = u.plan
+    g.attrs["fmu_fraction"] = u.fmu_fraction
+    g.attrs["fmu_failures"] = u.fmu_failures
+    put(g, "years_observed", u.years_observed.astype(np.int64), "year",
+        "observed years (1 = first year of service)")
+    put(g, "years_future", u.years_future.astype(np.int64), "year", "forecast years")
+    for i, name in enumerate(names):
+        t, un = u.trends[name], cfg.model.inputs[name].units
+        tg = g.create_group(f"trends/{name}")
+        for key in ("intercept", "slope", "slope_se", "residual_std", "x_mean", "sxx",
+                    "normal_rate", "tolerance", "p_value"):
+            tg.attrs[key] = float(getattr(t, key))
+        tg.attrs["n"], tg.attrs["direction"] = t.n, t.direction
+        tg.attrs["slope_ci90"] = np.array(t.slope_ci, float)
+        tg.attrs["test"], tg.attrs["rejects"] = t.test, t.rejects
+        tg.attrs["component"] = t.component
+        put(tg, "estimate", u.estimates[name], un,
+            f"posterior mean of {name} per observed year (regression data)")
+        put(tg, "pred_mean", u.pred_mean[name], un, f"trend line of {name}, future years")
+        c = f"{100 * cfg.forecast.confidence:g} %"
+        put(tg, "pred_lo", u.pred_lo[name], un,
+            f"lower {c} prediction bound (Student t, new observation)")
+        put(tg, "pred_hi", u.pred_hi[name], un,
+            f"upper {c} prediction bound (Student t, new observation)")
+    # The Monte Carlo arrays: one compressed chunk per year (see _put_per_year).
+    _put_per_year(g, "samples", u.samples, "input units",
+                  "Monte Carlo input samples [future year, sample, input]")
+    _put_per_year(g, "indicator", u.indicator, ind.units, f"{ind.name} per future "
+                  "year and sample; inf = level never reached, NaN = FMU run failed")
+    _put_per_year(g, "nonphysical", u.nonphysical.astype(np.int8), "1",
+                  "1 where the FMU reported the non-physical mode")
+    _put_per_year(g, "source", u.source, "1", "0 surrogate, 1 FMU (outside the box), "
+                  "2 FMU run failed (counted unsafe)")
+    put(g, "p_unsafe", u.p_unsafe, "1", "probability of being unsafe per future year")
+    _put_per_year(g, "indicator_observed", u.indicator_observed, ind.units,
+                  f"{ind.name} of posterior samples per observed year [year, sample]")
+    put(g, "p_unsafe_observed", u.p_unsafe_observed, "1",
+        "probability of being unsafe per observed year (posterior samples)")
+    if u.has_truth:
+        g.attrs["true_failure_year"] = (-1 if u.true_failure_year is None
+                                        else u.true_failure_year)
+        put(g, "truth/indicator", u.true_indicator, ind.units,
+            f"{ind.name} of the true trajectories' fitted lines, future years (FMU)")
+        put(g, "truth/unsafe", u.true_unsafe.astype(np.int8), "1",
+            "1 where the true unit is unsafe, future years")
+        for name in names:
+            put(g, f"truth/inputs/{name}", u.true_inputs[name],
+                cfg.model.inputs[name].units,
+                f"true {name} extended linearly over the future years")
 
 
 def _put_per_year(g, name: str, data: np.ndarray, units: str, description: str) -> None:

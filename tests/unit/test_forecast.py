@@ -16,7 +16,8 @@ from twinmon.config import load_config
 from twinmon.errors import ArtifactError, CalibrationError
 from twinmon.forecast import (SOURCE_FAILED, SOURCE_FMU, SOURCE_SURROGATE, TwinResult,
                               degrading_directions, evaluate_twin, fit_trend, forecast,
-                              maintenance_plan, read_forecast, residual_correlation,
+                              forecast_units, maintenance_plan, read_forecast,
+                              residual_correlation,
                               sample_predictive, slope_test, verdict)
 from twinmon.reduce import read_surrogate, reduce
 from twinmon.safety import Indicator
@@ -240,8 +241,11 @@ def test_points_outside_the_box_go_through_the_fmu(setup):
     assert r.value[0] == ind(sur.time, sur.predict(X[:1]))[0]
     assert list(r.nonphysical) == [False, False, False, True]
     assert list(r.unsafe(cfg.safety)) == [False, True, True, True]
-    # A degrading unit leaves the box in the later years: those samples used the FMU.
-    f = s.units["Bothy"]
+    # A degrading unit leaves the box in the later years: those samples used the FMU. (The
+    # summary keeps each unit's figures; its Monte Carlo arrays are in the artifact.)
+    f = read_forecast(tmp / "fc.h5").units["Bothy"]
+    assert s.units["Bothy"].samples is None
+    assert s.units["Bothy"].fmu_fraction == f.fmu_fraction
     outside = ~sur.in_box(f.samples.reshape(-1, 2))
     assert f.fmu_fraction > 0 and f.fmu_fraction == pytest.approx(outside.mean())
     assert np.all(f.source.ravel()[outside] != SOURCE_SURROGATE)
@@ -259,15 +263,44 @@ def test_same_seed_same_forecast_and_another_seed_differs(setup, tmp_path):
     again = forecast(cfg, tmp / "post.h5", tmp / "sur.h5", tmp_path / "fc.h5")
     other = forecast(dataclasses.replace(cfg, seed=cfg.seed + 1),
                      tmp / "post.h5", tmp / "sur.h5", tmp_path / "fc2.h5")
+    first, second, third = (read_forecast(p) for p in (tmp / "fc.h5", tmp_path / "fc.h5",
+                                                       tmp_path / "fc2.h5"))
     for unit in s.units:
-        a, b = s.units[unit], again.units[unit]
+        a, b = first.units[unit], second.units[unit]
         assert np.array_equal(a.samples, b.samples)
         assert np.array_equal(a.indicator, b.indicator, equal_nan=True)
         assert np.array_equal(a.p_unsafe, b.p_unsafe)
-        assert not np.array_equal(a.samples, other.units[unit].samples)
+        assert np.array_equal(again.units[unit].p_unsafe, s.units[unit].p_unsafe)
+        assert not np.array_equal(a.samples, third.units[unit].samples)
     with h5py.File(tmp_path / "fc.h5") as f1, h5py.File(tmp / "fc.h5") as f2:
         assert np.array_equal(f1["units/Pumpy/indicator"][()], f2["units/Pumpy/indicator"][()],
                               equal_nan=True)
+
+
+def test_same_forecast_whatever_the_workers_and_chunks(setup, tmp_path, monkeypatch):
+    """Units forecast on a pool of two processes (one chunk of units per task, the FMU in
+    each worker) equal those forecast here in chunks of three (the FMU on this process):
+    a unit's draws are keyed by its name, a point's prediction is its own."""
+    import twinmon.forecast as fmod
+    from twinmon.calibrate import read_posterior
+    from twinmon.reduce import read_surrogate
+    cfg, _, tmp, s = setup
+    pooled = dataclasses.replace(cfg, simulate=dataclasses.replace(cfg.simulate,
+                                                                   executor="process"))
+    forecast(pooled, tmp / "post.h5", tmp / "sur.h5", tmp_path / "pool.h5", workers=2)
+    monkeypatch.setattr(fmod, "_chunk_size", lambda n, w: 3)
+    here, _, _ = forecast_units(cfg, read_posterior(tmp / "post.h5"),
+                                read_surrogate(tmp / "sur.h5"), workers=1)
+    assert list(here) == list(s.units)
+    fc = read_forecast(tmp_path / "pool.h5")
+    for unit, b in here.items():
+        a = fc.units[unit]
+        assert np.array_equal(a.samples, b.samples)
+        assert np.array_equal(a.indicator, b.indicator, equal_nan=True)
+        assert np.array_equal(a.source, b.source)
+        assert np.array_equal(a.indicator_observed, b.indicator_observed, equal_nan=True)
+        assert a.root_cause == b.root_cause and a.plan == b.plan
+        assert a.as_dict() == b.as_dict()
 
 
 def test_artifact_round_trip_and_provenance(setup):

@@ -4,7 +4,9 @@ from __future__ import annotations
 import click
 
 from . import main
-from .common import config_options, emit_json, json_option, load, say, warn
+from ..errors import TwinmonError
+from .common import (config_options, emit_json, json_option, load, progress_bar, say,
+                     warn)
 
 
 @main.command()
@@ -17,24 +19,35 @@ from .common import config_options, emit_json, json_option, load, say, warn
               type=click.Path(), help="Forecast artifact to write.")
 @click.option("--truth", "truth", default=None, type=click.Path(),
               help="Truth file of fabricate: also give each unit's true failure year.")
+@click.option("-j", "--workers", type=int, default=None,
+              help="Worker processes over units (default: simulate.workers, 0 = one per core).")
 @click.option("--force-prognosis", is_flag=True,
               help="Give a failure year and root cause even for units whose twin misses the "
                    "plant (labelled FORCED).")
 @json_option
-def forecast(config_path, overrides, posterior, surrogate, output, truth, force_prognosis,
-             as_json):
+def forecast(config_path, overrides, posterior, surrogate, output, truth, workers,
+             force_prognosis, as_json):
     """Trend of each input, P(unsafe) per future year, failure year, root cause and plan.
 
-    Linear trends of the yearly posterior means with Student-t prediction intervals,
+    Linear trends of the yearly posterior means, the future states they predict
     propagated by Monte Carlo through the twin (surrogate inside its training box, FMU
-    outside it); root cause from t tests of the slopes against normal ageing.
+    outside it); degradation detected on the health indicator's drift and the inputs'
+    slopes against normal ageing, then attributed to components with probabilities.
     """
     from ..forecast import forecast as run
     if force_prognosis:
         overrides = (*overrides, "forecast.force_prognosis=true")
+    from ..calibrate import read_posterior
     cfg = load(config_path, overrides)
-    # A few seconds of work: no progress bar (the FMU share is only known once sampled).
-    s = run(cfg, posterior, surrogate, output, truth_path=truth)
+    # The unit count is a look at the file's index (its units are read lazily); a missing or
+    # foreign file is reported by the stage itself.
+    try:
+        n_units = len(read_posterior(posterior).units)
+    except TwinmonError:
+        n_units = 0
+    with progress_bar(n_units, "forecast") as update:
+        s = run(cfg, posterior, surrogate, output, truth_path=truth, workers=workers,
+                progress=update)
     if as_json:
         emit_json(s.as_dict())
         return

@@ -22,12 +22,36 @@ def _open(spec: SimulationSpec):
 
 
 class SerialExecutor(Executor):
-    """Runs everything in this process (debugging, tiny batches)."""
+    """Runs everything in this process (debugging, tiny batches).
+
+    Parameters
+    ----------
+    keep_open : bool
+        Keep the FMU instance from one :meth:`map` to the next (a pool worker that runs a
+        batch per task) until :meth:`close`, instead of extracting it for every batch.
+    """
+
+    def __init__(self, keep_open: bool = False):
+        self._keep = keep_open
+        self._model = self._spec = None
 
     def map(self, spec, params):
-        with _open(spec) as model:
-            for index, p in params:
-                yield run_one(model, index, p)
+        if not self._keep:
+            with _open(spec) as model:
+                for index, p in params:
+                    yield run_one(model, index, p)
+            return
+        if self._model is not None and self._spec is not spec:
+            self.close()
+        if self._model is None:
+            self._model, self._spec = _open(spec), spec
+        for index, p in params:
+            yield run_one(self._model, index, p)
+
+    def close(self) -> None:
+        if self._model is not None:
+            model, self._model, self._spec = self._model, None, None
+            model.close()
 
 
 # ---------------------------------------------------------------------------------------
