@@ -611,6 +611,9 @@ class DiagnoseConfig:
     onset_search: int = 1
     #: Effect values per side of the baseline on the screening grid.
     screen_points: int = 8
+    #: Candidates confirmed by full fits (the best screened first; any other whose screening
+    #: score is at least half the best's too); 0: every candidate.
+    confirm_first: int = 3
     #: Candidates confirmed by a full fit when looking for a further effect.
     confirm_further: int = 3
     #: Below this percentage of the excess gap closed, the verdict is "unexplained".
@@ -647,6 +650,8 @@ class DiagnoseConfig:
             yield "onset_search", "must be >= 0", self.onset_search
         if self.screen_points < 2:
             yield "screen_points", "must be >= 2", self.screen_points
+        if self.confirm_first < 0:
+            yield "confirm_first", "must be >= 0 (0: every candidate)", self.confirm_first
         if self.confirm_further < 1:
             yield "confirm_further", "must be >= 1", self.confirm_further
         if not 0 <= self.min_closed <= 100:

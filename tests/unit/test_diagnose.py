@@ -329,3 +329,19 @@ def test_ctrl_c_is_interrupted_and_writes_nothing(two_units, tmp_path, monkeypat
     with pytest.raises(Interrupted, match=r"gap\.h5: interrupted; nothing was written"):
         diagnose(cfg, obs, out, workers=1)
     assert not out.exists()
+
+
+def test_confirmation_fits_follow_the_screening():
+    """Full fits for the best-screened candidates and any scoring half the best; none when
+    even the best screens below the floor; every candidate with confirm_first 0."""
+    from twinmon.diagnose.identify import to_confirm
+    sc = {n: (score, 0.0, 1, None) for n, score in
+          {"a": 200.0, "b": 180.0, "c": 20.0, "d": 150.0, "e": 5.0, "f": 110.0}.items()}
+    assert to_confirm(sc, 3) == {"a", "b", "d", "f"}        # f: 110 >= half of 200
+    assert to_confirm(sc, 2) == {"a", "b", "d", "f"}
+    assert to_confirm(sc, 0) == set(sc)
+    assert to_confirm(sc, 3, floor=250.0) == set()
+    assert to_confirm(sc, 0, floor=250.0) == set(sc)
+    low = {n: (v, 0.0, 1, None) for n, v in {"a": 3.0, "b": -1.0, "c": 0.5}.items()}
+    assert to_confirm(low, 2, floor=5.3) == set()
+    assert to_confirm(low, 2) == {"a", "c"}     # the top two; b is below half of a's 3

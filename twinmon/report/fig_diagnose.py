@@ -86,7 +86,8 @@ def fig_candidates(figs: Figures, inp: Inputs, colours: dict) -> None:
         y = np.arange(len(cands))[::-1]
         cols = [colours[unit] if c in g.group and g.verdict == "effect"
                 else ("#555555" if c in g.effects else "#bbbbbb") for c in cands]
-        ax.barh(y, np.nan_to_num(vals, nan=0.0), color=cols, edgecolor="k", lw=0.5)
+        # -inf: a candidate the screening left unconfirmed (no fit, no bar).
+        ax.barh(y, np.where(np.isfinite(vals), vals, 0.0), color=cols, edgecolor="k", lw=0.5)
         ax.set_yticks(y)
         ax.set_yticklabels(cands, fontsize=8)
         ax.axvline(thr, color=LIMIT_COLOUR, ls="--", lw=1.2, label=f"acceptance ({thr:g})")
@@ -99,7 +100,10 @@ def fig_candidates(figs: Figures, inp: Inputs, colours: dict) -> None:
         lo = min(-thr * 2, float(fin.min()) * 1.5 if fin.size else -thr)
         ax.set_xlim(lo, hi)
         for yy, v in zip(y, vals):
-            if np.isfinite(v):
+            if not np.isfinite(v):
+                ax.text(0.0, yy, " screened out ", va="center", ha="left", fontsize=7,
+                        color="#777777")
+            elif np.isfinite(v):
                 # Gains right of the bar's end; losses inside the bar, clear of the names.
                 ax.text(v if v >= 0 else 0.0, yy,
                         f" {v:.0f} " if abs(v) >= 10 else f" {v:.1f} ", va="center",
