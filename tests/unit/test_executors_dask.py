@@ -195,3 +195,26 @@ def test_a_worker_that_lacks_the_fmu_runs_the_copy_it_was_sent(fmu_path, tmp_pat
                     list(pool.as_completed(_work_chunk, [params]))
                 assert str(gone) in str(exc.value) and "twinmon-dask-files" not in str(exc.value)
             pool.shutdown()
+
+
+def test_forecast_on_dask_gives_the_process_pools_forecast(surrogate_setup, tmp_path, alarm):
+    """forecast's units on a LocalCluster (simulate.executor: dask; the surrogate and the FMU
+    spec sent once per worker) give the process pool's arrays, bit for bit."""
+    from twinmon.forecast import forecast, read_forecast
+
+    from .test_forecast import BOTH, HEALTHY, PUMP, write_synthetic_posterior
+    cfg_path, tmp = surrogate_setup
+    fc = {}
+    for kind in ("process", "dask"):
+        c = load_config(cfg_path, [f"simulate.executor={kind}", "forecast.samples=100",
+                                   "forecast.observed_samples=20", "forecast.horizon=3"])
+        post = write_synthetic_posterior(tmp_path / "post.h5", c,
+                                         {"H": HEALTHY, "P": PUMP, "B": BOTH}, n_s=60)
+        forecast(c, post, tmp / "sur.h5", tmp_path / f"{kind}.h5", workers=2)
+        fc[kind] = read_forecast(tmp_path / f"{kind}.h5")
+    for u in ("H", "P", "B"):
+        a, b = fc["process"].units[u], fc["dask"].units[u]
+        assert np.array_equal(a.samples, b.samples)
+        assert np.array_equal(a.indicator, b.indicator, equal_nan=True)
+        assert np.array_equal(a.source, b.source) and a.plan == b.plan
+    assert (fc["process"].units["B"].source > 0).any()      # FMU runs on the workers too
