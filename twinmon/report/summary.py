@@ -224,15 +224,16 @@ def calibration_diagnostics(inp: Inputs) -> dict:
     """Convergence diagnostics per unit and the sampler's warnings (``summary.json``)."""
     from ..calibrate import diagnostics_warnings
     post, cfg = inp.posterior, inp.cfg
-    units = {}
-    for u, p in post.units.items():
+    units, warnings = {}, []
+    names = list(post.input_names)
+    for u, p in post.units.items():       # one read of each unit (a fleet's are lazy)
         units[u] = {"years": [int(y) for y in p.years],
                     "max_rhat": float(np.nanmax(p.rhat)), "min_ess": float(np.nanmin(p.ess)),
                     "acceptance": [float(np.min(p.acceptance)), float(np.max(p.acceptance))],
                     "noise_std": float(np.asarray(p.noise_std)[0]),
                     "noise_source": p.noise_source}
-    return {"units": units,
-            "warnings": diagnostics_warnings(post.units, list(post.input_names), cfg)}
+        warnings += diagnostics_warnings({u: p}, names, cfg)
+    return {"units": units, "warnings": warnings}
 
 
 def faulty_components(cfg: Config, uf) -> list[str]:
