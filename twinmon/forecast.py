@@ -647,6 +647,13 @@ class UnitForecast:
             return self._slim["fmu_fraction"]
         return float(np.mean(self.source != SOURCE_SURROGATE))
 
+    @property
+    def n_samples(self) -> int:
+        """Monte Carlo draws per future year."""
+        if self._slim is not None:
+            return self._slim["n_samples"]
+        return int(self.indicator.shape[1])
+
     def indicator_quantiles(self, q) -> np.ndarray:
         """Quantiles of the indicator per future year, shape [len(q), h] (inf-aware; a failed
         run counts as an unreached level)."""
@@ -661,7 +668,7 @@ class UnitForecast:
         keeping what :meth:`as_dict` and the command's lines read (a fleet's summary)."""
         from dataclasses import replace
         q = (0.05, 0.5, 0.95)
-        keep = {"fmu_fraction": self.fmu_fraction,
+        keep = {"fmu_fraction": self.fmu_fraction, "n_samples": self.n_samples,
                 "quantiles": {q: self.indicator_quantiles(list(q))}}
         return replace(self, samples=None, indicator=None, nonphysical=None, source=None,
                        indicator_observed=None, _slim=keep)
@@ -1503,8 +1510,12 @@ class Forecast:
     indicator: dict = field(default_factory=dict)
 
 
-def read_forecast(path: str | os.PathLike) -> Forecast:
+def read_forecast(path: str | os.PathLike, arrays: bool = True) -> Forecast:
     """Open a forecast artifact (schema checked); its units are read when looked up.
+
+    ``arrays=False`` leaves each unit's Monte Carlo arrays (samples, indicator and flags,
+    ~0.4 MB a unit) on disk: the unit is then as :meth:`UnitForecast.slim` makes it, for a
+    fleet's summaries.
 
     Raises
     ------
@@ -1522,13 +1533,27 @@ def read_forecast(path: str | os.PathLike) -> Forecast:
                        json.loads(f.attrs["directions"]),
                        json.loads(f.attrs["indicator"]) if "indicator" in f.attrs else {})
     out.units = artifacts.LazyUnits(path, "forecast", unit_names,
-                                    lambda f, unit, p: _read_unit(f, unit, p, names))
+                                    lambda f, unit, p: _read_unit(f, unit, p, names, arrays))
     return out
 
 
-def _read_unit(f, unit: str, path: Path, names: list) -> UnitForecast:
-    """Read one unit of an open forecast artifact."""
-    get = lambda g, n: artifacts.get(g, n, path)  # noqa: E731
+#: The per-sample datasets of a unit (what ``read_forecast(arrays=False)`` leaves on disk).
+_MC_ARRAYS = ("samples", "indicator", "nonphysical", "source", "indicator_observed")
+
+
+def _n_samples(g, path: Path) -> int:
+    if "indicator" not in g:
+        raise ArtifactError(f"{path}: dataset {g.name}/indicator is missing")
+    return int(g["indicator"].shape[1])
+
+
+def _read_unit(f, unit: str, path: Path, names: list, arrays: bool = True) -> UnitForecast:
+    """Read one unit of an open forecast artifact (without its Monte Carlo arrays unless
+    ``arrays``)."""
+    def get(g, n):
+        if not arrays and n in _MC_ARRAYS:
+            return None
+        return artifacts.get(g, n, path)
     if f"units/{unit}" not in f:
         raise ArtifactError(f"{path}: group /units/{unit} is missing")
     g = f["units"][unit]
@@ -1556,7 +1581,8 @@ def _read_unit(f, unit: str, path: Path, names: list) -> UnitForecast:
         years_observed=get(g, "years_observed"), estimates=est,
         years_future=get(g, "years_future"), trends=trends, pred_mean=pm,
         pred_lo=plo, pred_hi=phi, samples=get(g, "samples"), indicator=get(g, "indicator"),
-        nonphysical=get(g, "nonphysical").astype(bool), source=get(g, "source"),
+        nonphysical=get(g, "nonphysical").astype(bool) if arrays else None,
+        source=get(g, "source"),
         p_unsafe=get(g, "p_unsafe"), indicator_observed=get(g, "indicator_observed"),
         p_unsafe_observed=get(g, "p_unsafe_observed"),
         failure_year=None if fy < 0 else fy, root_cause=str(g.attrs["root_cause"]),
@@ -1571,4 +1597,6 @@ def _read_unit(f, unit: str, path: Path, names: list) -> UnitForecast:
         true_indicator=get(g, "truth/indicator") if has_truth else None,
         true_unsafe=get(g, "truth/unsafe").astype(bool) if has_truth else None,
         true_inputs={n: get(g, f"truth/inputs/{n}") for n in names} if has_truth
-        else None)
+        else None,
+        _slim=None if arrays else {"fmu_fraction": float(g.attrs["fmu_fraction"]),
+                                   "quantiles": {}, "n_samples": _n_samples(g, path)})

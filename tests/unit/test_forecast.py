@@ -315,6 +315,14 @@ def test_artifact_round_trip_and_provenance(setup):
             assert r.trends[name].slope == t.slope and r.trends[name].p_value == t.p_value
             assert np.array_equal(r.pred_hi[name], u.pred_hi[name])
         assert r.as_dict() == u.as_dict()
+    # Without the Monte Carlo arrays (a fleet's summaries): the same figures.
+    light = read_forecast(tmp / "fc.h5", arrays=False)
+    for unit, u in s.units.items():
+        r = light.units[unit]
+        assert r.samples is None and r.indicator is None and r.indicator_observed is None
+        assert r.n_samples == fc.units[unit].indicator.shape[1]
+        assert r.fmu_fraction == u.fmu_fraction and r.plan == u.plan
+        assert np.array_equal(r.p_unsafe, u.p_unsafe)
     prov = artifacts.read_provenance(tmp / "fc.h5")
     assert prov["schema"] == "twinmon.forecast/1" and "seed" in prov
     assert [p["path"] for p in prov["inputs"]] == [str(tmp / "post.h5"), str(tmp / "sur.h5")]

@@ -108,7 +108,14 @@ def _render(cfg: Config, inp: Inputs, tmp: Path, out: Path, provenance: dict,
     surrogate_info = calibration_info = None
 
     observed = observed_indicator(inp)
-    summaries = {u: unit_summary(u, inp, observed) for u in units}
+    # The summaries read each unit's figures, not its Monte Carlo arrays (a fleet's forecast
+    # holds ~0.4 MB of them per unit; only the drawn units' figures need them).
+    light = inp
+    if inp.forecast is not None and Path(inp.forecast.path).is_file():
+        from ..forecast import read_forecast
+        light = dataclasses.replace(inp, forecast=read_forecast(inp.forecast.path,
+                                                                arrays=False))
+    summaries = {u: unit_summary(u, light, observed) for u in units}
     fleet = None
     if is_fleet(cfg, len(units)):
         # A large fleet: the overview first, per-unit figures for a few units only.

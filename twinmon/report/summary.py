@@ -336,7 +336,7 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
             pmin = min(t.p_value for t in uf.trends.values())
             why.append(f"every input drifts within normal ageing (t tests of the slopes, all "
                        f"p >= {np.floor(pmin * 100) / 100:.2f})")
-        why.append(f"P(unsafe) from {uf.indicator.shape[1]} Monte Carlo draws of the {ind.name} "
+        why.append(f"P(unsafe) from {uf.n_samples} Monte Carlo draws of the {ind.name} "
                    f"per year through the twin; failure = first year above {100 * limit:g} %")
     elif post is not None:
         s.action = "run `twinmon forecast` for a trend and a time to failure"
