@@ -25,9 +25,10 @@ its pool workers or Dask cluster), as the sum of their proportional set sizes sa
 0.25 s (forked workers share the parent's pages: a sum of RSS would count them once per
 process); "1 proc RSS" is the largest single process's high-water mark (``wait4``), exact.
 
-The default (``make bench``) is the issue's full run. On this 2-core machine it takes about
-an hour and a half: 300 units took 13 min from simulate through report at load ~2, and
-forecast and diagnose cost the same per unit-year at 1000 units (about 45 min for 1000).
+The default (``make bench``) is the issue's full run. On this 2-core machine 1000 units took
+894 s from simulate through report (30 and 1000 units, Dask at 30, at load 1.5-2.4: 16 min
+in all); the default adds 300 units, Dask at 300, the 1000-unit update and OpenTURNS' sampler
+at 30 units: about 40 min.
 
     .venv/bin/python benchmarks/fleet_scale.py                 # 30, 300, 1000 (make bench)
     .venv/bin/python benchmarks/fleet_scale.py --sizes 30 300 --dask-sizes 30 300 \\
