@@ -654,6 +654,16 @@ class UnitForecast:
             return self._slim["n_samples"]
         return int(self.indicator.shape[1])
 
+    @property
+    def median_failure_year(self) -> Optional[int]:
+        """Point forecast of the failure year: the first future year with P(unsafe) >= 0.5
+        (:func:`twinmon.safety.median_failure_year`); ``failure_year`` is the year to act by.
+        None for a withheld prognosis, as ``failure_year``."""
+        from .safety import median_failure_year
+        if self.status == STATUS_WITHHELD and not self.forced:
+            return None
+        return median_failure_year(self.years_future, self.p_unsafe)
+
     def indicator_quantiles(self, q) -> np.ndarray:
         """Quantiles of the indicator per future year, shape [len(q), h] (inf-aware; a failed
         run counts as an unreached level)."""
@@ -681,6 +691,7 @@ class UnitForecast:
             "forced": self.forced,
             "root_cause": self.root_cause,
             "failure_year": self.failure_year,
+            "median_failure_year": self.median_failure_year,
             "years": [int(y) for y in self.years_future],
             "p_unsafe": [round(float(p), 4) for p in self.p_unsafe],
             "trends": {name: {"slope": t.slope, "slope_ci90": [t.slope_ci[0], t.slope_ci[1]],

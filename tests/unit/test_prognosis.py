@@ -8,6 +8,7 @@ from twinmon.backtest import ttf_scores
 from twinmon.forecast import fit_trend
 from twinmon.prognosis import (AMBIGUOUS, attribute, box_test, indicator_drift,
                                slope_covariance)
+from twinmon.safety import median_failure_year
 
 RATE, TOL = np.array([0.0, -0.02]), np.array([0.25, 0.03])
 GRAD = np.array([1.0, -4.0])        # indicator units per input unit
@@ -78,6 +79,12 @@ def test_box_test_is_calibrated_inside_and_powerful_outside():
     tr, res = _trends(RATE + np.array([0.0, 3.0]) * TOL, scatter, rng)
     assert box_test(np.array([t.slope for t in tr]), slope_covariance(tr, res), 8, RATE, TOL,
                     [1, -1])[0] == 1.0
+
+
+def test_median_failure_year_is_the_first_year_more_likely_unsafe_than_not():
+    years = np.array([11, 12, 13, 14])
+    assert median_failure_year(years, np.array([0.01, 0.2, 0.5, 0.9])) == 13
+    assert median_failure_year(years, np.array([0.01, 0.2, 0.4, 0.49])) is None
 
 
 def test_attribution_names_a_clear_fault_and_says_ambiguous_on_a_ridge():
