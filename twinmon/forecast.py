@@ -44,8 +44,8 @@ import numpy as np
 from . import artifacts
 from .config import Config
 from .errors import ArtifactError, CalibrationError
-from .prognosis import (AMBIGUOUS, HEALTHY, Attribution, IndicatorDrift, attribute, box_test,
-                        gradient_from, gradient_points, indicator_drift, mid_state,
+from .prognosis import (AMBIGUOUS, HEALTHY, Attribution, IndicatorDrift, attribute,
+                        box_test_uniform, gradient_from, gradient_points, indicator_drift, mid_state,
                         separating_channel, slope_covariance)
 
 #: Config sections recorded in the artifact (and compared by ``twinmon run``).
@@ -839,8 +839,8 @@ def judge(cfg: Config, unit: str, plan: dict, ind_obs: np.ndarray, gradient: np.
     tl = [trends[n] for n in names]
     dirs = [directions[n].sign for n in names]
     C = slope_covariance(tl, plan["resid"], years[after], plan["post_cov"][after])
-    drift.p_inputs, _ = box_test(np.array([t.slope for t in tl]), C, max(tl[0].dof, 1),
-                                 rate, tol, dirs)
+    drift.p_inputs = box_test_uniform(np.array([t.slope for t in tl]), C, max(tl[0].dof, 1),
+                                      rate, tol, dirs, _unit_rng(cfg, unit, 4))
     # Two views of one question, each at alpha / 2 (Bonferroni): the indicator's drift
     # (sees a fault the inputs trade off between) and the inputs' slopes jointly (sees a
     # fault another input's normal ageing hides from the indicator).

