@@ -7,7 +7,8 @@ import numpy as np
 from twinmon.backtest import ttf_scores
 from twinmon.forecast import fit_trend
 from twinmon.prognosis import (AMBIGUOUS, attribute, box_distance, box_test,
-                               box_test_uniform, indicator_drift, slope_covariance)
+                               box_test_uniform, filter_error_covariance, indicator_drift,
+                               slope_covariance)
 from twinmon.safety import median_failure_year
 
 RATE, TOL = np.array([0.0, -0.02]), np.array([0.25, 0.03])
@@ -110,6 +111,29 @@ def test_uniform_null_box_test_holds_its_level_and_beats_the_least_favourable_on
     p_lf = box_test(b, C, 8, RATE, TOL, [1, -1])[0]
     assert p_u < 0.02 and p_u < p_lf / 4
     assert box_test_uniform(RATE, C, 8, RATE, TOL, [1, -1], rng) == 1.0
+
+
+def test_filter_error_covariance_carries_errors_along_the_unidentified_direction():
+    """Year posteriors tight along one direction, loose along the other (two inputs trading
+    off; the prior decides there): the errors stay correlated across years along the loose
+    direction only (an AR(1) there), and the slope's variance grows there."""
+    d, n = 2, YEARS.size
+    v = np.array([1.0, 1.0]) / np.sqrt(2)
+    u = np.array([1.0, -1.0]) / np.sqrt(2)
+    P = np.repeat((0.0001 * np.outer(v, v) + 0.008 * np.outer(u, u))[None], n, axis=0)
+    E = filter_error_covariance(P, np.array([0.01, 0.01]))
+    assert E.shape == (n, n, d, d) and np.allclose(E[3, 3], P[3])
+    assert np.allclose(E[4, 3], E[3, 4].T)
+    assert u @ E[5, 4] @ u > 0.5 * (u @ P[4] @ u)       # carried along the ridge
+    assert abs(v @ E[5, 4] @ v) < 0.1 * (v @ P[4] @ v)   # not across it
+    indep = filter_error_covariance(P, None)
+    assert np.all(indep[5, 4] == 0)
+    rng = np.random.default_rng(9)
+    tr, res = _trends(np.array([0.0, -0.02]), np.array([0.01, 0.01]), rng)
+    C_ind = slope_covariance(tr, res, YEARS, indep)
+    C_car = slope_covariance(tr, res, YEARS, E)
+    assert u @ C_car @ u > 2 * (u @ C_ind @ u)
+    assert np.allclose(C_ind, slope_covariance(tr, res, YEARS, P))   # [n, d, d] as before
 
 
 def test_median_failure_year_is_the_first_year_more_likely_unsafe_than_not():
