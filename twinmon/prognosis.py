@@ -13,15 +13,18 @@ data do identify -- drifts abnormally. So a unit is judged in two steps:
    independently across inputs; through the twin's gradient at the unit's mid-history state
    this gives the distribution of the indicator's normal slope (a sum of uniforms). Its
    convolution with the Student-t error of the fitted slope is the null distribution; the
-   p-value is its tail beyond the observed slope, on the unsafe side. A unit is degrading
-   when ``p < forecast.alpha``.
+   p-value is its tail beyond the observed slope, on the unsafe side. The inputs' slopes
+   are tested jointly against the same null (:func:`box_test_uniform`), and a unit is
+   degrading when either p-value is below ``forecast.alpha / 2`` (``forecast.judge``).
 2. **Attribution** (:func:`attribute`): the joint sampling distribution of the inputs'
-   slopes (OLS slopes, covariance ``S / Sxx`` from the residual covariance ``S`` of the
-   yearly estimates -- this carries the inputs' trade-off -- Student t, ``n - 2`` dof) is
-   split into the regions "these components beyond their normal band, the others within":
-   the probability of each set of components, given that at least one is abnormal. The verdict
-   names the components whose probability reaches ``forecast.attribution_confidence``;
-   when none does, or another component sits between 0.5 and that, it is ``ambiguous``, with the probabilities and the unobserved channel
+   slopes (OLS slopes, covariance :func:`slope_covariance` -- the residual part ``S / Sxx``
+   raised to the estimation errors the sequential prior carries from year to year,
+   :func:`filter_error_covariance`; both carry the inputs' trade-off -- Student t, ``n - 2``
+   dof) is split into the regions "these components beyond their normal band, the others
+   within": the probability of each set of components, given that at least one is abnormal.
+   The verdict names the components whose probability reaches
+   ``forecast.attribution_confidence``; when none does, or another component sits between
+   0.5 and that, it is ``ambiguous``, with the probabilities and the unobserved channel
    that would tell the leading explanations apart.
 
 A repaired component's inputs are fitted from the repair on (see ``forecast``): their pre-repair
