@@ -42,6 +42,9 @@ import numpy as np
 #: a probability's Monte Carlo sd is at most 0.0022 (0.5 / sqrt(50 000)), a tenth of the
 #: distance at which a verdict threshold (0.5, 0.8) would matter; 200 000 cost 0.13 s a unit.
 DRAWS = 50_000
+#: Null draws of :func:`box_test_uniform` (each one a projection on the box): the Monte
+#: Carlo sd of a p-value near alpha / 2 = 0.005 is 0.0005.
+BOX_DRAWS = 20_000
 #: Verdict when no component can be named with enough confidence.
 AMBIGUOUS = "ambiguous"
 HEALTHY = "healthy"
@@ -388,7 +391,7 @@ def box_test_uniform(b: np.ndarray, C: np.ndarray, dof: int, normal_rate, tolera
     Statistic: :func:`box_test`'s -- the squared Mahalanobis distance (metric ``C``) from the
     estimate to the box of rates no worse than normal (degrading side only). Its null law is
     drawn: a uniform rate in the band plus the slopes' Student-t error (covariance ``C``,
-    ``dof``), ``DRAWS / 10`` times. :func:`box_test` instead takes the least favourable
+    ``dof``), ``BOX_DRAWS`` times. :func:`box_test` instead takes the least favourable
     rates -- every input at its band's degrading edge at once -- which a healthy unit almost
     never has; along the ridge of two inputs whose estimates trade off, that costs most of
     the power: on ``benchmarks/prognosis.py`` (seed 11, flow only, the slopes' covariance
@@ -407,7 +410,7 @@ def box_test_uniform(b: np.ndarray, C: np.ndarray, dof: int, normal_rate, tolera
     T = float(box_distance(np.asarray(b, float)[None, :], C, lo, hi)[0])
     if T <= 1e-12:
         return 1.0
-    n, d = DRAWS // 10, len(r)
+    n, d = BOX_DRAWS, len(r)
     L = np.linalg.cholesky(C)
     e = (rng.standard_normal((n, d)) @ L.T) / np.sqrt(rng.chisquare(max(dof, 1), (n, 1))
                                                      / max(dof, 1))
