@@ -138,7 +138,8 @@ def score(cfg, summary, kinds, truth) -> dict:
     strong = [r for r in faulty if r[1] >= 2]
     ci, cx = [], []
     for u, f in summary.units.items():
-        q05, q95 = f.indicator_quantiles([0.05, 0.95])
+        # forecast()'s summary keeps these quantiles only (its units are slim).
+        q05, _, q95 = f.indicator_quantiles((0.05, 0.5, 0.95))
         ci += list((q05 <= f.true_indicator) & (f.true_indicator <= q95))
         for n in f.trends:
             cx += list((f.pred_lo[n] <= f.true_inputs[n]) & (f.true_inputs[n] <= f.pred_hi[n]))
