@@ -14,8 +14,14 @@ against the truth, which only this script reads:
 * failure year within +-1 of the truth, for units that fail within the horizon;
 * alpha-lambda accuracy (alpha 0.2, lambda 0.5) of the time to failure over cut years.
 
+The failure year is scored twice: ``failure_year`` (first year with P(unsafe) > 5 %, the
+year to act by) and ``median_failure_year`` (first year with P(unsafe) >= 0.5, the point
+forecast); "fail+-1" and "a-l" are the first, "fail50" and "a-l50" the second.
+
 Usage: ``python benchmarks/prognosis.py [--seed 11] [--methods sequential,joint]
-[--channels flow,speed] [--workdir DIR]``; runs for tens of minutes on 2 cores.
+[--channels flow,speed] [--workdir DIR] [--reuse]``; runs for tens of minutes on 2 cores.
+``--reuse`` takes the posteriors already in ``--workdir`` (to measure a change of
+``forecast`` without calibrating again).
 """
 from __future__ import annotations
 
@@ -92,24 +98,27 @@ def true_end_of_life(cfg, uf, truth, unit) -> int | None:
     return uf.true_failure_year
 
 
-def alpha_lambda(cfg, post, sur, truth_eol: dict, cuts) -> dict:
-    """Per unit failing after the first cut: TTF scores of forecasts made at each cut."""
-    preds = {u: {} for u in post.units}
+def alpha_lambda(cfg, post, sur, truth_eol: dict, cuts) -> tuple[dict, dict]:
+    """Per unit failing after the first cut: TTF scores of forecasts made at each cut, of the
+    failure year and of the median failure year. Only those units are forecast (a unit's
+    forecast does not depend on the others)."""
+    scored = [u for u, eol in truth_eol.items() if eol is not None and eol > min(cuts)]
+    preds = {u: {} for u in scored}
     for k in cuts:
-        sub = {u: truncate(post.units[u], k) for u in post.units}
+        sub = {u: truncate(post.units[u], k) for u in scored}
         res, _, _ = forecast_units(cfg, Posterior(post.input_names, sub, post.path,
                                                   post.fit_windows), sur)
         for u, uf in res.items():
-            preds[u][k] = -1 if uf.failure_year is None else int(uf.failure_year)
-    out = {}
-    for u, eol in truth_eol.items():
-        if eol is None:
-            continue
+            preds[u][k] = tuple(-1 if y is None else int(y)
+                                for y in (uf.failure_year, uf.median_failure_year))
+    out = ({}, {})
+    for u in scored:
         ks = np.array(sorted(preds[u]))
-        s = ttf_scores(ks, np.array([preds[u][k] for k in ks]), eol, cfg.forecast.horizon,
-                       cfg.backtest.alpha, cfg.backtest.lambda_value)
-        if s is not None:
-            out[u] = s
+        for j in range(2):
+            s = ttf_scores(ks, np.array([preds[u][k][j] for k in ks]), truth_eol[u],
+                           cfg.forecast.horizon, cfg.backtest.alpha, cfg.backtest.lambda_value)
+            if s is not None:
+                out[j][u] = s
     return out
 
 
@@ -129,7 +138,8 @@ def score(cfg, summary, kinds, truth) -> dict:
     strong = [r for r in faulty if r[1] >= 2]
     ci, cx = [], []
     for u, f in summary.units.items():
-        q05, q95 = f.indicator_quantiles([0.05, 0.95])
+        # forecast()'s summary keeps these quantiles only (its units are slim).
+        q05, _, q95 = f.indicator_quantiles((0.05, 0.5, 0.95))
         ci += list((q05 <= f.true_indicator) & (f.true_indicator <= q95))
         for n in f.trends:
             cx += list((f.pred_lo[n] <= f.true_inputs[n]) & (f.true_inputs[n] <= f.pred_hi[n]))
@@ -139,6 +149,8 @@ def score(cfg, summary, kinds, truth) -> dict:
     fails = [u for u in rows if eol[u] is not None and last[u] < eol[u] <= horizon_end[u]]
     within = [rows[u][3].failure_year is not None and abs(rows[u][3].failure_year - eol[u]) <= 1
               for u in fails]
+    within50 = [rows[u][3].median_failure_year is not None
+                and abs(rows[u][3].median_failure_year - eol[u]) <= 1 for u in fails]
     return {"confusion": conf, "labels": labels,
             "detected": float(np.mean([r[2] != "healthy" for r in strong])),
             "n_strong": len(strong),
@@ -149,6 +161,9 @@ def score(cfg, summary, kinds, truth) -> dict:
             "ambiguous": float(np.mean([r[2] == "ambiguous" for r in faulty])),
             "cover_indicator": float(np.mean(ci)), "cover_inputs": float(np.mean(cx)),
             "fail_within1": float(np.mean(within)) if within else float("nan"),
+            "fail50_within1": float(np.mean(within50)) if within50 else float("nan"),
+            "failure_years": {u: (rows[u][3].failure_year, rows[u][3].median_failure_year,
+                                  eol[u]) for u in fails},
             "n_fail": len(fails), "eol": eol,
             "misses": [(u, rows[u][0], round(rows[u][1], 2), rows[u][2]) for u in rows
                        if (rows[u][0] == "healthy") != (rows[u][2] == "healthy")
@@ -163,6 +178,10 @@ def main() -> int:
     ap.add_argument("--channels", default="flow,speed")
     ap.add_argument("--workdir", default=None)
     ap.add_argument("--no-alpha-lambda", action="store_true")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="config override for every configuration (as twinmon's --set)")
+    ap.add_argument("--reuse", action="store_true",
+                    help="take the posteriors already in --workdir instead of calibrating")
     a = ap.parse_args()
     work = Path(a.workdir or tempfile.mkdtemp(prefix="twinmon-prognosis-"))
     work.mkdir(parents=True, exist_ok=True)
@@ -194,24 +213,28 @@ def main() -> int:
     results = {}
     for method in a.methods.split(","):
         for ch in a.channels.split(","):
-            over = [f"calibrate.channels={CHANNELS[ch]}"]
+            over = [f"calibrate.channels={CHANNELS[ch]}", *a.set]
             if method != "sequential":
                 over.append(f"calibrate.method={method}")
             c = load_config(cfg_path, over)
             tag = f"{method}/{ch}"
             post = work / f"post_{method}_{ch}.h5"
             t1 = time.perf_counter()
-            cal = calibrate(c, work / "sur.h5", obs, post, truth_path=tru)
-            t_cal = time.perf_counter() - t1
+            if a.reuse and post.exists():
+                cal, t_cal = None, float("nan")
+            else:
+                cal = calibrate(c, work / "sur.h5", obs, post, truth_path=tru)
+                t_cal = time.perf_counter() - t1
             s = forecast(c, post, work / "sur.h5", work / f"fc_{method}_{ch}.h5", truth_path=tru)
             r = score(c, s, kinds, truth)
             r["t_cal"] = t_cal
-            r["truth_check"] = cal.truth_check
+            r["truth_check"] = cal.truth_check if cal is not None else None
             if not a.no_alpha_lambda:
                 p = read_posterior(post)
-                al = alpha_lambda(c, p, sur, r["eol"], cuts=range(5, 10))
-                r["alpha_lambda"] = float(np.mean([v.alpha_lambda for v in al.values()])) \
-                    if al else float("nan")
+                al, al50 = alpha_lambda(c, p, sur, r["eol"], cuts=range(5, 10))
+                for key, sc in (("alpha_lambda", al), ("alpha_lambda50", al50)):
+                    r[key] = float(np.mean([v.alpha_lambda for v in sc.values()])) \
+                        if sc else float("nan")
                 r["n_al"] = len(al)
             results[tag] = r
             report(tag, r)
@@ -219,12 +242,13 @@ def main() -> int:
           "<= 0.25 flow / 0.05 speed, coverage 0.85-0.95, failure +-1 >= 0.90, "
           "alpha-lambda >= 0.80)")
     print(f"{'config':22s} detect  falsealm wrong  ambig  cov_ind cov_inp fail+-1 a-l    "
-          "damp_err pump_err t_cal")
+          "fail50 a-l50  damp_err pump_err t_cal")
     for tag, r in results.items():
         tc = r["truth_check"] or {}
         print(f"{tag:22s} {r['detected']:.3f}  {r['false_alarm']:.3f}    {r['wrong']:.3f}  "
               f"{r['ambiguous']:.3f}  {r['cover_indicator']:.3f}   {r['cover_inputs']:.3f}   "
               f"{r['fail_within1']:.3f}   {r.get('alpha_lambda', float('nan')):.3f}  "
+              f"{r['fail50_within1']:.3f}  {r.get('alpha_lambda50', float('nan')):.3f}  "
               f"{100 * tc.get('motor_damping', {}).get('mean_rel_error', np.nan):.2f} %   "
               f"{100 * tc.get('pump_coef', {}).get('mean_rel_error', np.nan):.2f} %   "
               f"{r['t_cal']:.0f} s")
@@ -239,7 +263,10 @@ def report(tag: str, r: dict) -> None:
     print(f"detected {r['detected']:.3f} of {r['n_strong']} (excess >= 2 tol); false alarms "
           f"{r['false_alarm']:.3f}; wrong component {r['wrong']:.3f}; ambiguous "
           f"{r['ambiguous']:.3f}; coverage indicator {r['cover_indicator']:.3f} inputs "
-          f"{r['cover_inputs']:.3f}; failure year +-1 {r['fail_within1']:.3f} of {r['n_fail']}")
+          f"{r['cover_inputs']:.3f}; failure year +-1 {r['fail_within1']:.3f} of {r['n_fail']} "
+          f"(median failure year {r['fail50_within1']:.3f})")
+    print("  failure years (P>5 %, median, true):",
+          " ".join(f"{u} {a}/{b}/{c}" for u, (a, b, c) in sorted(r["failure_years"].items())))
     if r["misses"]:
         print("  not right:", r["misses"])
 

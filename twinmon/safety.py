@@ -155,6 +155,18 @@ def failure_year(years: np.ndarray, p_unsafe: np.ndarray, safety: SafetyConfig) 
     return int(years[over[0]]) if over.size else None
 
 
+def median_failure_year(years: np.ndarray, p_unsafe: np.ndarray) -> int | None:
+    """First year in which the unit is more likely unsafe than not (P(unsafe) >= 0.5).
+
+    The point forecast of the failure year: the median of the time to failure when
+    P(unsafe) grows with the years. :func:`failure_year` (P > ``failure_probability``, the
+    paper's 5 %) is a low quantile of it -- the deadline for acting -- and falls before
+    the median by as much as the forecast is uncertain, so it is the wrong number to score
+    as a prediction of when the unit fails (``benchmarks/prognosis.py`` reports both)."""
+    over = np.flatnonzero(np.asarray(p_unsafe) >= 0.5)
+    return int(years[over[0]]) if over.size else None
+
+
 @dataclass(frozen=True)
 class Indicator:
     """The config's indicator with its resolved words, for computing and for reports.

@@ -6,8 +6,10 @@ import numpy as np
 
 from twinmon.backtest import ttf_scores
 from twinmon.forecast import fit_trend
-from twinmon.prognosis import (AMBIGUOUS, attribute, box_test, indicator_drift,
+from twinmon.prognosis import (AMBIGUOUS, attribute, box_distance, box_test,
+                               box_test_uniform, filter_error_covariance, indicator_drift,
                                slope_covariance)
+from twinmon.safety import median_failure_year
 
 RATE, TOL = np.array([0.0, -0.02]), np.array([0.25, 0.03])
 GRAD = np.array([1.0, -4.0])        # indicator units per input unit
@@ -78,6 +80,66 @@ def test_box_test_is_calibrated_inside_and_powerful_outside():
     tr, res = _trends(RATE + np.array([0.0, 3.0]) * TOL, scatter, rng)
     assert box_test(np.array([t.slope for t in tr]), slope_covariance(tr, res), 8, RATE, TOL,
                     [1, -1])[0] == 1.0
+
+
+def test_box_distance_is_the_bounded_least_squares_projection():
+    from scipy.optimize import lsq_linear
+    rng = np.random.default_rng(7)
+    sd = np.array([0.06, 0.02])
+    C = np.outer(sd, sd) * np.array([[1.0, 0.9], [0.9, 1.0]])
+    lo, hi = np.array([-np.inf, -0.05]), np.array([0.25, np.inf])
+    B = np.array([0.2, -0.05]) + 3 * sd * rng.standard_normal((50, 2))
+    Li = np.linalg.inv(np.linalg.cholesky(C))
+    ref = [float(np.sum((Li @ (b - lsq_linear(Li, Li @ b, bounds=(lo, hi)).x)) ** 2))
+           for b in B]
+    assert np.allclose(box_distance(B, C, lo, hi), ref, atol=1e-8)
+
+
+def test_uniform_null_box_test_holds_its_level_and_beats_the_least_favourable_one():
+    """Healthy slopes anywhere in the band (uniform, as the null assumes): false alarms at
+    the level; a pump fault twice the tolerance beyond normal, hidden along the ridge of two
+    correlated estimates: p well below the least favourable test's."""
+    rng = np.random.default_rng(8)
+    sd = np.array([0.06, 0.02])
+    C = np.outer(sd, sd) * np.array([[1.0, 0.85], [0.85, 1.0]])
+    L = np.linalg.cholesky(C)
+    p = [box_test_uniform(RATE + TOL * rng.uniform(-1, 1, 2) + L @ rng.standard_normal(2), C,
+                          1000, RATE, TOL, [1, -1], rng) for _ in range(300)]
+    assert np.mean(np.array(p) < 0.05) <= 0.08
+    b = np.array([-0.05, RATE[1] - 2 * TOL[1] - 0.005])
+    p_u = box_test_uniform(b, C, 8, RATE, TOL, [1, -1], rng)
+    p_lf = box_test(b, C, 8, RATE, TOL, [1, -1])[0]
+    assert p_u < 0.02 and p_u < p_lf / 4
+    assert box_test_uniform(RATE, C, 8, RATE, TOL, [1, -1], rng) == 1.0
+
+
+def test_filter_error_covariance_carries_errors_along_the_unidentified_direction():
+    """Year posteriors tight along one direction, loose along the other (two inputs trading
+    off; the prior decides there): the errors stay correlated across years along the loose
+    direction only (an AR(1) there), and the slope's variance grows there."""
+    d, n = 2, YEARS.size
+    v = np.array([1.0, 1.0]) / np.sqrt(2)
+    u = np.array([1.0, -1.0]) / np.sqrt(2)
+    P = np.repeat((0.0001 * np.outer(v, v) + 0.008 * np.outer(u, u))[None], n, axis=0)
+    E = filter_error_covariance(P, np.array([0.01, 0.01]))
+    assert E.shape == (n, n, d, d) and np.allclose(E[3, 3], P[3])
+    assert np.allclose(E[4, 3], E[3, 4].T)
+    assert u @ E[5, 4] @ u > 0.5 * (u @ P[4] @ u)       # carried along the ridge
+    assert abs(v @ E[5, 4] @ v) < 0.1 * (v @ P[4] @ v)   # not across it
+    indep = filter_error_covariance(P, None)
+    assert np.all(indep[5, 4] == 0)
+    rng = np.random.default_rng(9)
+    tr, res = _trends(np.array([0.0, -0.02]), np.array([0.01, 0.01]), rng)
+    C_ind = slope_covariance(tr, res, YEARS, indep)
+    C_car = slope_covariance(tr, res, YEARS, E)
+    assert u @ C_car @ u > 2 * (u @ C_ind @ u)
+    assert np.allclose(C_ind, slope_covariance(tr, res, YEARS, P))   # [n, d, d] as before
+
+
+def test_median_failure_year_is_the_first_year_more_likely_unsafe_than_not():
+    years = np.array([11, 12, 13, 14])
+    assert median_failure_year(years, np.array([0.01, 0.2, 0.5, 0.9])) == 13
+    assert median_failure_year(years, np.array([0.01, 0.2, 0.4, 0.49])) is None
 
 
 def test_attribution_names_a_clear_fault_and_says_ambiguous_on_a_ridge():
