@@ -17,12 +17,18 @@ process is never extrapolated. A sample is unsafe when its health indicator pass
 The failure year is the first future year whose probability of being unsafe exceeds
 ``safety.failure_probability``.
 
-Root cause: per input, a one-sided t test of the OLS slope against what normal ageing allows
-(``normal_rate`` +- ``normal_rate_tolerance`` of the input's spec) in the input's degrading
-direction (``degrading`` in the input's spec, or the sign of the change that moves the
-indicator towards unsafe, from a finite difference of the surrogate checked against its own
-error; two-sided where that sign cannot be told). The components of the inputs whose test
-rejects at ``forecast.alpha`` give the verdict: ``healthy``, one component, or ``both``.
+Detection and root cause (:mod:`twinmon.prognosis`, :func:`judge`): the trend of the unit's
+health indicator (its posterior draws per observed year through the twin) is tested against
+the drift normal ageing of every input produces, and the inputs' slopes jointly against the
+normal-ageing box, each at ``forecast.alpha`` / 2. A drifting unit's components get
+probabilities of ageing faster than normal; the verdict names those at or above
+``forecast.attribution_confidence``, or says ``ambiguous`` with the probabilities and the
+unrecorded channel that would tell them apart. Each input keeps its one-sided t test of the
+slope against ``normal_rate`` +- ``normal_rate_tolerance`` in its degrading direction (the
+paper's test, reported per trend).
+
+Units stream through in chunks over ``simulate.executor``'s workers (:func:`iter_forecast`)
+and are written as they come back, so memory does not grow with the fleet.
 
 See ``docs/forecast.md`` for the choices (OLS on the estimates, correlated draws) and the
 artifact layout.
