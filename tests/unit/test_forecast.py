@@ -401,3 +401,12 @@ def test_plan_says_now_when_already_unsafe(setup):
     plan = maintenance_plan(f.trends, f.years_future, np.ones(7), int(f.years_future[0]),
                             10, 0.5, cfg.safety)
     assert "now (already unsafe" in plan and "pump" in plan
+
+
+@pytest.mark.parametrize("command", [["forecast"], ["diagnose", "--observations", "x.h5"]])
+def test_a_negative_worker_count_is_refused_in_one_line(setup, command):
+    from twinmon.cli import main
+    _, cfg_path, _, _ = setup
+    res = CliRunner().invoke(main, [*command, "-c", str(cfg_path), "-j", "-1"])
+    assert res.exit_code == 2
+    assert "-j" in res.output and "-1 is not in the range x>=0" in res.output

@@ -16,7 +16,7 @@ from .common import config_options, emit_json, json_option, load, progress_bar, 
               help="Optional posterior.h5: standardise the residual map against it.")
 @click.option("-o", "--output", default="out/gap.h5", show_default=True,
               type=click.Path(), help="Gap artifact to write.")
-@click.option("-j", "--workers", type=int, default=None,
+@click.option("-j", "--workers", type=click.IntRange(min=0), default=None,
               help="Worker processes over units (default: diagnose.workers, 0 = one per core).")
 @json_option
 def diagnose(config_path, overrides, observations, posterior, output, workers, as_json):
