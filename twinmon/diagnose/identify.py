@@ -89,7 +89,8 @@ def identify(s: UnitState, candidates: list) -> Identification:
         score, v, on, _ = screened[name]
         confirmed[name] = confirm(s, name, v, on) if name in chosen else None
     dbic = {n: (bic_base - bic(s, c[0], 1)) if c else -np.inf for n, c in confirmed.items()}
-    order = sorted(candidates, key=lambda n: -dbic[n])
+    # Ranked by fitted BIC gain; candidates the screening left unfitted by their score.
+    order = sorted(candidates, key=lambda n: (-dbic[n], -screened[n][0]))
     best = order[0] if order else None
 
     significant = s.p_omnibus < s.dc.alpha or (
