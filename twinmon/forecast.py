@@ -1103,11 +1103,12 @@ def iter_forecast(cfg: Config, post, sur, *, directions: dict, box_ok: bool,
     SimulationError
         A worker process died.
     """
-    from .executors import make_executor
+    from .executors import check_workers, make_executor
     from .simulate import spec_for
     unit_names = list(post.units)
     n = len(unit_names)
     n_workers = cfg.simulate.workers if workers is None else workers
+    check_workers(n_workers)
     n_workers = min(n_workers or len(os.sched_getaffinity(0)), n)
     if cfg.simulate.executor == "serial":
         n_workers = 1

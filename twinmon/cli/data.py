@@ -13,7 +13,7 @@ from .common import config_options, emit_json, json_option, load, progress_bar, 
 @config_options
 @click.option("-o", "--output", default="out/simulations.h5", show_default=True,
               type=click.Path(), help="Simulations artifact to write.")
-@click.option("-j", "--workers", type=click.IntRange(min=0), default=None,
+@click.option("-j", "--workers", type=int, default=None,
               help="Worker processes (default: simulate.workers, 0 = one per core).")
 @json_option
 def simulate(config_path, overrides, output, workers, as_json):

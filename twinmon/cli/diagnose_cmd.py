@@ -16,14 +16,16 @@ from .common import config_options, emit_json, json_option, load, progress_bar, 
               help="Optional posterior.h5: standardise the residual map against it.")
 @click.option("-o", "--output", default="out/gap.h5", show_default=True,
               type=click.Path(), help="Gap artifact to write.")
-@click.option("-j", "--workers", type=click.IntRange(min=0), default=None,
+@click.option("-j", "--workers", type=int, default=None,
               help="Worker processes over units (default: diagnose.workers, 0 = one per core).")
 @json_option
 def diagnose(config_path, overrides, observations, posterior, output, workers, as_json):
     """Locate the sim-to-real gap, name the unmodelled effect, show how far it shrinks."""
     from ..diagnose import diagnose as run
     from ..observations import read_observations
+    from ..executors import check_workers
     cfg = load(config_path, overrides)
+    check_workers(workers if workers is not None else cfg.diagnose.workers)
     n_units = len(read_observations(observations).units)
     with progress_bar(n_units, "diagnose") as update:
         s = run(cfg, observations, output, workers=workers, progress=update,

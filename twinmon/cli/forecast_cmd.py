@@ -19,7 +19,7 @@ from .common import (config_options, emit_json, json_option, load, progress_bar,
               type=click.Path(), help="Forecast artifact to write.")
 @click.option("--truth", "truth", default=None, type=click.Path(),
               help="Truth file of fabricate: also give each unit's true failure year.")
-@click.option("-j", "--workers", type=click.IntRange(min=0), default=None,
+@click.option("-j", "--workers", type=int, default=None,
               help="Worker processes over units (default: simulate.workers, 0 = one per core).")
 @click.option("--force-prognosis", is_flag=True,
               help="Give a failure year and root cause even for units whose twin misses the "

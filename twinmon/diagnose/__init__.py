@@ -219,7 +219,9 @@ def diagnose(cfg: Config, observations: str | os.PathLike, output: str | os.Path
     from ..fmu import resolve_fmu
 
     t0 = _time.perf_counter()
+    from ..executors import check_workers
     from ..simulate import check_model
+    check_workers(workers if workers is not None else cfg.diagnose.workers)
     check_model(cfg)
     obs = read_observations(observations, cfg.model.output.name)
     candidate_names(cfg)

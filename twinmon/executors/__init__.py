@@ -19,9 +19,7 @@ KINDS = ("process", "serial", "dask")
 def make_executor(kind: str, workers: int = 0, dask=None) -> Executor:
     """Executor by config name (``"process"``, ``"serial"`` or ``"dask"``); ``workers=0``:
     one per core; ``dask``: the config's ``dask`` section (address, timeout)."""
-    if workers < 0:
-        from ..errors import ConfigError
-        raise ConfigError(f"workers: expected 0 (one per core) or a positive count, got {workers}")
+    check_workers(workers)
     if kind == "serial":
         return SerialExecutor()
     if kind == "process":
@@ -30,6 +28,13 @@ def make_executor(kind: str, workers: int = 0, dask=None) -> Executor:
         from .dask import DaskExecutor
         return DaskExecutor(workers, **_dask_options(dask))
     raise ValueError(f"unknown executor {kind!r}")
+
+
+def check_workers(workers: int) -> None:
+    """A worker count must be 0 (one per core) or positive (a ``ConfigError`` otherwise)."""
+    if workers < 0:
+        from ..errors import ConfigError
+        raise ConfigError(f"workers: expected 0 (one per core) or a positive count, got {workers}")
 
 
 def open_pool(cfg, stage: str, workers: int, initializer=None, initargs=(), files=()):
@@ -57,4 +62,4 @@ def _dask_options(dask) -> dict:
 
 
 __all__ = ["Executor", "RunResult", "SimulationSpec", "SerialExecutor", "ProcessExecutor",
-           "make_executor", "open_pool", "start_pool", "stop_pool", "closing_pool", "InterruptGuard", "KINDS"]
+           "check_workers", "make_executor", "open_pool", "start_pool", "stop_pool", "closing_pool", "InterruptGuard", "KINDS"]
