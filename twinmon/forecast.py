@@ -997,7 +997,9 @@ def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
     from .calibrate import read_posterior
     from .reduce import check_made_for, read_surrogate
 
+    from .executors import check_workers
     start = _time.perf_counter()
+    check_workers(cfg.simulate.workers if workers is None else workers)
     posterior_path, surrogate_path = Path(posterior_path), Path(surrogate_path)
     names = cfg.model.input_names
     post = read_posterior(posterior_path)
