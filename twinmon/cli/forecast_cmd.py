@@ -38,9 +38,7 @@ def forecast(config_path, overrides, posterior, surrogate, output, truth, worker
     if force_prognosis:
         overrides = (*overrides, "forecast.force_prognosis=true")
     from ..calibrate import read_posterior
-    from ..executors import check_workers
     cfg = load(config_path, overrides)
-    check_workers(cfg.simulate.workers if workers is None else workers)
     # The unit count is a look at the file's index (its units are read lazily); a missing or
     # foreign file is reported by the stage itself.
     try:

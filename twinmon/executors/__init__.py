@@ -62,4 +62,5 @@ def _dask_options(dask) -> dict:
 
 
 __all__ = ["Executor", "RunResult", "SimulationSpec", "SerialExecutor", "ProcessExecutor",
-           "check_workers", "make_executor", "open_pool", "start_pool", "stop_pool", "closing_pool", "InterruptGuard", "KINDS"]
+           "check_workers", "make_executor", "open_pool", "start_pool", "stop_pool",
+           "closing_pool", "InterruptGuard", "KINDS"]
