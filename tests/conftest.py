@@ -3,6 +3,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import h5py
+import numpy as np
 import pytest
 import yaml
 
@@ -70,3 +72,30 @@ def calibrated_fleet(tmp_path_factory, fmu_path):
                         truth_path=tmp / "truth.h5")
     print(f"\ncalibrate wall time {time.perf_counter() - start:.2f} s")
     return cfg, tmp, summary
+
+
+def write_posterior_v1(path, src_path, post) -> None:
+    """``post`` (unit -> UnitPosterior) in the first posterior layout
+    (``twinmon.posterior/1``): a dataset per field and unit, every draw uncompressed, HDF5's
+    earliest format, as twinmon wrote it before the per-unit record; root attributes copied
+    from ``src_path``."""
+    from twinmon import artifacts
+    with h5py.File(src_path, "r") as src, h5py.File(path, "w") as dst:
+        for k, v in src.attrs.items():
+            dst.attrs[k] = v
+        dst.attrs["schema"] = "twinmon.posterior/1"
+        for unit, p in post.items():
+            g = dst.create_group(f"units/{unit}")
+            for name in ("years", "samples", "mean", "median", "q05", "q95", "rhat", "ess",
+                         "acceptance", "noise_std", "surrogate_var_ratio", "var", "chain_end"):
+                ds = artifacts.put(g, name, np.asarray(getattr(p, name)), "u", "d")
+                assert ds.compression is None
+            artifacts.put(g, "digest", [str(v) for v in p.digest], "1", "d")
+            for key, v in p.fit.items():
+                v = np.asarray(v)
+                if key == "status":
+                    v = np.array([str(x) for x in v], dtype=h5py.string_dtype())
+                elif v.dtype == bool:
+                    v = v.astype(np.int8)
+                artifacts.put(g, f"fit/{key}", v, "1", "d")
+            g.attrs["noise_source"] = p.noise_source

@@ -35,11 +35,17 @@ SCHEMAS = {
     "surrogate": 1,
     "observations": 1,
     "truth": 1,
-    "posterior": 1,
+    "posterior": 2,
     "forecast": 1,
     "gap": 1,
     "backtest": 1,
 }
+
+
+#: Earlier major versions a reader still accepts (the reader handles their layout).
+#: posterior/1: one dataset per field and unit (posterior/2 packs a unit's per-year
+#: results into one compound dataset).
+READABLE = {"posterior": (1,)}
 
 
 def schema_name(kind: str) -> str:
@@ -69,7 +75,8 @@ def _version() -> str:
 def write_artifact(path: str | os.PathLike, kind: str, *, config: str = "",
                    inputs: Sequence[str | os.PathLike] = (), seed: int | None = None,
                    extra_attrs: dict | None = None,
-                   compact: bool = False) -> Iterator[h5py.File]:
+                   compact: bool = False,
+                   base: str | os.PathLike | None = None) -> Iterator[h5py.File]:
     """Open a temporary HDF5 file for writing an artifact; rename it into place on success.
 
     Parameters
@@ -87,6 +94,11 @@ def write_artifact(path: str | os.PathLike, kind: str, *, config: str = "",
     compact : bool
         Write the HDF5 >= 1.10 file format (:data:`COMPACT_LIBVER`): smaller per-dataset
         metadata, for artifacts with many small datasets per unit.
+    base : path-like, optional
+        An artifact of the same kind to start from: the temporary file is a copy of it
+        (opened read-write, its provenance replaced), so that a stage adding to a large
+        artifact writes only what changed (``calibrate --update``). The copy is made under
+        the output's lock; ``base`` may be ``path`` itself.
 
     Yields
     ------
@@ -101,7 +113,11 @@ def write_artifact(path: str | os.PathLike, kind: str, *, config: str = "",
         remove_stale_temporaries(path)
         tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
         try:
-            with h5py.File(tmp, "w", **({"libver": COMPACT_LIBVER} if compact else {})) as f:
+            if base is not None:
+                import shutil
+                shutil.copyfile(base, tmp)
+            mode = "r+" if base is not None else "w"
+            with h5py.File(tmp, mode, **({"libver": COMPACT_LIBVER} if compact else {})) as f:
                 set_provenance(f, kind, config=config, records=records, seed=seed)
                 for key, value in (extra_attrs or {}).items():
                     f.attrs[key] = value
@@ -259,7 +275,7 @@ def open_artifact(path: str | os.PathLike, kind: str) -> h5py.File:
     if isinstance(found, bytes):
         found = found.decode()
     expected = schema_name(kind)
-    if found != expected:
+    if found != expected and found not in {f"twinmon.{kind}/{v}" for v in READABLE.get(kind, ())}:
         f.close()
         raise ArtifactError(f"{path}: schema is {found!r}, expected {expected!r}")
     return f
@@ -312,6 +328,14 @@ def get(group: h5py.Group, name: str, path: str | os.PathLike | None = None) -> 
     return ds[()]
 
 
+def get_shape(group: h5py.Group, name: str, path: str | os.PathLike | None = None) -> tuple:
+    """The shape of a dataset, without reading it (missing: as :func:`get`)."""
+    if name not in group:
+        where = path or group.file.filename
+        raise ArtifactError(f"{where}: dataset {group.name.rstrip('/')}/{name} is missing")
+    return group[name].shape
+
+
 class LazyUnits(Mapping):
     """The units of an artifact, each read when it is looked up.
 
@@ -353,6 +377,21 @@ class LazyUnits(Mapping):
         while len(self._cache) > self._size:
             self._cache.popitem(last=False)
         return value
+
+    def each(self) -> Iterator[tuple[str, Any]]:
+        """Every unit in the file's order, read in one opening of the file (a stage that
+        needs them all: opening the file per unit costs more than reading a small one).
+        The cache is not filled."""
+        try:
+            same = _stamp(self.path) == self._stamp
+        except OSError:
+            same = False
+        if not same:
+            raise ArtifactError(f"{self.path}: replaced or removed since it was opened; "
+                                "run the command again")
+        with open_artifact(self.path, self.kind) as f:
+            for unit in self._names:
+                yield unit, self._read(f, unit, self.path)
 
     def __contains__(self, unit: object) -> bool:
         return unit in self._known

@@ -189,15 +189,18 @@ def test_posterior_round_trip_and_schema(setup, tmp_path):
     assert np.array_equal(q.samples, p.samples[:, thin_indices(p.samples.shape[1], keep)])
     assert q.noise_source == "estimated"
     with h5py.File(tmp_path / "post.h5", "r") as f:
-        def check(name, ds):
-            if isinstance(ds, h5py.Dataset):
-                assert ds.attrs["units"] and ds.attrs["description"], name
-        f["units/U1"].visititems(check)
+        # A unit is one compound record per year and its draws; the root documents every
+        # field of the record (units, description) once.
+        assert sorted(f["units/U1"]) == ["record", "samples"]
+        doc = json.loads(f.attrs["record_fields"])
+        for name in f["units/U1/record"].dtype.names:
+            assert doc[name][0] and doc[name][1], name
+        assert f.attrs["samples_description"]
     for key in ("rms", "p_chi2", "p_ljung_box", "window", "extensions", "status"):
         assert np.array_equal(q.fit[key], p.fit[key]), key
     with h5py.File(tmp_path / "wrong.h5", "w") as f:
         f.attrs["schema"] = "twinmon.forecast/1"
-    with pytest.raises(ArtifactError, match="expected 'twinmon.posterior/1'"):
+    with pytest.raises(ArtifactError, match="expected 'twinmon.posterior/2'"):
         read_posterior(tmp_path / "wrong.h5")
 
 

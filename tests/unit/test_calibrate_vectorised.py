@@ -19,7 +19,7 @@ from twinmon.observations import read_observations, write_observations
 from twinmon.reduce import read_surrogate, reduce
 from twinmon.simulate import simulate
 
-from ..conftest import CONFIGS, ROOT, write_yaml
+from ..conftest import CONFIGS, ROOT, write_posterior_v1, write_yaml
 
 FLEET = ROOT / "data" / "fleet.h5"     # the shipped fleet: 3 units x 10 years, noise 4 kg/s
 FAST = {"sampler": "vectorised", "workers": 1, "samples": 300, "burn_in": 100,
@@ -164,6 +164,8 @@ def test_update_equals_a_full_run(setup, tmp_path):
 
 
 def test_update_with_the_openturns_sampler_equals_a_full_run(setup, tmp_path):
+    """Continuing this layout (the kept draws left in the file, the new ones appended) and
+    the first one (``twinmon.posterior/1``, read whole and written again)."""
     cfg, _, tmp, _ = setup
     cc = dataclasses.replace(cfg.calibrate, sampler="openturns", samples=150, burn_in=50,
                              chains=2, ess_warn=50, max_extensions=0)
@@ -172,10 +174,14 @@ def test_update_with_the_openturns_sampler_equals_a_full_run(setup, tmp_path):
         _cut(tmp_path / "o3.h5", 3, drop=("Monk", "Colt"))
     calibrate(cfg, tmp / "sur.h5", long, tmp_path / "full.h5")
     calibrate(cfg, tmp / "sur.h5", short, tmp_path / "upd.h5")
-    s = calibrate(cfg, tmp / "sur.h5", long, tmp_path / "upd.h5", update=True)
-    assert s.update["kept_years"] == 2
-    _assert_same_unit(read_posterior(tmp_path / "full.h5").units["Park"],
-                      read_posterior(tmp_path / "upd.h5").units["Park"])
+    post = read_posterior(tmp_path / "upd.h5")
+    write_posterior_v1(tmp_path / "upd1.h5", tmp_path / "upd.h5", {"Park": post.units["Park"]})
+    full = read_posterior(tmp_path / "full.h5").units["Park"]
+    for name in ("upd.h5", "upd1.h5"):
+        s = calibrate(cfg, tmp / "sur.h5", long, tmp_path / name, update=True)
+        assert s.update["kept_years"] == 2
+        assert s.posterior["Park"].samples_from == (2 if name == "upd.h5" else 0)
+        _assert_same_unit(full, read_posterior(tmp_path / name).units["Park"], name)
 
 
 def test_update_redoes_a_unit_whose_data_changed_and_refuses_another_config(setup, tmp_path):

@@ -28,7 +28,7 @@ from twinmon.forecast import read_forecast
 from twinmon.observations import read_observations, write_observations
 from twinmon.report import report
 
-from ..conftest import CONFIGS, write_yaml
+from ..conftest import CONFIGS, write_posterior_v1, write_yaml
 
 N_UNITS = 40
 DETAIL = 6
@@ -115,7 +115,7 @@ def test_thinning_keeps_the_statistics_of_every_draw(fleet, tmp_path):
         ds = f["units/Colt/samples"]
         assert ds.chunks == (1, 100, 2) and ds.compression == "gzip"
         assert ds.shuffle and ds.fletcher32
-        assert ds.attrs["draws_total"] == 600 and ds.attrs["draws_kept"] == 100
+        assert ds.attrs["draws_total"] == 600
 
 
 def test_reading_one_unit_reads_no_other(fleet, tmp_path):
@@ -125,14 +125,14 @@ def test_reading_one_unit_reads_no_other(fleet, tmp_path):
     victim, other = names[7], names[21]
     _damage(copy, f"units/{victim}/samples")
     with h5py.File(copy, "a") as f:
-        del f[f"units/{names[30]}/mean"]
+        del f[f"units/{names[30]}/record"]
     post = read_posterior(copy)                 # neither damage is seen here
     assert len(post.units) == N_UNITS and list(post.units) == sorted(names)   # HDF5 order
     assert victim in post.units and "Nobody" not in post.units
     assert post.units[other].samples.shape[0] == 4
     with pytest.raises(ArtifactError, match=str(copy.name)):
         post.units[victim]
-    with pytest.raises(ArtifactError, match=f"/units/{names[30]}/mean is missing"):
+    with pytest.raises(ArtifactError, match=f"/units/{names[30]}/record is missing"):
         post.units[names[30]]
     with pytest.raises(KeyError):
         post.units["Nobody"]
@@ -152,32 +152,25 @@ def test_a_posterior_replaced_after_opening_is_refused(fleet, tmp_path):
 
 
 def test_a_posterior_of_the_old_layout_reads(fleet, tmp_path):
-    """Every pooled draw, uncompressed, HDF5's earliest format: as written before thinning."""
-    cfg, _, tmp, _ = fleet
-    old = tmp_path / "old.h5"
-    with h5py.File(tmp / "post3.h5", "r") as src, h5py.File(old, "w") as dst:
-        for k, v in src.attrs.items():
-            dst.attrs[k] = v
-
-        def copy(name, obj):
-            if isinstance(obj, h5py.Dataset):
-                data = obj[()]
-                if h5py.check_string_dtype(obj.dtype) is not None:
-                    data = np.array(obj.asstr()[()].tolist(), dtype=h5py.string_dtype())
-                ds = artifacts.put(dst, name, data, obj.attrs["units"],
-                                   obj.attrs["description"])
-                assert ds.compression is None
-            elif isinstance(obj, h5py.Group):
-                dst.require_group(name)
-                for k, v in obj.attrs.items():
-                    dst[name].attrs[k] = v
-        src.visititems(copy)
-    back = read_posterior(old)
+    """A ``twinmon.posterior/1`` file reads as it did (its units field by field), and
+    ``run`` takes it for out of date (``calibrate --update`` continuing from one: in
+    test_calibrate_vectorised)."""
+    _, _, tmp, _ = fleet
     new = read_posterior(tmp / "post3.h5")
+    old = tmp_path / "old.h5"
+    write_posterior_v1(old, tmp / "post3.h5", {u: new.units[u] for u in new.units})
+    back = read_posterior(old)
     for unit in ("Park", "Colt", "Monk"):
         a, b = back.units[unit], new.units[unit]
-        assert np.array_equal(a.samples, b.samples) and np.array_equal(a.mean, b.mean)
+        for name in ("years", "samples", "mean", "q95", "ess", "acceptance", "var",
+                     "chain_end", "digest"):
+            assert np.array_equal(getattr(a, name), getattr(b, name)), name
         assert a.status.tolist() == b.status.tolist()
+        assert np.array_equal(a.fit["converged"], b.fit["converged"])
+    prov = artifacts.read_provenance(tmp / "post3.h5")
+    made_from = [r["path"] for r in prov["inputs"]]
+    assert artifacts.is_up_to_date(tmp / "post3.h5", "posterior", prov["config"], made_from)
+    assert not artifacts.is_up_to_date(old, "posterior", prov["config"], made_from)
 
 
 # ---------------------------------------------------------------------------------------

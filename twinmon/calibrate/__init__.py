@@ -19,29 +19,30 @@ inference, as in the paper (section V):
 * diagnostics: rank-normalised split R-hat and bulk effective sample size (Vehtari et al.
   2021) and the acceptance rate per chain, with warnings when they are poor.
 
-The result is ``posterior.h5`` (``twinmon.posterior/1``)::
+The result is ``posterior.h5`` (``twinmon.posterior/2``)::
 
-    attrs input_names (JSON list), input_units (JSON list)
-    /units/<U>/years        int64   [n_y]             year of service
-    /units/<U>/samples      float64 [n_y, n_s, d]     pooled post-burn-in draws (input units),
+    attrs input_names, input_units (JSON lists), record_fields (JSON {field: [units,
+          description]}), channels (JSON list: the channels in the likelihood, the output's
+          name first), fit_windows (JSON list: the window names fit_window indexes)
+    /units/<U>/record       compound [n_y]        one row per year (posterior.RECORD_FIELDS):
+                            year; mean, median, q05, q95, rhat, ess, var [d]; acceptance
+                            [chains]; noise_std (output units, used in the likelihood);
+                            surrogate_var_ratio; chain_end [chains, d] and digest (what
+                            --update continues from); fit_<field> for each of FIT_FIELDS
+                            (rms, p_chi2, p_ljung_box, window, window_rms, edge_share [d],
+                            extensions, converged, status ok|misfit|edge|unconverged), and
+                            fit_channel_rms [n_ch] when further channels were in the likelihood
+    /units/<U>/samples      float64 [n_y, n_s, d] pooled post-burn-in draws (input units),
                             evenly thinned to calibrate.keep_draws (statistics use them all)
-    /units/<U>/mean, median, q05, q95  float64 [n_y, d]
-    /units/<U>/rhat, ess    float64 [n_y, d]
-    /units/<U>/acceptance   float64 [n_y, chains]
-    /units/<U>/noise_std    float64 [n_y]             output units (noise used in the likelihood)
-    /units/<U>/surrogate_var_ratio float64 [n_y]      mean surrogate variance / noise variance
-    /units/<U>/fit/<field>  [n_y] or [n_y, d]         goodness of fit per year (FIT_FIELDS):
-                            rms, p_chi2, p_ljung_box, window, window_rms, edge_share,
-                            extensions, converged, status (ok|misfit|edge|unconverged)
     /units/<U>/trend/<field>                   calibrate.method joint only: the trend's
                             posterior (joint.TREND_FIELDS): start [S, d]; intercept, slope
                             [draw, S, d]; sigma [draw, d]; rhat, ess [3, d]; acceptance [chain]
     /units/<U>.attrs noise_source  "file" | "config" | "estimated"
     /units/<U>.attrs channels      JSON {channel: {std, source}} when further channels were
-                                   in the likelihood (the output first); then also
-    /units/<U>/fit/channel_rms     float64 [n_y, n_ch]  residual RMS per channel, in noise sd
-    attrs channels (JSON list: the channels in the likelihood, the output's name first)
-    attrs fit_windows (JSON list: the window names fit/window indexes)
+                                   in the likelihood (the output first)
+    /units/<U>.attrs events        JSON [[year, component, action]] (maintenance events)
+
+``twinmon.posterior/1`` files (a dataset per field) are still read.
 
 Goodness of fit: each year's residual at the posterior mean, standardised by the likelihood's
 variance, is tested for size and structure; a year whose residual is well above the noise
@@ -372,7 +373,11 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
     # The truth only feeds the summary, but it is recorded so that `twinmon run` re-runs
     # the stage (and its truth check) when it changes.
     inputs = [surrogate_path, observations_path] + ([truth_path] if truth_path else [])
-    write_posterior(output, posterior, names, cfg, inputs, surrogate_id=surrogate.fingerprint())
+    # An update appends to a copy of the posterior it continues: the kept years' draws are
+    # neither read nor compressed again.
+    base = output if any(p.samples_from for p in posterior.values()) else None
+    write_posterior(output, posterior, names, cfg, inputs, surrogate_id=surrogate.fingerprint(),
+                    base=base)
     check = truth_check(posterior, truth, names) if truth is not None else None
     return CalibrateSummary(names, posterior, warnings, str(output), check, windows,
                             channels=[cfg.model.output.name] + channels, update=update_info)

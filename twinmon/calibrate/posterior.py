@@ -74,6 +74,10 @@ class UnitPosterior:
     #: Per year, a SHA-256 of the observation row and noise the year was calibrated on:
     #: ``--update`` keeps a year only if its data are unchanged.
     digest: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=str))
+    #: Index of the first year whose draws ``samples`` holds ([n_y - samples_from, n_s, d]):
+    #: 0 but for ``calibrate --update``, which leaves the draws of the years it keeps in the
+    #: posterior it continues (read with ``draws=False``) and writes only the new ones.
+    samples_from: int = 0
 
     @property
     def chains(self) -> int:
@@ -232,59 +236,179 @@ def thin_indices(n_draws: int, keep: int) -> np.ndarray:
     return np.floor((np.arange(keep) + 0.5) * (n_draws / keep)).astype(np.int64)
 
 
+def record_dtype(d: int, chains: int, n_channels: int = 0, fit: bool = True,
+                 continuation: bool = True) -> np.dtype:
+    """The compound dtype of ``/units/<U>/record``: one row per year (:data:`RECORD_FIELDS`).
+
+    Parameters
+    ----------
+    d, chains : int
+        Inputs and chains (the shapes of the subarray fields).
+    n_channels : int
+        Channels of ``fit_channel_rms`` (0: no such field).
+    fit, continuation : bool
+        Whether the ``fit_*`` fields and ``var``/``chain_end``/``digest`` are present (a
+        posterior without them, e.g. built in memory by a test, stores none).
+    """
+    fields = [("year", "<i8")] + [(k, "<f8", (d,)) for k in
+                                  ("mean", "median", "q05", "q95", "rhat", "ess")]
+    fields += [("acceptance", "<f8", (chains,)), ("noise_std", "<f8"),
+               ("surrogate_var_ratio", "<f8")]
+    if continuation:
+        fields += [("var", "<f8", (d,)), ("chain_end", "<f8", (chains, d)), ("digest", "S64")]
+    if fit:
+        fields += [("fit_rms", "<f8"), ("fit_p_chi2", "<f8"), ("fit_p_ljung_box", "<f8"),
+                   ("fit_window", "<i8"), ("fit_window_rms", "<f8"),
+                   ("fit_edge_share", "<f8", (d,)), ("fit_extensions", "<i8"),
+                   ("fit_converged", "i1"), ("fit_status", "S16")]
+        if n_channels:
+            fields.append(("fit_channel_rms", "<f8", (n_channels,)))
+    return np.dtype(fields)
+
+
+#: What each field of ``/units/<U>/record`` holds: (units, description). Recorded once, as
+#: the root attribute ``record_fields``, not on every unit's dataset (attributes cost as
+#: much to write as a small dataset).
+RECORD_FIELDS = {
+    "year": _DATASETS["years"],
+    **{k: _DATASETS[k] for k in ("mean", "median", "q05", "q95", "rhat", "ess", "acceptance",
+                                 "noise_std", "surrogate_var_ratio")},
+    **_CONTINUATION,
+    **{f"fit_{k}": v for k, v in FIT_FIELDS.items()},
+    "fit_channel_rms": ("1", "residual RMS per channel (order of the unit's channels "
+                        "attribute), in its noise sd [year, channel]"),
+}
+
+
+def _records(p: UnitPosterior) -> np.ndarray:
+    """A unit's per-year results as one structured array [n_y] (:func:`record_dtype`)."""
+    n_y, d = np.shape(p.mean)
+    cont = bool(np.size(p.var) and np.size(p.chain_end) and np.size(p.digest))
+    n_ch = np.shape(p.fit["channel_rms"])[1] if p.fit and "channel_rms" in p.fit else 0
+    rec = np.zeros(n_y, record_dtype(d, p.chains, n_ch, bool(p.fit), cont))
+    rec["year"] = p.years
+    for k in ("mean", "median", "q05", "q95", "rhat", "ess"):
+        rec[k] = getattr(p, k)
+    rec["acceptance"], rec["noise_std"] = p.acceptance, p.noise_std
+    rec["surrogate_var_ratio"] = p.surrogate_var_ratio if np.size(p.surrogate_var_ratio) \
+        else np.nan
+    if cont:
+        rec["var"], rec["chain_end"] = p.var, p.chain_end
+        rec["digest"] = [str(v).encode() for v in p.digest]
+    for key in FIT_FIELDS if p.fit else ():
+        v = np.asarray(p.fit[key])
+        rec[f"fit_{key}"] = [str(x).encode() for x in v] if key == "status" else v
+    if n_ch:
+        rec["fit_channel_rms"] = p.fit["channel_rms"]
+    return rec
+
+
 def write_posterior(path, posterior: dict[str, UnitPosterior], input_names: list[str],
-                    cfg: Config, inputs, surrogate_id: str = "") -> None:
+                    cfg: Config, inputs, surrogate_id: str = "",
+                    base: str | os.PathLike | None = None) -> None:
     """Write ``posterior.h5`` atomically (layout in the module docstring).
 
-    The summary statistics (mean, quantiles, R-hat, ESS) are those of all the draws, as
-    computed by calibration; only ``calibrate.keep_draws`` draws per year are stored, evenly
-    thinned (:func:`thin_indices`), one gzip-compressed chunk per unit-year. The dataset's
-    ``draws_total``/``draws_kept`` attributes record the thinning.
+    A unit is two datasets: its per-year results as one compound ``record`` [n_y]
+    (:func:`record_dtype`; a fleet of 1000 units writes and reads in about a tenth of the
+    time of two dozen small datasets per unit) and its draws. The summary statistics (mean,
+    quantiles, R-hat, ESS) are those of all the draws, as computed by calibration; only
+    ``calibrate.keep_draws`` draws per year are stored, evenly thinned (:func:`thin_indices`),
+    one gzip-compressed chunk per unit-year. The draws' ``draws_total`` attribute records the
+    thinning. Both datasets can grow along the years.
 
     ``surrogate_id`` is the :meth:`~twinmon.reduce.Surrogate.fingerprint` of the surrogate
-    the posterior was sampled through."""
+    the posterior was sampled through.
+
+    ``base``: the ``twinmon.posterior/2`` file that ``calibrate --update`` continues. The new
+    file starts as its copy; a unit with ``samples_from > 0`` keeps the draws of its first
+    ``samples_from`` years there (they are neither read nor compressed again) and gets its
+    record rewritten and its new years' draws appended; other units are written afresh, and
+    units of ``base`` not in ``posterior`` are removed.
+    """
     keep = cfg.calibrate.keep_draws
+    if base is None and any(p.samples_from for p in posterior.values()):
+        raise ValueError("a posterior whose draws are partly in another file needs base=")
     with artifacts.write_artifact(path, "posterior", config=cfg.section_yaml(*SECTIONS),
                                   inputs=inputs, seed=cfg.seed + SEED_OFFSET,
-                                  compact=True) as f:
+                                  compact=True, base=base) as f:
         if surrogate_id:
             f.attrs["surrogate_id"] = surrogate_id
         f.attrs["input_names"] = json.dumps(list(input_names))
         f.attrs["input_units"] = json.dumps([cfg.model.inputs[n].units for n in input_names])
+        out_units = cfg.model.output.units
+        f.attrs["record_fields"] = json.dumps(
+            {k: [out_units if u == "output units" else u, desc]
+             for k, (u, desc) in RECORD_FIELDS.items()})
+        f.attrs["samples_description"] = _SAMPLES_DOC
+        units = f.require_group("units")
+        for unit in set(units) - set(posterior):
+            del units[unit]           # no longer observed: a full run would not have it
         for unit, p in posterior.items():
-            g = f.create_group(f"units/{unit}")
-            for name, (units, desc) in _DATASETS.items():
-                units = cfg.model.output.units if units == "output units" else units
-                if name == "samples":
-                    _put_draws(g, np.asarray(p.samples), keep, desc)
-                    continue
-                artifacts.put(g, name, np.asarray(getattr(p, name)), units, desc)
-            g.attrs["noise_source"] = p.noise_source
-            if p.events:
-                g.attrs["events"] = json.dumps([[int(y), str(c), str(a)] for y, c, a in p.events])
-            for name, (units, desc) in _CONTINUATION.items():
-                if np.size(getattr(p, name)):
-                    data = getattr(p, name)
-                    data = [str(v) for v in data] if name == "digest" else np.asarray(data)
-                    artifacts.put(g, name, data, units, desc)
-            if p.channels:      # several channels in the likelihood: each one's noise and fit
-                g.attrs["channels"] = artifacts.json_attr(p.channels)
-                if "channel_rms" in p.fit:
-                    artifacts.put(g, "fit/channel_rms", np.asarray(p.fit["channel_rms"]), "1",
-                                  "residual RMS per channel (order of the channels attribute),"
-                                  " in its noise sd [year, channel]")
-            for key, (units, desc) in (FIT_FIELDS.items() if p.fit else ()):
-                data = np.asarray(p.fit[key])
-                if key == "status":
-                    data = np.array([str(v) for v in data], dtype=h5py.string_dtype())
-                elif data.dtype == bool:
-                    data = data.astype(np.int8)
-                artifacts.put(g, f"fit/{key}", data, units, desc)
-            if p.trend:         # the joint method's trend posterior
-                _put_trend(g, p.trend, keep)
+            if p.samples_from:
+                _append_unit(units[unit], p, keep)
+                continue
+            if unit in units:
+                del units[unit]
+            _write_unit(units.create_group(unit), p, keep)
         f.attrs["fit_windows"] = json.dumps(list(cfg.diagnose_windows()))
         f.attrs["channels"] = json.dumps(list(dict.fromkeys(
             c for p in posterior.values() for c in p.channels)) or [cfg.model.output.name])
+
+
+#: Rows per chunk of a unit's record: one chunk holds 16 years (a record row is 0.3-0.6 kB).
+RECORD_CHUNK = 16
+
+
+def _write_unit(g: h5py.Group, p: UnitPosterior, keep: int) -> None:
+    """A unit's record, draws and attributes, into its new group ``g``."""
+    # fletcher32: flipped bytes are found on reading, as in every other dataset.
+    g.create_dataset("record", data=_records(p), chunks=(RECORD_CHUNK,), maxshape=(None,),
+                     fletcher32=True)
+    _put_draws(g, np.asarray(p.samples), keep)
+    _unit_attrs(g, p)
+    if p.trend:         # the joint method's trend posterior
+        _put_trend(g, p.trend, keep)
+
+
+def _unit_attrs(g: h5py.Group, p: UnitPosterior) -> None:
+    g.attrs["noise_source"] = p.noise_source
+    for key, value in (("events", json.dumps([[int(y), str(c), str(a)]
+                                              for y, c, a in p.events]) if p.events else None),
+                       ("channels", artifacts.json_attr(p.channels) if p.channels else None)):
+        if value is not None:
+            g.attrs[key] = value
+        elif key in g.attrs:
+            del g.attrs[key]
+
+
+def _append_unit(g: h5py.Group, p: UnitPosterior, keep: int) -> None:
+    """A continued unit: its record rewritten whole (a few hundred bytes a year) and the
+    draws of its years from ``p.samples_from`` on appended; the earlier draws stay as they
+    are in the file."""
+    rec = _records(p)
+    ds = g["record"]
+    if ds.dtype != rec.dtype:
+        raise ArtifactError(f"{g.file.filename}: {g.name}/record has fields "
+                            f"{ds.dtype.names}, this run's {rec.dtype.names}; re-run "
+                            "calibrate without --update")
+    ds.resize((len(rec),))
+    ds[...] = rec
+    draws = g["samples"]
+    new = np.asarray(p.samples)
+    new = new[:, thin_indices(new.shape[1], keep), :]
+    if draws.shape[0] != p.samples_from or draws.shape[1:] != new.shape[1:]:
+        raise ArtifactError(f"{g.file.filename}: {g.name}/samples has shape {draws.shape}, "
+                            f"expected ({p.samples_from}, {new.shape[1]}, {new.shape[2]}); "
+                            "re-run calibrate without --update")
+    draws.resize((len(rec),) + draws.shape[1:])
+    draws[p.samples_from:] = new
+    _unit_attrs(g, p)
+
+
+_SAMPLES_DOC = ("/units/<U>/samples [year, draw, input], input units: post-burn-in MCMC "
+                "draws evenly thinned over the chain-major pooled draws to "
+                "calibrate.keep_draws (its draws_total attribute: the draws before thinning); "
+                "the record's statistics are of all the draws")
 
 
 def _put_trend(g: h5py.Group, trend: dict, keep: int) -> None:
@@ -306,23 +430,21 @@ def _get_trend(g: h5py.Group, path: Path) -> dict:
     return {key: artifacts.get(g["trend"], key, path) for key in TREND_FIELDS}
 
 
-def _put_draws(g: h5py.Group, samples: np.ndarray, keep: int, desc: str) -> None:
+def _put_draws(g: h5py.Group, samples: np.ndarray, keep: int) -> None:
     """The thinned draws [n_y, n_kept, d]: one chunk per year, so reading a unit-year reads
     one chunk; shuffle + gzip shrink float64 draws by about a fifth."""
     n_y, n_draws, d = samples.shape
     kept = samples[:, thin_indices(n_draws, keep), :]
     chunks = (1, kept.shape[1], d) if kept.size else None
-    ds = artifacts.put(g, "samples", kept, "input units", desc, chunks=chunks,
-                       compression="gzip" if kept.size else None,
-                       compression_opts=4 if kept.size else None, shuffle=bool(kept.size))
+    ds = g.create_dataset("samples", data=kept, chunks=chunks,
+                          maxshape=(None,) + kept.shape[1:] if kept.size else None,
+                          compression="gzip" if kept.size else None,
+                          compression_opts=4 if kept.size else None, shuffle=bool(kept.size),
+                          fletcher32=bool(kept.size))
     ds.attrs["draws_total"] = n_draws
-    ds.attrs["draws_kept"] = kept.shape[1]
-    ds.attrs["thinning"] = ("evenly spaced over the chain-major pooled draws (one in "
-                            f"{n_draws / max(kept.shape[1], 1):.3g}); the summary statistics "
-                            "are of all the draws")
 
 
-def read_posterior(path: str | os.PathLike) -> Posterior:
+def read_posterior(path: str | os.PathLike, draws: bool = True) -> Posterior:
     """Open ``posterior.h5`` (schema checked); its units are read when looked up.
 
     Only the root attributes and the list of units are read here. Each unit is read from
@@ -330,6 +452,10 @@ def read_posterior(path: str | os.PathLike) -> Posterior:
     recently read units are kept. A file replaced after this call is refused on access
     rather than mixed with the first one. Posteriors written before the draws were thinned
     (every pooled draw, uncompressed) read the same way.
+
+    ``draws=False`` leaves each unit's draws in the file (``samples`` [0, n_s, d],
+    ``samples_from`` = n_y): what ``calibrate --update`` continues from (a
+    ``twinmon.posterior/1`` file is always read whole).
 
     Raises
     ------
@@ -347,16 +473,71 @@ def read_posterior(path: str | os.PathLike) -> Posterior:
         unit_names = list(f["units"])
         windows = json.loads(f.attrs["fit_windows"]) if "fit_windows" in f.attrs else []
     units = artifacts.LazyUnits(path, "posterior", unit_names,
-                                lambda f, unit, p: _read_unit(f, unit, p, names))
+                                lambda f, unit, p: _read_unit(f, unit, p, names, draws))
     return Posterior(names, units, path, windows)
 
 
-def _read_unit(f: h5py.File, unit: str, path: Path, names: list[str]) -> UnitPosterior:
-    """Read and check one unit of an open ``posterior.h5``."""
+def _read_unit(f: h5py.File, unit: str, path: Path, names: list[str],
+               draws: bool = True) -> UnitPosterior:
+    """Read and check one unit of an open ``posterior.h5`` (either layout); without its
+    draws if not ``draws`` (see :func:`read_posterior`)."""
     if f"units/{unit}" not in f:
         raise ArtifactError(f"{path}: group /units/{unit} is missing")
     g = f["units"][unit]
-    arrs = {n: artifacts.get(g, n, path) for n in _DATASETS
+    if "record" not in g and "years" in g:
+        return _read_unit_v1(g, unit, path, names)
+    rec = artifacts.get(g, "record", path)
+    if draws:
+        samples = artifacts.get(g, "samples", path)
+    else:
+        shape = artifacts.get_shape(g, "samples", path)
+        samples = np.empty((0,) + shape[1:])
+    n_y, d = len(rec), len(names)
+    fields = rec.dtype.names or ()
+    missing = [k for k in ("year", "mean", "median", "q05", "q95", "rhat", "ess",
+                           "acceptance", "noise_std") if k not in fields]
+    if missing:
+        raise ArtifactError(f"{path}: /units/{unit}/record lacks the field {missing[0]!r}")
+    if rec.dtype["mean"].shape != (d,):
+        raise ArtifactError(f"{path}: /units/{unit}/record['mean'] has {rec.dtype['mean'].shape}"
+                            f" per year, expected ({d},)")
+    shape = samples.shape if draws else shape
+    if len(shape) != 3 or shape[::2] != (n_y, d):
+        raise ArtifactError(f"{path}: /units/{unit}/samples has shape {shape}, "
+                            f"expected ({n_y}, n_s, {d})")
+    # Each field copied out of the record (a field of a structured array is a strided view).
+    arrs = {k: np.ascontiguousarray(rec[k]) for k in (
+        "mean", "median", "q05", "q95", "rhat", "ess", "acceptance", "noise_std",
+        "surrogate_var_ratio")}
+    if "var" in fields:
+        arrs.update(var=np.ascontiguousarray(rec["var"]),
+                    chain_end=np.ascontiguousarray(rec["chain_end"]),
+                    digest=np.array([v.decode() for v in rec["digest"]]))
+    fit = {}
+    if "fit_status" in fields:
+        fit = {k: np.ascontiguousarray(rec[f"fit_{k}"]) for k in FIT_FIELDS}
+        fit["converged"] = fit["converged"].astype(bool)
+        fit["status"] = np.array([v.decode() for v in fit["status"]])
+        if "fit_channel_rms" in fields:
+            fit["channel_rms"] = np.ascontiguousarray(rec["fit_channel_rms"])
+    src = g.attrs.get("noise_source", "")
+    return UnitPosterior(years=np.ascontiguousarray(rec["year"]), samples=samples,
+                         samples_from=0 if draws else n_y,
+                         noise_source=src.decode() if isinstance(src, bytes) else str(src),
+                         fit=fit, channels=json.loads(g.attrs.get("channels", "{}")),
+                         trend=_get_trend(g, path), **arrs,
+                         events=[tuple(e) for e in json.loads(g.attrs.get("events", "[]"))])
+
+
+#: Per-unit datasets of the first layout (``twinmon.posterior/1``: one dataset per field).
+_V1_DATASETS = ("years", "samples", "mean", "median", "q05", "q95", "rhat", "ess",
+                "acceptance", "noise_std", "surrogate_var_ratio")
+
+
+def _read_unit_v1(g: h5py.Group, unit: str, path: Path, names: list[str]) -> UnitPosterior:
+    """One unit of a ``twinmon.posterior/1`` file (a dataset per field, written before
+    ``record``); read as it always was."""
+    arrs = {n: artifacts.get(g, n, path) for n in _V1_DATASETS
             if n != "surrogate_var_ratio" or n in g}
     n_y, d = len(arrs["years"]), len(names)
     for n in ("mean", "median", "q05", "q95", "rhat", "ess"):

@@ -186,16 +186,19 @@ class _UnitRun:
         self.k = 0
         self.ext = 0             # how many times year k's chains were lengthened
         self.prev = self.prev_var = None
+        self.samples_from = 0    # samples[i] holds year samples_from + i
 
     def resume(self, p: UnitPosterior) -> None:
         """Take the first ``len(p.years)`` years from an earlier posterior of this unit (as
-        they are) and continue after them (``calibrate --update``)."""
+        they are) and continue after them (``calibrate --update``). Draws left in the file
+        (``p.samples_from``) stay there; the result then holds the draws from that year on."""
         k = len(p.years)
         for key, arr in self.stats.items():
             arr[:k] = getattr(p, key)
         # The stored draws may be thinned: later years are thinned alike (see finish()).
-        self.samples = np.empty((len(self.years),) + p.samples.shape[1:])
-        self.samples[:k] = p.samples
+        self.samples_from = p.samples_from
+        self.samples = np.empty((len(self.years) - p.samples_from,) + p.samples.shape[1:])
+        self.samples[:k - p.samples_from] = p.samples
         self.acc[:k], self.ratio[:k] = p.acceptance, p.surrogate_var_ratio
         self.var[:k], self.chain_end[:k] = p.var, p.chain_end
         self.fits = [{key: p.fit[key][i] for key in p.fit} for i in range(k)]
@@ -245,7 +248,7 @@ class _UnitRun:
             return
         self.acc[k] = [r[1] for r in results]
         pooled = draws.reshape(-1, d)
-        self.samples[k] = pooled if len(pooled) == self.samples.shape[1] else \
+        self.samples[k - self.samples_from] = pooled if len(pooled) == self.samples.shape[1] else \
             pooled[thin_indices(len(pooled), self.samples.shape[1])]
         st = self.stats
         st["mean"][k] = pooled.mean(axis=0)
@@ -272,7 +275,8 @@ class _UnitRun:
         return UnitPosterior(years=self.years, samples=self.samples, acceptance=self.acc,
                              noise_std=noise, noise_source=self.source,
                              surrogate_var_ratio=self.ratio, fit=fit, var=self.var,
-                             chain_end=self.chain_end, **self.stats)
+                             chain_end=self.chain_end, samples_from=self.samples_from,
+                             **self.stats)
 
 
 def calibrate_unit(surrogate, cfg: Config, years, flows, noise_std, rng_seed: int,

@@ -5,7 +5,9 @@ year before (its posterior mean and variance), and draws year ``k`` of unit ``U`
 generator seeded by (``U``, ``k``) alone. So the years already in ``posterior.h5`` need not
 be sampled again: a unit continues from its last stored year (mean, variance and, for the
 vectorised sampler's warm start, each chain's last state, all stored bit for bit), and the
-result is the one a full run would give, array for array.
+result is the one a full run would give, array for array. The kept years' draws are not
+even read: the new posterior starts as a copy of the old file, each continued unit's record
+is rewritten and its new years' draws appended (``write_posterior(base=...)``).
 
 With the joint method (a unit's whole history in one posterior) a unit is kept as it is when
 it has no new year, and calibrated again in full otherwise.
@@ -95,7 +97,8 @@ def plan_update(cfg: Config, surrogate_id: str, output: str | os.PathLike,
     resume : dict unit -> UnitPosterior
         Units that keep their stored years (their arrays as they are): all of the unit's
         years, or (sequential method) the first ones, sampling continuing after them. With
-        the joint method a unit with new years is sampled again in full.
+        the joint method a unit with new years is sampled again in full. Their draws are
+        left in the file (``samples_from``) unless it is a ``twinmon.posterior/1`` file.
     info : dict
         ``{"from", "kept_years", "new_years", "new_units", "redone_units", "dropped_units"}``
         for the summary (``from`` is None when there was no earlier posterior).
@@ -111,8 +114,10 @@ def plan_update(cfg: Config, surrogate_id: str, output: str | os.PathLike,
     if not path.exists():
         return {}, {"from": None, "kept_years": 0, "new_years": total,
                     "new_units": sorted(runs), "redone_units": [], "dropped_units": []}
-    post = read_posterior(path)
     prov = artifacts.read_provenance(path)
+    # The draws of the kept years stay in the file (write_posterior(base=...) appends to a
+    # copy of it); a posterior/1 file is read whole and written again in the new layout.
+    post = read_posterior(path, draws=prov.get("schema") != artifacts.schema_name("posterior"))
     want = cfg.section_yaml(*SECTIONS)
     if prov.get("config") != want:
         raise ArtifactError(f"{path}: made with another config ("
@@ -123,11 +128,12 @@ def plan_update(cfg: Config, surrogate_id: str, output: str | os.PathLike,
                             f"{str(prov.get('surrogate_id', ''))[:12] or 'missing'}, this one "
                             f"{surrogate_id[:12]}); re-run calibrate without --update")
     resume, new, redone = {}, [], []
+    stored = dict(post.units.each())        # one opening of the file for the whole fleet
     for unit, run in runs.items():
-        if unit not in post.units:
+        if unit not in stored:
             new.append(unit)
             continue
-        p = post.units[unit]
+        p = stored[unit]
         if not (np.size(p.digest) and np.size(p.var) and np.size(p.chain_end)):
             raise ArtifactError(f"{path}: /units/{unit} lacks the records an update continues "
                                 "from (var, chain_end, digest: written by an older twinmon); "

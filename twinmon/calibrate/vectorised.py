@@ -558,6 +558,7 @@ class _UnitState:
         self.fits: list[dict] = []
         self.k = 0
         self.prev = self.prev_var = self.prev_end = None
+        self.samples_from = 0    # samples[i] holds year samples_from + i
         if data.done is not None:
             self._resume(data.done)
 
@@ -566,8 +567,10 @@ class _UnitState:
         for key in self.stats:
             self.stats[key][:k] = p.var if key == "var" else getattr(p, key)
         # The stored draws may be thinned further (keep_draws): later years are thinned alike.
-        self.samples = np.empty((len(self.data.years),) + p.samples.shape[1:])
-        self.samples[:k] = p.samples
+        # Draws left in the file (p.samples_from) stay there.
+        self.samples_from = p.samples_from
+        self.samples = np.empty((len(self.data.years) - p.samples_from,) + p.samples.shape[1:])
+        self.samples[:k - p.samples_from] = p.samples
         self.acc[:k] = p.acceptance
         self.ratio[:k] = p.surrogate_var_ratio
         self.chain_end[:k] = p.chain_end
@@ -591,7 +594,7 @@ class _UnitState:
         return UnitPosterior(years=np.asarray(self.data.years, np.int64), samples=self.samples,
                              acceptance=self.acc, noise_std=noise, noise_source=self.data.source,
                              surrogate_var_ratio=self.ratio, fit=fit, var=var,
-                             chain_end=self.chain_end, **st)
+                             chain_end=self.chain_end, samples_from=self.samples_from, **st)
 
 
 def _total_var(surrogate, noise_k: np.ndarray, s_var: np.ndarray) -> tuple[np.ndarray, float]:
@@ -761,7 +764,7 @@ def _sample_year(surrogate, predict, cfg: Config, states: list[_UnitState], n_ke
         stt["rhat"][k], stt["ess"][k] = rhat, n_eff
         stored = chains[:, (np.arange(n_keep) * N) // n_keep].reshape(-1, d)
         width = st.samples.shape[1]
-        st.samples[k] = stored if len(stored) == width else \
+        st.samples[k - st.samples_from] = stored if len(stored) == width else \
             stored[thin_indices(len(stored), width)]
         st.acc[k] = accepted[u * C:(u + 1) * C] / N
         st.ratio[k] = ratios[u]
