@@ -3,7 +3,7 @@
 Most of a unit's diagnosis is per year: the base fit of year ``k`` (maximum likelihood through
 the FMU, warm-started from year ``k - 1``'s fit) depends only on years ``<= k``, and the
 initial screening's chi-square gain of each candidate at year ``k`` (``gains[:, k]``) only on
-year ``k``'s base fit. On a unit without a gap these are 95 % of its time (30 units, -j 1:
+year ``k``'s base fit. On a unit without a gap these are 87 % of its time (30 units, -j 1:
 base fit 4.3 s and screening 11.6 s of 18.2 s). ``gap.h5`` keeps them per unit-year
 (:class:`YearCache`, under ``/units/<U>/cache``), so that an update fits and screens only
 the new years; the rest of the diagnosis -- the tests over all years, the confirmation fits
