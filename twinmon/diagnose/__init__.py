@@ -69,10 +69,9 @@ from .unit import run_unit
 from .update import YearCache, plan_update, unit_digests
 
 __all__ = ["diagnose", "diagnose_unit", "candidate_names", "DiagnoseSummary", "SECTIONS",
-           "YearCache",
            "VERDICTS", "FD_STEP", "SNAP", "Twin", "JointFit", "FitResult", "UnitGap",
-           "GapFile", "write_gap", "read_gap", "ljung_box", "pooled_onset_pvalues",
-           "estimate_noise"]
+           "GapFile", "write_gap", "read_gap", "YearCache", "ljung_box",
+           "pooled_onset_pvalues", "estimate_noise"]
 
 
 @dataclass

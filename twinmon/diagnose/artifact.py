@@ -80,13 +80,15 @@ def write_gap(path, results: dict, cfg: Config, time: np.ndarray, inputs) -> Non
             base_rows  [n_y, m]        its whitened residual (m = channels x n_t; NaN missing)
             base_jac   [n_y, m, d]     its Jacobian w.r.t. the normalised inputs
             base_lev   [n_y, m]        its leverages
-            screen_gains/<candidate> [n_v, n_y]  initial screening's chi-square gains
+            screen_gains [n_c, n_v, n_y]  initial screening's chi-square gains (attrs
+                                       candidates, grid_sizes: JSON; NaN past a grid)
     """
     wins = cfg.diagnose_windows()
     with artifacts.write_artifact(path, "gap", config=cfg.section_yaml(*SECTIONS),
                                   inputs=inputs, seed=cfg.seed, compact=True) as f:
         # compact: ~30 small datasets per unit, whose B-trees were most of the file (30 pump
-        # units x 10 years: 1.3 MB with the --update records, 3.6 MB in the older format).
+        # units x 10 years: 1.3 MB with the --update records; 2.6 MB without them, 3.6 MB
+        # with them, in the older format).
         artifacts.put(f, "time", np.asarray(time), "s", "sample times")
         artifacts.put(f, "windows/names", list(wins), "", "time windows of the transient")
         artifacts.put(f, "windows/bounds", np.array([[w.start, w.stop] for w in wins.values()]),

@@ -92,7 +92,7 @@ class UnitGap:
     #: Onset year of each effect in the final twin ({fmu parameter: year}).
     effect_onsets: dict = field(default_factory=dict)
     #: Per-year records for ``diagnose --update`` (:class:`~twinmon.diagnose.update.YearCache`;
-    #: None when read from a gap.h5 written before them).
+    #: None when read by ``read_gap`` without ``cache=True`` or from a gap.h5 without them).
     cache: Optional[object] = None
     #: FMU runs and wall time (s) of the run that wrote this record (an update's own, the
     #: kept years' base fit and screening not included).
