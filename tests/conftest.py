@@ -29,6 +29,27 @@ def write_yaml(path: Path, data: dict) -> Path:
     return path
 
 
+def first_years(src: Path, dst: Path, n: int, units=None) -> Path:
+    """The observations of ``src`` cut to each unit's first ``n`` years, written to ``dst``
+    (``units``: only these units), as a yearly update's earlier file."""
+    import dataclasses
+
+    import numpy as np
+
+    from twinmon.observations import read_observations, write_observations
+    obs = read_observations(src)
+    out = {}
+    for name, u in obs.units.items():
+        if units is not None and name not in units:
+            continue
+        keep = np.asarray(u.years) <= n
+        out[name] = dataclasses.replace(u, years=np.asarray(u.years)[keep],
+                                        channels={c: v[keep] for c, v in u.channels.items()},
+                                        events=[e for e in u.events if e.year <= n])
+    write_observations(dst, dataclasses.replace(obs, units=out))
+    return dst
+
+
 @pytest.fixture
 def small_config(tmp_path, fmu_path) -> Path:
     """The paper case with a small design (24 training + 8 test runs), serial executor."""

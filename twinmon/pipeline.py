@@ -76,8 +76,10 @@ def run_pipeline(cfg: Config, observations: str | os.PathLike, workdir: str | os
     update : bool
         When calibrate runs (its observations changed, or ``force``), it keeps the years
         already in ``posterior.h5`` and samples only the new ones (``calibrate --update``);
-        forecast, diagnose and report then re-run in full as usual (they are cheap next to
-        calibration), as their inputs changed.
+        when diagnose runs, it keeps the per-year base fits and screening of ``gap.h5`` and
+        runs only the new years' (``diagnose --update``). Both give a full run's result and
+        refuse (``ArtifactError``) an artifact made with another config. forecast and report
+        re-run in full as usual (they are cheap), as their inputs changed.
     log : callable
         Receives one human line per stage.
     """
@@ -123,7 +125,8 @@ def _run_locked(cfg: Config, obs: Path, gap_obs: Path, wd: Path, truth, force: b
                                                    p["forecast"], truth), log))
     stages.append(_stage(cfg, "diagnose", "gap", diagnose.SECTIONS, p["gap"],
                          [gap_obs, spec_fmu], force,
-                         lambda: diagnose.diagnose(cfg, gap_obs, p["gap"]), log))
+                         lambda: diagnose.diagnose(cfg, gap_obs, p["gap"], update=update),
+                         log))
     start = time.perf_counter()
     # The report is cheap and reads everything: always rebuilt.
     rep = report.report(cfg, wd / "report", observations=obs, simulations=p["simulations"],

@@ -8,7 +8,7 @@ import h5py
 import numpy as np
 import pytest
 
-from ..conftest import CONFIGS, write_yaml
+from ..conftest import CONFIGS, first_years, write_yaml
 from .test_cli_errors import twinmon
 
 
@@ -99,6 +99,26 @@ def test_run_skips_up_to_date_stages_and_reruns_changed_ones(small):
                        "--workdir", wd)
     ran = [s["stage"] for s in changed["stages"] if not s["skipped"]]
     assert ran == ["forecast", "report"]
+
+
+def test_run_update_diagnoses_only_the_new_years(small):
+    """`run --update` hands --update to diagnose: with gap.h5 of the first 4 years in the
+    workdir (the other stages up to date), only year 5 is fitted and screened."""
+    tmp, cfg = small
+    obs = tmp / "fleet.h5"
+    if not obs.exists():
+        run_json("fabricate", "-c", cfg, "-o", obs)
+    obs4 = first_years(obs, tmp / "fleet4.h5", 4)
+    # The workdir and settings of the test above: its stages are up to date.
+    common = ["-c", cfg, "--set", "forecast.horizon=3", "--observations", obs,
+              "--workdir", tmp / "run"]
+    run_json("run", *common, "--gap-observations", obs4)
+    upd = run_json("run", *common, "--update")
+    stages = {s["stage"]: s for s in upd["stages"]}
+    assert [n for n, s in stages.items() if not s["skipped"]] == ["diagnose", "report"]
+    u = stages["diagnose"]["summary"]["update"]
+    n_units = len(stages["diagnose"]["summary"]["units"])
+    assert (u["kept_years"], u["new_years"]) == (4 * n_units, n_units)
 
 
 def test_same_seed_same_posterior(small, tmp_path):

@@ -18,8 +18,13 @@ from .common import config_options, emit_json, json_option, load, progress_bar, 
               type=click.Path(), help="Gap artifact to write.")
 @click.option("-j", "--workers", type=int, default=None,
               help="Worker processes over units (default: diagnose.workers, 0 = one per core).")
+@click.option("--update", is_flag=True,
+              help="Keep the per-year base fits and screening of the output gap.h5; fit and "
+                   "screen only the years (and units) added to the observations since, "
+                   "recompute the rest. Same result as a full run.")
 @json_option
-def diagnose(config_path, overrides, observations, posterior, output, workers, as_json):
+def diagnose(config_path, overrides, observations, posterior, output, workers, update,
+             as_json):
     """Locate the sim-to-real gap, name the unmodelled effect, show how far it shrinks."""
     from ..diagnose import diagnose as run
     from ..observations import read_observations
@@ -27,16 +32,31 @@ def diagnose(config_path, overrides, observations, posterior, output, workers, a
     cfg = load(config_path, overrides)
     check_workers(workers if workers is not None else cfg.diagnose.workers)
     n_units = len(read_observations(observations).units)
-    with progress_bar(n_units, "diagnose") as update:
-        s = run(cfg, observations, output, workers=workers, progress=update,
-                posterior=posterior)
+    with progress_bar(n_units, "diagnose") as tick:
+        s = run(cfg, observations, output, workers=workers, progress=tick,
+                posterior=posterior, update=update)
     if as_json:
-        emit_json({"units": {u: g.as_dict() for u, g in s.units.items()},
-                   "output": s.output, "wall_time": round(s.wall_time, 3)})
+        out = {"units": {u: g.as_dict() for u, g in s.units.items()},
+               "output": s.output, "wall_time": round(s.wall_time, 3)}
+        if s.update is not None:
+            out["update"] = s.update
+        emit_json(out)
+    if s.update is not None:
+        say(update_line(s.update))
     for u, g in s.units.items():
         say(summary_line(u, g))
     say(f"diagnose: {len(s.units)} units in {s.wall_time:.1f} s on {s.workers} workers "
         f"-> {output}")
+
+
+def update_line(u: dict) -> str:
+    """What ``--update`` kept and recomputed, in one line."""
+    return (f"diagnose --update: {u['kept_years']} unit-year(s) of base fits and screening "
+            f"kept from {u['from'] or 'nothing (no earlier gap.h5)'}, {u['new_years']} run; "
+            "tests, confirmation fits and shrink recomputed"
+            + "".join(f"; {what}: {', '.join(u[key])}" for key, what in
+                      (("new_units", "new units"), ("redone_units", "redone (data changed)"),
+                       ("dropped_units", "no longer observed")) if u[key]))
 
 
 def summary_line(unit: str, g) -> str:

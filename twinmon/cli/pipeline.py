@@ -53,8 +53,9 @@ def reduce(config_path, overrides, simulations, output, as_json):
               help="Folder of the artifacts and of report/.")
 @click.option("--force", is_flag=True, help="Re-run every stage, even those up to date.")
 @click.option("--update", is_flag=True,
-              help="calibrate keeps the years already in the workdir's posterior and samples "
-                   "only those added since (calibrate --update); later stages re-run.")
+              help="calibrate and diagnose keep the years already in the workdir's "
+                   "posterior and gap.h5 and work only on those added since (calibrate "
+                   "--update, diagnose --update); forecast and report re-run.")
 @json_option
 def run(config_path, overrides, observations, gap_observations, truth, workdir, force, update,
         as_json):

@@ -43,6 +43,8 @@ Layout: each step has its file, over one small state object.
 ``stats.py``       :func:`ljung_box`, :func:`pooled_onset_pvalues`, :func:`estimate_noise`
 ``result.py``      :class:`UnitGap`: one unit's diagnosis (``--json`` via ``as_dict``)
 ``artifact.py``    :func:`write_gap`, :func:`read_gap`, :class:`GapFile` (``gap.h5``)
+``update.py``      ``--update``: :class:`~.update.YearCache` (per-year base fit and screening
+                   gains kept in ``gap.h5``), :func:`~.update.plan_update`
 =================  ==========================================================================
 """
 from __future__ import annotations
@@ -50,6 +52,7 @@ from __future__ import annotations
 import os
 import time as _time
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 
@@ -63,27 +66,34 @@ from .state import UnitState
 from .stats import estimate_noise, ljung_box, pooled_onset_pvalues
 from .twin import SNAP, Twin
 from .unit import run_unit
+from .update import YearCache, plan_update, unit_digests
 
 __all__ = ["diagnose", "diagnose_unit", "candidate_names", "DiagnoseSummary", "SECTIONS",
            "VERDICTS", "FD_STEP", "SNAP", "Twin", "JointFit", "FitResult", "UnitGap",
-           "GapFile", "write_gap", "read_gap", "ljung_box", "pooled_onset_pvalues",
-           "estimate_noise"]
+           "GapFile", "write_gap", "read_gap", "YearCache", "ljung_box",
+           "pooled_onset_pvalues", "estimate_noise"]
 
 
 @dataclass
 class DiagnoseSummary:
     """What ``diagnose`` did: ``units`` {unit: UnitGap}, the artifact written, wall time (s),
-    worker processes used."""
+    worker processes used, and with ``--update`` what was kept and recomputed
+    (:func:`~.update.plan_update`'s ``{"from", "kept_years", "new_years", "new_units",
+    "redone_units", "dropped_units"}``; None for a full run)."""
 
     units: dict
     output: str
     wall_time: float
     workers: int
+    update: Optional[dict] = None
 
     def as_dict(self) -> dict:
-        return {"units": {u: g.as_dict() for u, g in self.units.items()},
-                "output": self.output, "wall_time": round(self.wall_time, 3),
-                "workers": self.workers}
+        out = {"units": {u: g.as_dict() for u, g in self.units.items()},
+               "output": self.output, "wall_time": round(self.wall_time, 3),
+               "workers": self.workers}
+        if self.update is not None:
+            out["update"] = self.update
+        return out
 
 
 def candidate_names(cfg: Config) -> list:
@@ -108,9 +118,18 @@ def _unit_sigma(cfg: Config, uo, time: np.ndarray) -> dict:
     return sig
 
 
+def _whitened(cfg: Config, channels: dict, noise_std: dict) -> tuple[list, np.ndarray]:
+    """The observed channels (the output first) and the whitened observations
+    [n_y, n_ch * n_t] (channel-major)."""
+    out = cfg.model.output.name
+    chans = [out] + sorted(c for c in channels if c != out and c in cfg.model.channels)
+    Y = np.concatenate([np.asarray(channels[c], float) / noise_std[c] for c in chans], axis=1)
+    return chans, Y
+
+
 def diagnose_unit(cfg: Config, fmu_path, unit: str, time: np.ndarray, years: np.ndarray,
                   channels: dict, noise_std: dict, twin: Twin | None = None,
-                  posterior: tuple | None = None) -> UnitGap:
+                  posterior: tuple | None = None, kept: YearCache | None = None) -> UnitGap:
     """Diagnose one unit.
 
     Parameters
@@ -133,16 +152,18 @@ def diagnose_unit(cfg: Config, fmu_path, unit: str, time: np.ndarray, years: np.
         Posterior mean and covariance of the degradation inputs per year (input units); if
         given, the standardised residual map is taken against this posterior predictive
         instead of the maximum-likelihood twin (the tests and fits are unchanged).
+    kept : YearCache, optional
+        Records of the unit's first years from an earlier ``gap.h5`` (``--update``; their
+        digests checked by :func:`~.update.plan_update`): their base fit and screening are
+        not run again.
     """
-    out = cfg.model.output.name
-    chans = [out] + sorted(c for c in channels if c != out and c in cfg.model.channels)
+    chans, Y = _whitened(cfg, channels, noise_std)
     names = candidate_names(cfg)
     own = twin is None
     if own:
         twin = Twin(cfg, fmu_path, chans, time, noise_std, names)
     try:
-        Y = np.concatenate([np.asarray(channels[c], float) / noise_std[c] for c in chans], axis=1)
-        return run_unit(UnitState(twin, cfg, unit, years, Y, posterior), names)
+        return run_unit(UnitState(twin, cfg, unit, years, Y, posterior, kept), names)
     finally:
         if own:
             twin.close()
@@ -190,7 +211,8 @@ def _posterior_for(posterior_path, post, cfg: Config, unit: str, years: np.ndarr
 
 def diagnose(cfg: Config, observations: str | os.PathLike, output: str | os.PathLike,
              workers: int | None = None, progress=None,
-             posterior: str | os.PathLike | None = None) -> DiagnoseSummary:
+             posterior: str | os.PathLike | None = None,
+             update: bool = False) -> DiagnoseSummary:
     """Run ``diagnose`` on every unit of an observations file and write ``gap.h5``.
 
     Parameters
@@ -207,9 +229,17 @@ def diagnose(cfg: Config, observations: str | os.PathLike, output: str | os.Path
     posterior : path-like, optional
         ``posterior.h5`` of ``calibrate``: the residual map is then standardised against
         the calibrated twin's posterior predictive.
+    update : bool
+        Continue the ``gap.h5`` already at ``output``: the base fit and screening of its
+        years are kept, those of the years added since are run, the rest of each unit's
+        diagnosis is recomputed (:mod:`.update`; the result equals a full run's). No
+        ``gap.h5`` yet: a full run.
 
     Raises
     ------
+    ArtifactError
+        ``update`` and the ``gap.h5`` at ``output`` was made with another config or FMU, or
+        before its per-year records existed: one line naming the file and the difference.
     SimulationError
         A worker process died (a crash in the FMU's native code): one line naming the FMU;
         nothing is written.
@@ -234,8 +264,17 @@ def diagnose(cfg: Config, observations: str | os.PathLike, output: str | os.Path
     if posterior is not None:
         from ..calibrate import read_posterior
         post = read_posterior(posterior)
-    jobs = [(cfg, fmu, u, obs.time, uo.years, uo.channels, _unit_sigma(cfg, uo, obs.time),
-             None, _posterior_for(posterior, post, cfg, u, uo.years))
+    sigma = {u: _unit_sigma(cfg, uo, obs.time) for u, uo in obs.units.items()}
+    kept, update_info = {}, None
+    if update:
+        digests = {}
+        for u, uo in obs.units.items():
+            chans, Y = _whitened(cfg, uo.channels, sigma[u])
+            digests[u] = (uo.years, unit_digests(Y, [sigma[u][c] for c in chans]))
+        kept, update_info = plan_update(cfg, fmu, output, digests, SECTIONS)
+    # The kept records travel with the unit's job, to a pool or Dask worker alike.
+    jobs = [(cfg, fmu, u, obs.time, uo.years, uo.channels, sigma[u],
+             None, _posterior_for(posterior, post, cfg, u, uo.years), kept.get(u))
             for u, uo in obs.units.items()]
     n_workers = workers if workers is not None else cfg.diagnose.workers
     n_workers = min(n_workers or os.cpu_count() or 1, len(jobs))
@@ -254,4 +293,5 @@ def diagnose(cfg: Config, observations: str | os.PathLike, output: str | os.Path
         # gap.h5 is written atomically (temporary file, then rename): an interrupt leaves
         # any previous artifact as it was.
         raise Interrupted(f"{output}: interrupted; nothing was written") from None
-    return DiagnoseSummary(results, str(output), _time.perf_counter() - t0, n_workers)
+    return DiagnoseSummary(results, str(output), _time.perf_counter() - t0, n_workers,
+                           update_info)

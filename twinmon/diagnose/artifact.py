@@ -17,6 +17,7 @@ from .. import artifacts
 from ..config import Config
 from ..errors import ArtifactError
 from .result import UnitGap
+from .update import read_cache, write_cache
 
 #: Config sections recorded in the artifact (and compared by ``twinmon run``).
 SECTIONS = ("model", "diagnose", "safety")
@@ -71,10 +72,23 @@ def write_gap(path, results: dict, cfg: Config, time: np.ndarray, inputs) -> Non
                          and JSON: effects, group, where_windows, where_years, estimate
                          ({name: [mean, q05, q95]}), separation_scores, candidates,
                          effect_onsets ({name: onset year})
+        /units/<U>/cache/              per-year records for diagnose --update
+                                       (:mod:`.update`; gzip; absent in files written before
+                                       them, which read_gap still reads):
+            digest     [n_y]           SHA-256 of the year's whitened observations + noise
+            base_u     [n_y, d]        normalised inputs of the base fit
+            base_rows  [n_y, m]        its whitened residual (m = channels x n_t; NaN missing)
+            base_jac   [n_y, m, d]     its Jacobian w.r.t. the normalised inputs
+            base_lev   [n_y, m]        its leverages
+            screen_gains [n_c, n_v, n_y]  initial screening's chi-square gains (attrs
+                                       candidates, grid_sizes: JSON; NaN past a grid)
     """
     wins = cfg.diagnose_windows()
     with artifacts.write_artifact(path, "gap", config=cfg.section_yaml(*SECTIONS),
-                                  inputs=inputs, seed=cfg.seed) as f:
+                                  inputs=inputs, seed=cfg.seed, compact=True) as f:
+        # compact: ~30 small datasets per unit, whose B-trees were most of the file (30 pump
+        # units x 10 years: 1.3 MB with the --update records; 2.6 MB without them, 3.6 MB
+        # with them, in the older format).
         artifacts.put(f, "time", np.asarray(time), "s", "sample times")
         artifacts.put(f, "windows/names", list(wins), "", "time windows of the transient")
         artifacts.put(f, "windows/bounds", np.array([[w.start, w.stop] for w in wins.values()]),
@@ -93,6 +107,8 @@ def write_gap(path, results: dict, cfg: Config, time: np.ndarray, inputs) -> Non
                 grp.attrs[name] = -1 if v is None else v
             for name in _JSON_ATTRS:
                 grp.attrs[name] = artifacts.json_attr(getattr(g, name))
+            if g.cache is not None:
+                write_cache(grp, g.cache)
 
 
 @dataclass
@@ -106,8 +122,10 @@ class GapFile:
     units: dict = field(default_factory=dict)
 
 
-def read_gap(path: str | os.PathLike) -> GapFile:
-    """Load ``gap.h5`` (schema checked) into :class:`UnitGap` records."""
+def read_gap(path: str | os.PathLike, cache: bool = False) -> GapFile:
+    """Load ``gap.h5`` (schema checked) into :class:`UnitGap` records; with ``cache``, their
+    per-year records for ``--update`` too (``UnitGap.cache``, None in a file written before
+    them)."""
     path = Path(path)
     with artifacts.open_artifact(path, "gap") as f:
         time = artifacts.get(f, "time", path)
@@ -131,5 +149,6 @@ def read_gap(path: str | os.PathLike) -> GapFile:
             for n in _JSON_ATTRS:
                 kw[n] = json.loads(g.attrs[n])
             kw["estimate"] = {k: tuple(v) for k, v in kw["estimate"].items()}
+            kw["cache"] = read_cache(g, path) if cache else None
             units[unit] = UnitGap(unit=unit, **kw)
         return GapFile(time, names, bounds, json.loads(f.attrs["input_names"]), units)

@@ -79,7 +79,9 @@ def identify(s: UnitState, candidates: list) -> Identification:
     # the screening puts in front (the fits are 80 % of a unit's FMU runs).
     screened = {}
     for name in candidates:
-        screened[name] = screen(s, name, s.base_u, s.base_rows, s.base_Q, {})
+        # The kept years' gains (diagnose --update) are those of their base fit, unchanged.
+        known = s.kept.screen_gains.get(name) if s.kept is not None else None
+        screened[name] = screen(s, name, s.base_u, s.base_rows, s.base_Q, {}, known)
     # A unit whose tests see no gap and whose best screening gains less than a quarter of
     # what an accepted effect must (its BIC cost plus bic_gain) has nothing to confirm.
     floor = 0.0 if s.p_omnibus < s.dc.alpha else 0.25 * (s.dc.bic_gain + 2 * s.ln_n)
@@ -156,15 +158,21 @@ def _grid(s: UnitState, name: str) -> np.ndarray:
     return np.array(vals)
 
 
-def screen(s: UnitState, name: str, u_inputs, rows, Qs, fixed: dict) -> tuple:
+def screen(s: UnitState, name: str, u_inputs, rows, Qs, fixed: dict,
+           known: np.ndarray | None = None) -> tuple:
     """Chi-square reduction of adding effect ``name`` (value on a grid, onset any year),
     the degradation inputs re-adjusted linearly.
 
     Returns ``(score, value, onset, gain [n_v, n_y])``; ``fixed`` maps years index ->
-    effects already in the twin."""
+    effects already in the twin. ``known`` [n_v, n_k]: the gains of the first ``n_k`` years,
+    taken as they are (a year's gains depend on that year alone)."""
     grid = _grid(s, name)
     gains = np.zeros((grid.size, s.n_y))
-    for k in range(s.n_y):
+    n_known = 0
+    if known is not None:
+        n_known = known.shape[1]
+        gains[:, :n_known] = known
+    for k in range(n_known, s.n_y):
         theta = s.twin.theta_of(u_inputs[k])
         eff0 = fixed.get(k, {})
         mask = np.isfinite(s.Y[k])

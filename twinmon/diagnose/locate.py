@@ -30,11 +30,22 @@ from .stats import ljung_box, pooled_onset_pvalues
 # -- the base twin -----------------------------------------------------------------------------
 def fit_base(s: UnitState) -> None:
     """Fit the degradation inputs of each year alone (no effect), warm-started from the
-    previous year; sets ``s.base_*``, ``s.chi2_base``, ``s.n_rows``, ``s.dof``."""
+    previous year; sets ``s.base_*``, ``s.chi2_base``, ``s.n_rows``, ``s.dof``.
+
+    The years of ``s.kept`` (``diagnose --update``) are taken as stored: year ``k``'s fit
+    depends only on years ``<= k``, so fitting them again would give the same bits."""
     u_prev = s.twin.u_of([p.nominal for p in s.cfg.model.inputs.values()])
     s.base_u = np.zeros((s.n_y, s.d))
     s.base_rows, s.base_J, s.base_lev = [], [], []
-    for k in range(s.n_y):
+    n_kept = s.kept.n_years if s.kept is not None else 0
+    for k in range(n_kept):
+        u, row, J, lev = s.kept.year(k, np.isfinite(s.Y[k]))
+        s.base_u[k] = u
+        s.base_rows.append(row)
+        s.base_J.append(J)
+        s.base_lev.append(lev)
+        u_prev = u
+    for k in range(n_kept, s.n_y):
         prob = JointFit(s.twin, s.Y[k:k + 1], s.years[k:k + 1])
         fit = prob.solve(u_prev)
         if k == 0 and fit.chi2_rows[0] > 3 * fit.rows[0].size:

@@ -40,6 +40,8 @@ class UnitGap:
         Screening chi-square reduction.
     delta_bic : ndarray, shape [n_c]
         BIC of the base twin minus BIC of the twin with that candidate (higher = better).
+    cache : YearCache or None
+        The per-year base fit and screening gains, for ``diagnose --update``.
     """
 
     unit: str
@@ -89,6 +91,11 @@ class UnitGap:
     failure_year_after: Optional[int]
     #: Onset year of each effect in the final twin ({fmu parameter: year}).
     effect_onsets: dict = field(default_factory=dict)
+    #: Per-year records for ``diagnose --update`` (:class:`~twinmon.diagnose.update.YearCache`;
+    #: None when read by ``read_gap`` without ``cache=True`` or from a gap.h5 without them).
+    cache: Optional[object] = None
+    #: FMU runs and wall time (s) of the run that wrote this record (an update's own, the
+    #: kept years' base fit and screening not included).
     fmu_runs: int = 0
     wall_time: float = 0.0
 

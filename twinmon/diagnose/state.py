@@ -32,6 +32,9 @@ class UnitState:
         missing.
     posterior : (ndarray [n_y, d], ndarray [n_y, d, d]), optional
         Posterior mean and covariance of the degradation inputs per year (input units).
+    kept : YearCache, optional
+        Per-year records of the unit's first years from an earlier ``gap.h5``
+        (``diagnose --update``): their base fit and initial screening are taken from it.
     """
 
     # -- filled by locate.fit_base: the base twin (degradation inputs only, year by year) ----
@@ -62,7 +65,7 @@ class UnitState:
     p_omnibus: float
 
     def __init__(self, twin: Twin, cfg: Config, unit: str, years: np.ndarray,
-                 Y: np.ndarray, posterior=None):
+                 Y: np.ndarray, posterior=None, kept=None):
         self.twin, self.cfg, self.dc = twin, cfg, cfg.diagnose
         self.unit = unit
         self.years = np.asarray(years)
@@ -73,6 +76,7 @@ class UnitState:
         self.n_obs = int(np.isfinite(Y).sum())
         self.ln_n = math.log(max(self.n_obs, 2))
         self.posterior = posterior
+        self.kept = kept
         windows = cfg.diagnose_windows()
         self.win_names = list(windows)
         t = twin.time

@@ -9,11 +9,15 @@ import time as _time
 from . import identify, locate, shrink
 from .result import UnitGap
 from .state import UnitState
+from .update import YearCache
 
 
 def run_unit(s: UnitState, candidates: list) -> UnitGap:
     """Locate, identify and shrink the gap of one unit against ``candidates`` (FMU
-    parameters of ``model.effects``)."""
+    parameters of ``model.effects``).
+
+    ``fmu_runs`` and ``wall_time`` are this call's: with ``s.kept`` (``diagnose --update``)
+    the kept years' base fit and screening are not run again, and do not count."""
     t0 = _time.perf_counter()
     runs0 = s.twin.runs
     # 1. locate: the base twin and its tests.
@@ -59,4 +63,5 @@ def run_unit(s: UnitState, candidates: list) -> UnitGap:
         failure_year_before=fy_b, failure_year_after=fy_a,
         effect_onsets=({n: int(on) for n, on in idn.model_effects} if verdict == "effect"
                        else {}),
+        cache=YearCache.of(s, idn.screened),
         fmu_runs=s.twin.runs - runs0, wall_time=_time.perf_counter() - t0)
