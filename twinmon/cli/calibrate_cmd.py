@@ -28,8 +28,7 @@ def calibrate(config_path, overrides, surrogate, observations, truth, output, up
     """Bayesian calibration (MCMC) of each unit's inputs, year by year."""
     from ..calibrate import calibrate as run
     cfg = load(config_path, overrides)
-    n_years = _count_years(observations)
-    with progress_bar(n_years, "calibrate") as tick:
+    with progress_bar(lambda: _count_years(observations), "calibrate") as tick:
         s = run(cfg, surrogate, observations, output, truth_path=truth, progress=tick,
                 update=update)
     # Warnings go to stderr even with --json or -q: they say the numbers may be wrong.

@@ -59,9 +59,16 @@ def _plain(o):
 
 
 @contextmanager
-def progress_bar(total: int, label: str):
-    """Yields ``update(done, total)``; a bar on stderr only for a terminal and not --quiet."""
-    show = sys.stderr.isatty() and not quiet() and total > 0
+def progress_bar(total, label: str):
+    """Yields ``update(done, total)``; a bar on stderr only for a terminal and not --quiet.
+
+    ``total``: an int, or a callable giving it, called only when the bar is shown (counting
+    a fleet's unit-years reads its observations: 1-2 s for 1000 units, wasted in a batch
+    run)."""
+    show = sys.stderr.isatty() and not quiet()
+    if show and callable(total):
+        total = total()
+    show = show and total > 0
     if not show:
         yield lambda done, total=total: None
         return

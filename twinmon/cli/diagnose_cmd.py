@@ -27,11 +27,18 @@ def diagnose(config_path, overrides, observations, posterior, output, workers, u
              as_json):
     """Locate the sim-to-real gap, name the unmodelled effect, show how far it shrinks."""
     from ..diagnose import diagnose as run
+    from ..errors import TwinmonError
     from ..observations import read_observations
     from ..executors import check_workers
     cfg = load(config_path, overrides)
     check_workers(workers if workers is not None else cfg.diagnose.workers)
-    n_units = len(read_observations(observations).units)
+
+    def n_units() -> int:
+        # For the bar only; an unreadable file is reported by the stage itself.
+        try:
+            return len(read_observations(observations).units)
+        except TwinmonError:
+            return 0
     with progress_bar(n_units, "diagnose") as tick:
         s = run(cfg, observations, output, workers=workers, progress=tick,
                 posterior=posterior, update=update)
