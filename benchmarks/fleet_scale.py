@@ -416,27 +416,11 @@ def _same_posterior(full: Path, upd: Path) -> str:
 
 
 def _same_gap(full: Path, upd: Path) -> str:
-    """Whether the updated gap.h5 equals the full run's: every dataset bit for bit (NaN equal
-    to NaN) and every unit attribute but the run's own cost (``fmu_runs``, ``wall_time``)."""
-    import h5py
-    bad = []
-
-    def walk(a, b, where):
-        if set(a) != set(b):
-            bad.append(f"{where}: members differ")
-        for k in set(a) & set(b):
-            if isinstance(a[k], h5py.Group):
-                walk(a[k], b[k], f"{where}/{k}")
-                continue
-            x, y = a[k][()], b[k][()]
-            if x.shape != y.shape or x.dtype != y.dtype or not np.array_equal(
-                    x, y, equal_nan=x.dtype.kind == "f"):
-                bad.append(f"{where}/{k}")
-        for k in set(a.attrs) | set(b.attrs):
-            if k not in ("fmu_runs", "wall_time") and str(a.attrs.get(k)) != str(b.attrs.get(k)):
-                bad.append(f"{where}.{k}")
-    with h5py.File(full, "r") as a, h5py.File(upd, "r") as b:
-        walk(a["units"], b["units"], "/units")
+    """Whether the updated gap.h5 equals the full run's: every field of every unit bit for bit
+    (NaN equal to NaN), the per-year records included, but the run's own cost (``fmu_runs``,
+    ``wall_time``)."""
+    from twinmon.diagnose.artifact import gap_differences
+    bad = gap_differences(full, upd)
     return "= full run" if not bad else f"{len(bad)} differ from the full run, e.g. {bad[0]}"
 
 

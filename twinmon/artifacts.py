@@ -37,15 +37,15 @@ SCHEMAS = {
     "truth": 1,
     "posterior": 2,
     "forecast": 1,
-    "gap": 1,
+    "gap": 2,
     "backtest": 1,
 }
 
 
 #: Earlier major versions a reader still accepts (the reader handles their layout).
-#: posterior/1: one dataset per field and unit (posterior/2 packs a unit's per-year
+#: posterior/1, gap/1: one dataset per field and unit (the /2 layouts pack a unit's per-year
 #: results into one compound dataset).
-READABLE = {"posterior": (1,)}
+READABLE = {"posterior": (1,), "gap": (1,)}
 
 
 def schema_name(kind: str) -> str:

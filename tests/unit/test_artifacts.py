@@ -16,7 +16,7 @@ def test_write_records_provenance_and_units(tmp_path):
     with artifacts.write_artifact(out, "gap", config="x: 1\n", inputs=[src], seed=3) as f:
         artifacts.put(f, "v", np.arange(3.0), "kg/s", "a vector")
     prov = artifacts.read_provenance(out)
-    assert prov["schema"] == "twinmon.gap/1" and prov["seed"] == 3
+    assert prov["schema"] == artifacts.schema_name("gap") and prov["seed"] == 3
     assert prov["config"] == "x: 1\n"
     assert prov["inputs"] == [{"path": str(src), "sha256": artifacts.file_sha256(src)}]
     assert prov["created"].endswith("+00:00")
@@ -45,7 +45,7 @@ def test_open_checks_schema_and_content(tmp_path):
     q = tmp_path / "q.h5"
     with artifacts.write_artifact(q, "forecast") as f:
         pass
-    with pytest.raises(ArtifactError, match="schema is 'twinmon.forecast/1', expected 'twinmon.gap/1'"):
+    with pytest.raises(ArtifactError, match="schema is 'twinmon.forecast/1', expected 'twinmon.gap/2'"):
         artifacts.open_artifact(q, "gap")
     with artifacts.open_artifact(q, "forecast") as f:
         with pytest.raises(ArtifactError, match=r"q.h5: dataset /missing is missing"):

@@ -187,7 +187,11 @@ def test_diagnose_writes_gap_and_reads_back(tmp_path):
     assert rb.predicted_after.shape == (3, 25)
     assert rb.estimate["motor.start_delay"][0] == pytest.approx(b.estimate["motor.start_delay"][0])
     with artifacts.open_artifact(tmp_path / "gap.h5", "gap") as f:
-        assert f["units/B/residual_before"].attrs["units"] == "1"
+        # Every field of the per-unit records is documented once, at the root.
+        doc = json.loads(f.attrs["array_fields"])
+        for name in f["units/B/record"].dtype.names + f["units/B/candidates"].dtype.names:
+            assert doc[name][1], name
+        assert doc["residual_before"][0] == "1"
         inputs = json.loads(f.attrs["inputs"])
         assert inputs[0]["path"].endswith("obs.h5")
     d = s.as_dict()["units"]["B"]

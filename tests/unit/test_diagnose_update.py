@@ -16,6 +16,7 @@ from click.testing import CliRunner
 
 from twinmon.config import config_from_mapping, load_config
 from twinmon.diagnose import SECTIONS, diagnose, read_gap
+from twinmon.diagnose.artifact import gap_differences
 from twinmon.diagnose.update import check_update
 from twinmon.errors import ArtifactError
 from twinmon.fabricate import fabricate
@@ -27,8 +28,6 @@ from ..conftest import CONFIGS, first_years
 PUMP = CONFIGS / "pump.yaml"
 HEALTHY = {"trajectories": {"motor_damping": {"start": 10.0, "slope": 0.1},
                             "pump_coef": {"start": 3.7, "slope": -0.02}}}
-#: Attributes that say what the run that wrote a unit cost: an update's own.
-COST = {"fmu_runs", "wall_time"}
 
 
 def fleet_cfg(base, units: dict, years: int, **fab):
@@ -39,31 +38,9 @@ def fleet_cfg(base, units: dict, years: int, **fab):
 
 
 def differences(a_path, b_path) -> list:
-    """Datasets and attributes of two gap.h5 that differ (bits; NaN equal to NaN), the
-    cost attributes and the provenance's time and input paths left out."""
-    out = []
-
-    def walk(a, b, where):
-        if set(a) != set(b):
-            out.append(f"{where}: members {sorted(set(a) ^ set(b))}")
-        for k in sorted(set(a) & set(b)):
-            x, y = a[k], b[k]
-            if isinstance(x, h5py.Group):
-                walk(x, y, f"{where}/{k}")
-                continue
-            x, y = x[()], y[()]
-            same = x.shape == y.shape and x.dtype == y.dtype and (
-                np.array_equal(x, y, equal_nan=x.dtype.kind == "f"))
-            if not same:
-                out.append(f"{where}/{k}")
-        for k in set(a.attrs) | set(b.attrs):
-            if k in COST or (where == "" and k in ("created", "inputs")):
-                continue
-            if str(a.attrs.get(k)) != str(b.attrs.get(k)):
-                out.append(f"{where}.{k}")
-    with h5py.File(a_path, "r") as a, h5py.File(b_path, "r") as b:
-        walk(a, b, "")
-    return out
+    """Fields of two gap.h5 that differ (bits; NaN equal to NaN), the units' own cost left
+    out (``gap_differences``)."""
+    return gap_differences(a_path, b_path)
 
 
 @pytest.fixture(scope="module")
@@ -150,11 +127,43 @@ def test_another_config_or_fmu_or_an_older_gap_is_refused(pump, tmp_path):
 
     # A gap.h5 of a twinmon without the per-year records: refused, still read by the report.
     with h5py.File(out, "r+") as f:
-        del f["units/B/cache"]
+        del f["units/B/cache"], f["units/B/cache_gains"]
     with pytest.raises(ArtifactError, match=r"/units/B lacks the per-year records"):
         diagnose(cfg, tmp / "obs.h5", out, workers=1, update=True)
     g = read_gap(out, cache=True)
     assert g.units["B"].cache is None and g.units["A"].cache.n_years == 2
+
+
+def test_a_gap_of_the_first_layout_reads_and_is_not_updated(pump, tmp_path):
+    """``twinmon.gap/1`` (a dataset per array, an attribute per value, -1 for none): the
+    report still reads it, field for field; --update refuses it in one line."""
+    from twinmon import artifacts
+    from twinmon.diagnose.artifact import _ARRAYS, _ATTRS, _JSON_ATTRS
+    cfg, tmp, _ = pump
+    new = read_gap(tmp / "full.h5")
+    old = tmp_path / "gap.h5"
+    with h5py.File(tmp / "full.h5", "r") as src, h5py.File(old, "w") as f:
+        for k, v in src.attrs.items():
+            f.attrs[k] = v
+        f.attrs["schema"] = "twinmon.gap/1"
+        for k in ("time", "windows"):
+            src.copy(src[k], f, k)
+        for unit, g in new.units.items():
+            grp = f.create_group(f"units/{unit}")
+            for name in _ARRAYS:
+                data = np.asarray(getattr(g, name))
+                artifacts.put(grp, name, data.astype(np.int8) if data.dtype == bool else data,
+                              "1", "d")
+            for name in _ATTRS:
+                grp.attrs[name] = -1 if getattr(g, name) is None else getattr(g, name)
+            for name in _JSON_ATTRS:
+                grp.attrs[name] = artifacts.json_attr(getattr(g, name))
+    # Every field equal but the records an update continues from, which it never had.
+    assert differences(tmp / "full.h5", old) == [".schema"] + [f"/units/{u}: cache"
+                                                              for u in new.units]
+    with pytest.raises(ArtifactError, match=r"gap\.h5: written by an older twinmon, without "
+                                            r"the per-year records .*without --update$"):
+        diagnose(cfg, tmp / "obs.h5", old, workers=1, update=True)
 
 
 def test_no_gap_yet_is_a_full_run_and_the_cli_says_what_it_kept(pump, tmp_path):

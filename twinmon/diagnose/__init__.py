@@ -23,7 +23,7 @@ each unit this module
    estimates and the projected failure year move once the effect is in the twin.
 
 The diagnosing side reads only observations (and optionally a posterior); never a truth file.
-The artifact is ``gap.h5`` (``twinmon.gap/1``, layout in :func:`write_gap`).
+The artifact is ``gap.h5`` (``twinmon.gap/2``, layout in :func:`write_gap`).
 
 Layout: each step has its file, over one small state object.
 

@@ -1,8 +1,9 @@
-"""The artifact of ``diagnose``: ``gap.h5`` (``twinmon.gap/1``), written by :func:`write_gap` and
+"""The artifact of ``diagnose``: ``gap.h5`` (``twinmon.gap/2``), written by :func:`write_gap` and
 read back by :func:`read_gap` into :class:`~twinmon.diagnose.result.UnitGap` records.
 
-What is stored per unit is driven by two tables: ``_ARRAYS`` (datasets with their units and
-description) and ``_ATTRS`` / ``_JSON_ATTRS`` (scalar and JSON attributes).
+What is stored per unit is driven by two tables: ``_ARRAYS`` (the fields of the unit's
+per-year and per-candidate records, with their units and description) and ``_ATTRS`` /
+``_JSON_ATTRS`` (the values of its JSON ``result`` attribute).
 """
 from __future__ import annotations
 
@@ -58,55 +59,81 @@ _JSON_ATTRS = ("effects", "group", "where_windows", "where_years", "estimate",
                "separation_scores", "candidates", "effect_onsets")
 
 
+#: Arrays of ``_ARRAYS`` indexed by candidate (ranking order); the others by year.
+_CANDIDATE_ARRAYS = ("screen_score", "screen_onset", "fit_onset", "fit_value", "fit_sd",
+                     "delta_bic")
+_YEAR_ARRAYS = tuple(n for n in _ARRAYS if n not in _CANDIDATE_ARRAYS)
+
+
+def _packed(g: UnitGap, names: tuple, n: int, unit: str) -> np.ndarray:
+    """The arrays ``names`` of ``g`` (each [n, ...]) side by side as one structured array [n]
+    (booleans as int8)."""
+    cols = {}
+    for name in names:
+        data = np.asarray(getattr(g, name))
+        cols[name] = data.astype(np.int8) if data.dtype == bool else data
+        if data.shape[:1] != (n,):
+            raise ValueError(f"unit {unit}: {name} has shape {data.shape}, expected ({n}, ...)")
+    rec = np.zeros(n, [(k, v.dtype.str, v.shape[1:]) for k, v in cols.items()])
+    for k, v in cols.items():
+        rec[k] = v
+    return rec
+
+
 def write_gap(path, results: dict, cfg: Config, time: np.ndarray, inputs) -> None:
-    """Write ``gap.h5`` (``twinmon.gap/1``)::
+    """Write ``gap.h5`` (``twinmon.gap/2``)::
 
         /time                          [n_t]  s
         /windows/names [n_w], /windows/bounds [n_w, 2] s
-        attrs input_names (JSON)
-        /units/<U>/<array>             see _ARRAYS (per year, [year, time], [year, window],
-                                       [year, input] or [candidate] in ranking order)
-        /units/<U>.attrs verdict, onset (-1: none), rms_before, rms_after, closed_percent,
-                         delta_bic_final, separating_channel, absorbed_share, p_gap,
-                         noise_std, failure_year_before/after (-1: none within the horizon),
-                         and JSON: effects, group, where_windows, where_years, estimate
-                         ({name: [mean, q05, q95]}), separation_scores, candidates,
-                         effect_onsets ({name: onset year})
-        /units/<U>/cache/              per-year records for diagnose --update
-                                       (:mod:`.update`; gzip; absent in files written before
-                                       them, which read_gap still reads):
-            digest     [n_y]           SHA-256 of the year's whitened observations + noise
-            base_u     [n_y, d]        normalised inputs of the base fit
-            base_rows  [n_y, m]        its whitened residual (m = channels x n_t; NaN missing)
-            base_jac   [n_y, m, d]     its Jacobian w.r.t. the normalised inputs
-            base_lev   [n_y, m]        its leverages
-            screen_gains [n_c, n_v, n_y]  initial screening's chi-square gains (attrs
-                                       candidates, grid_sizes: JSON; NaN past a grid)
+        attrs input_names (JSON); array_fields (JSON {name: [units, description]}: every
+              field of the records below)
+        /units/<U>/record              compound [n_y]: per year, the _ARRAYS indexed by year
+                                       (years, residuals and predictions [n_t], windows'
+                                       RMS [n_w], inputs and their sd [d], chi-squares,
+                                       p-values, significant_years)
+        /units/<U>/candidates          compound [n_c]: the _ARRAYS indexed by candidate, in
+                                       ranking order (screen_score, screen_onset, fit_onset,
+                                       fit_value, fit_sd, delta_bic)
+        /units/<U>.attrs result        JSON: verdict, onset (null: none), rms_before,
+                                       rms_after, closed_percent, delta_bic_final,
+                                       separating_channel, absorbed_share, p_gap, noise_std,
+                                       failure_year_before/after (null: none within the
+                                       horizon), fmu_runs, wall_time, effects, group,
+                                       where_windows, where_years, estimate ({name: [mean,
+                                       q05, q95]}), separation_scores, candidates,
+                                       effect_onsets ({name: onset year})
+        /units/<U>/cache               compound [n_y], gzip: per-year records for diagnose
+                                       --update (:func:`.update.write_cache`): digest,
+                                       base_u [d], base_rows [m], base_jac [m, d], base_lev [m]
+        /units/<U>/cache_gains         [n_c, n_v, n_y], gzip: initial screening's gains (attr
+                                       grid: JSON candidates and grid sizes)
+
+    A unit is four datasets and one attribute (``twinmon.gap/1`` had ~30 datasets and ~80
+    attributes per unit, 22 ms of writing each); ``read_gap`` reads both layouts.
     """
     wins = cfg.diagnose_windows()
     with artifacts.write_artifact(path, "gap", config=cfg.section_yaml(*SECTIONS),
                                   inputs=inputs, seed=cfg.seed, compact=True) as f:
-        # compact: ~30 small datasets per unit, whose B-trees were most of the file (30 pump
-        # units x 10 years: 1.3 MB with the --update records; 2.6 MB without them, 3.6 MB
-        # with them, in the older format).
         artifacts.put(f, "time", np.asarray(time), "s", "sample times")
         artifacts.put(f, "windows/names", list(wins), "", "time windows of the transient")
         artifacts.put(f, "windows/bounds", np.array([[w.start, w.stop] for w in wins.values()]),
                       "s", "start and stop of each window")
         f.attrs["input_names"] = json.dumps(cfg.model.input_names)
+        f.attrs["array_fields"] = json.dumps(
+            {k: [cfg.model.output.units if u == "output units" else u, desc]
+             for k, (u, desc) in _ARRAYS.items()})
+        units = f.create_group("units")
         for unit, g in results.items():
-            grp = f.create_group(f"units/{unit}")
-            for name, (units, desc) in _ARRAYS.items():
-                units = cfg.model.output.units if units == "output units" else units
-                data = np.asarray(getattr(g, name))
-                if data.dtype == bool:
-                    data = data.astype(np.int8)
-                artifacts.put(grp, name, data, units, desc)
-            for name in _ATTRS:
-                v = getattr(g, name)
-                grp.attrs[name] = -1 if v is None else v
-            for name in _JSON_ATTRS:
-                grp.attrs[name] = artifacts.json_attr(getattr(g, name))
+            grp = units.create_group(unit)
+            n_y = len(np.asarray(g.years))
+            # fletcher32: flipped bytes are found on reading (artifacts.put's rule).
+            grp.create_dataset("record", data=_packed(g, _YEAR_ARRAYS, n_y, unit),
+                               fletcher32=bool(n_y))
+            n_c = len(np.asarray(g.screen_score))
+            grp.create_dataset("candidates", data=_packed(g, _CANDIDATE_ARRAYS, n_c, unit),
+                               fletcher32=bool(n_c))
+            result = {n: getattr(g, n) for n in _ATTRS + _JSON_ATTRS}
+            grp.attrs["result"] = artifacts.json_attr(result)
             if g.cache is not None:
                 write_cache(grp, g.cache)
 
@@ -135,20 +162,85 @@ def read_gap(path: str | os.PathLike, cache: bool = False) -> GapFile:
         if "units" not in f:
             raise ArtifactError(f"{path}: group /units is missing")
         for unit, g in f["units"].items():
-            kw = {n: artifacts.get(g, n, path) for n in _ARRAYS}
+            kw = _read_unit(g, unit, path) if "record" in g else _read_unit_v1(g, unit, path)
             kw["significant_years"] = kw["significant_years"].astype(bool)
-            for n in _ATTRS:
-                if n not in g.attrs:
-                    raise ArtifactError(f"{path}: attribute /units/{unit}.{n} is missing")
-                v = g.attrs[n]
-                v = v.decode() if isinstance(v, bytes) else v
-                v = v.item() if isinstance(v, np.generic) else v
-                if n in ("onset", "failure_year_before", "failure_year_after") and v == -1:
-                    v = None
-                kw[n] = v
-            for n in _JSON_ATTRS:
-                kw[n] = json.loads(g.attrs[n])
             kw["estimate"] = {k: tuple(v) for k, v in kw["estimate"].items()}
             kw["cache"] = read_cache(g, path) if cache else None
             units[unit] = UnitGap(unit=unit, **kw)
         return GapFile(time, names, bounds, json.loads(f.attrs["input_names"]), units)
+
+
+def _read_unit(g, unit: str, path) -> dict:
+    """A unit of a ``twinmon.gap/2`` file: UnitGap's fields but ``unit`` and ``cache``."""
+    kw = {}
+    for name, names in (("record", _YEAR_ARRAYS), ("candidates", _CANDIDATE_ARRAYS)):
+        rec = artifacts.get(g, name, path)
+        missing = [n for n in names if n not in (rec.dtype.names or ())]
+        if missing:
+            raise ArtifactError(f"{path}: /units/{unit}/{name} lacks the field {missing[0]!r}")
+        kw.update({n: np.ascontiguousarray(rec[n]) for n in names})
+    if "result" not in g.attrs:
+        raise ArtifactError(f"{path}: attribute /units/{unit}.result is missing")
+    result = json.loads(g.attrs["result"])
+    missing = [n for n in _ATTRS + _JSON_ATTRS if n not in result]
+    if missing:
+        raise ArtifactError(f"{path}: attribute /units/{unit}.result lacks {missing[0]!r}")
+    kw.update(result)
+    return kw
+
+
+def _read_unit_v1(g, unit: str, path) -> dict:
+    """A unit of a ``twinmon.gap/1`` file (a dataset per array, an attribute per value)."""
+    kw = {n: artifacts.get(g, n, path) for n in _ARRAYS}
+    for n in _ATTRS:
+        if n not in g.attrs:
+            raise ArtifactError(f"{path}: attribute /units/{unit}.{n} is missing")
+        v = g.attrs[n]
+        v = v.decode() if isinstance(v, bytes) else v
+        v = v.item() if isinstance(v, np.generic) else v
+        if n in ("onset", "failure_year_before", "failure_year_after") and v == -1:
+            v = None
+        kw[n] = v
+    for n in _JSON_ATTRS:
+        kw[n] = json.loads(g.attrs[n])
+    return kw
+
+
+#: What a diagnosis records of its own cost (an update's differ from a full run's).
+COST_FIELDS = ("fmu_runs", "wall_time")
+
+
+def gap_differences(a_path, b_path) -> list:
+    """What differs between two ``gap.h5`` files, unit by unit (every field of every unit,
+    bit for bit with NaN equal to NaN, the per-year records included), the units' own cost
+    (:data:`COST_FIELDS`) left out: empty when ``diagnose --update`` gave what a full run
+    gives. Also the config and schema of the two files."""
+    from dataclasses import fields
+    out = []
+    pa, pb = artifacts.read_provenance(a_path), artifacts.read_provenance(b_path)
+    out += [f".{k}" for k in ("schema", "config", "seed") if pa.get(k) != pb.get(k)]
+    a, b = read_gap(a_path, cache=True), read_gap(b_path, cache=True)
+    if list(a.units) != list(b.units):
+        return out + [f"units {sorted(set(a.units) ^ set(b.units))}"]
+
+    def same(x, y) -> bool:
+        if isinstance(x, dict) and isinstance(y, dict):
+            return x.keys() == y.keys() and all(same(x[k], y[k]) for k in x)
+        if isinstance(x, np.ndarray) or isinstance(y, np.ndarray):
+            x, y = np.asarray(x), np.asarray(y)
+            return x.shape == y.shape and x.dtype == y.dtype and np.array_equal(
+                x, y, equal_nan=x.dtype.kind == "f")
+        if isinstance(x, float) and isinstance(y, float) and np.isnan(x) and np.isnan(y):
+            return True
+        return x == y
+    for unit in a.units:
+        x, y = a.units[unit], b.units[unit]
+        for f in fields(x):
+            if f.name in COST_FIELDS:
+                continue
+            u, v = getattr(x, f.name), getattr(y, f.name)
+            if f.name == "cache" and u is not None and v is not None:
+                u, v = vars(u), vars(v)
+            if not same(u, v):
+                out.append(f"/units/{unit}: {f.name}")
+    return out
