@@ -55,3 +55,31 @@ def test_process_results_equal_serial(fmu_path, alarm):
 def test_negative_worker_count_is_a_config_error():
     with pytest.raises(ConfigError, match="got -5"):
         make_executor("process", -5)
+
+
+def _worker_tmp() -> tuple:
+    """(pid, the folder a worker's extracted FMU lives in)."""
+    import os
+
+    from twinmon.executors import local
+    return os.getpid(), str(local._worker_model._tmpdir)
+
+
+def test_a_killed_worker_leaves_no_extracted_fmu_behind(fmu_path, alarm):
+    """A worker killed with SIGKILL cannot remove its extracted FMU; it lives in the pool's
+    folder, which goes with the pool."""
+    import gc
+    import os
+    from pathlib import Path
+
+    from twinmon.executors.local import _init_worker, start_pool
+    spec = SimulationSpec(fmu=fmu_path, outputs=("sensor.m_flow",), times=TIMES)
+    pool = start_pool(1, _init_worker, (spec,))
+    pid, extracted = pool.submit(_worker_tmp).result()
+    extracted = Path(extracted)
+    assert extracted.is_dir() and extracted.parent.name.startswith("twinmon-pool-")
+    os.kill(pid, signal.SIGKILL)
+    pool.shutdown(wait=True)
+    del pool
+    gc.collect()
+    assert not extracted.exists() and not extracted.parent.exists()

@@ -136,11 +136,19 @@ def start_pool(workers: int, initializer=None, initargs=()):
 
     A worker that dies makes the pool raise ``BrokenProcessPool`` (a ``multiprocessing.Pool``
     would wait forever for its task)."""
+    import shutil
+    import tempfile
+    import weakref
     from concurrent.futures import ProcessPoolExecutor, wait
     ctx = mp.get_context("fork" if hasattr(os, "fork") else "spawn")
+    # The workers' temporary files (extracted FMUs) go to a folder of the parent's, removed
+    # with the pool: a worker killed (a crash, stop_pool's SIGKILL inside native code) cannot
+    # clean up after itself, and its extracted FMU would stay in $TMPDIR for good.
+    scratch = tempfile.mkdtemp(prefix="twinmon-pool-")
     with sigint_deferred():
         pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_detached,
-                                   initargs=(initializer, initargs))
+                                   initargs=(initializer, initargs, scratch))
+        weakref.finalize(pool, shutil.rmtree, scratch, True)
         # Start every worker inside the block (a fork context starts them all at the first
         # submit) and let each finish its initializer.
         wait([pool.submit(_noop) for _ in range(workers)])
@@ -193,8 +201,13 @@ def closing_pool(pool, broken: Exception, interrupted: Optional[Exception] = Non
             stop_pool(pool)
 
 
-def _init_detached(initializer, initargs) -> None:
+def _init_detached(initializer, initargs, scratch: str = "") -> None:
     detach_worker()
+    if scratch:
+        import tempfile
+        # tempfile caches its folder: a forked worker would otherwise keep the parent's.
+        tempfile.tempdir = scratch
+        os.environ["TMPDIR"] = scratch
     if initializer is not None:
         initializer(*initargs)
 
