@@ -364,13 +364,7 @@ class LazyUnits(Mapping):
         if unit in self._cache:
             self._cache.move_to_end(unit)
             return self._cache[unit]
-        try:
-            same = _stamp(self.path) == self._stamp
-        except OSError:
-            same = False
-        if not same:
-            raise ArtifactError(f"{self.path}: replaced or removed since it was opened "
-                                f"(reading unit {unit}); run the command again")
+        self._check_unchanged(f" (reading unit {unit})")
         with open_artifact(self.path, self.kind) as f:
             value = self._read(f, unit, self.path)
         self._cache[unit] = value
@@ -382,16 +376,20 @@ class LazyUnits(Mapping):
         """Every unit in the file's order, read in one opening of the file (a stage that
         needs them all: opening the file per unit costs more than reading a small one).
         The cache is not filled."""
+        self._check_unchanged()
+        with open_artifact(self.path, self.kind) as f:
+            for unit in self._names:
+                yield unit, self._read(f, unit, self.path)
+
+    def _check_unchanged(self, reading: str = "") -> None:
+        """The file must be the one whose units were listed (not replaced or removed)."""
         try:
             same = _stamp(self.path) == self._stamp
         except OSError:
             same = False
         if not same:
-            raise ArtifactError(f"{self.path}: replaced or removed since it was opened; "
-                                "run the command again")
-        with open_artifact(self.path, self.kind) as f:
-            for unit in self._names:
-                yield unit, self._read(f, unit, self.path)
+            raise ArtifactError(f"{self.path}: replaced or removed since it was opened"
+                                f"{reading}; run the command again")
 
     def __contains__(self, unit: object) -> bool:
         return unit in self._known
