@@ -681,10 +681,15 @@ class ReportConfig:
     #: for at most this many units: those asked for with ``report --unit``, then the units at
     #: risk in rank order. Smaller fleets get every unit's figures.
     detail_units: int = 12
+    #: Processes that lay out and write the figures while the next ones are built (0: one
+    #: per core; 1: all in the report's own process).
+    workers: int = 0
 
     def _check(self):
         if self.detail_units < 1:
             yield "detail_units", "must be >= 1", self.detail_units
+        if self.workers < 0:
+            yield "workers", "must be >= 0 (0: one per core)", self.workers
 
 
 @dataclass(frozen=True)

@@ -325,3 +325,35 @@ def test_report_of_another_machine_speaks_its_words(tmp_path):
     for u in data["units"].values():
         assert u["last_indicator"] is not None        # a mean speed is always defined
         assert u["last_indicator_text"].endswith(ind.units)
+
+
+def test_figures_drawn_by_worker_processes_are_the_same_bytes(pipeline):
+    # report.workers > 1 pickles each figure to a pool that lays it out and writes it; the
+    # PNGs (and so the page's images) must not depend on it.
+    _, cfg_path, tmp, art = pipeline
+    made = {}
+    for workers in (1, 2):
+        cfg = load_config(cfg_path, [f"report.workers={workers}"])
+        s = report(cfg, tmp / f"report_w{workers}", **art)
+        made[workers] = {f["name"]: Path(f["path"]).read_bytes() for f in s.figures}
+    assert len(made[1]) >= 5 and made[1] == made[2]
+
+
+def test_a_figure_that_does_not_pickle_is_written_in_the_process(tmp_path):
+    from matplotlib.ticker import FuncFormatter
+
+    from twinmon.executors import closing_pool, start_pool
+    from twinmon.report.common import Figures
+    with closing_pool(start_pool(1), RuntimeError("worker died")) as pool:
+        figs = Figures(tmp_path, pool)
+        fig = figs.new(3, 2)
+        ax = fig.add_subplot()
+        ax.plot([0, 1], [0, 1])
+        ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:.1f}"))   # no pickle
+        figs.save(fig, "local", "observations", "A local formatter", "")
+        fig2 = figs.new(3, 2)
+        fig2.add_subplot().plot([0, 1], [1, 0])
+        figs.save(fig2, "plain", "observations", "Plain", "")
+        figs.finish()
+    for name in ("local", "plain"):
+        assert (tmp_path / f"{name}.png").read_bytes().startswith(PNG_MAGIC)

@@ -179,13 +179,21 @@ class Figures:
     """Saves figures as PNG files and remembers them for the HTML.
 
     ``suffix`` and ``units`` name a group of units drawn apart (a large fleet's units are
-    drawn a few at a time): ``fig7_trends_2.png``, titled "... (A, B, C)"."""
+    drawn a few at a time): ``fig7_trends_2.png``, titled "... (A, B, C)".
 
-    def __init__(self, folder: Path):
+    With a ``pool`` (of worker processes forked with this process's matplotlib settings), a
+    figure is pickled and laid out, drawn and written there while the next one is built
+    here: the layout and the rasterising are most of a figure's cost (0.3-1.9 s against
+    0.01-0.04 s to pickle it). A figure that does not pickle is written here. The PNGs are
+    the same pixel for pixel; :meth:`finish` waits for them."""
+
+    def __init__(self, folder: Path, pool=None):
         self.folder = folder
         self.items: list[dict] = []
         self.suffix = ""
         self.units: list[str] = []
+        self._pool = pool
+        self._pending: list = []
 
     def new(self, width: float, height: float, **kw):
         from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -199,9 +207,31 @@ class Figures:
         if self.units:
             title += f" ({', '.join(self.units)})"
         path = self.folder / f"{name}.png"
-        fig.savefig(path, dpi=DPI)
+        blob = None
+        if self._pool is not None:
+            import pickle
+            try:
+                blob = pickle.dumps(fig, protocol=pickle.HIGHEST_PROTOCOL)
+            except (pickle.PicklingError, AttributeError, TypeError):
+                blob = None          # an artist holding a local function, say
+        if blob is None:
+            fig.savefig(path, dpi=DPI)
+        else:
+            self._pending.append(self._pool.submit(_save_pickled, blob, str(path)))
         self.items.append({"name": name, "section": section, "title": title,
                            "caption": caption, "file": f"figures/{name}.png", "_path": path})
+
+    def finish(self) -> None:
+        """Wait for the figures the pool is writing; raise the first one's error."""
+        pending, self._pending = self._pending, []
+        for future in pending:
+            future.result()
+
+
+def _save_pickled(blob: bytes, path: str) -> None:
+    """Pool task: write a pickled figure as :meth:`Figures.save` would."""
+    import pickle
+    pickle.loads(blob).savefig(path, dpi=DPI)
 
 
 def indicator_limit_line(ax, words: Words) -> None:

@@ -72,7 +72,7 @@ def fig_residual_map(figs: Figures, inp: Inputs, colours: dict) -> None:
 
 def fig_candidates(figs: Figures, inp: Inputs, colours: dict) -> None:
     """Candidate effects ranked by BIC gain, one panel per unit, group highlighted."""
-    from matplotlib.ticker import FuncFormatter
+    from matplotlib.ticker import StrMethodFormatter
     gap, cfg, w = inp.gap, inp.cfg, inp.words
     units = list(gap.units)
     n_c = max(len(g.candidates) for g in gap.units.values())
@@ -94,7 +94,7 @@ def fig_candidates(figs: Figures, inp: Inputs, colours: dict) -> None:
         ax.axvline(0, color="k", lw=0.8)
         # symlog: gains span from about -10 (a useless extra parameter) to thousands.
         ax.set_xscale("symlog", linthresh=10)
-        ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+        ax.xaxis.set_major_formatter(StrMethodFormatter("{x:g}"))
         fin = vals[np.isfinite(vals)]
         hi = max(thr * 3, float(fin.max()) * 3 if fin.size else thr * 3)
         lo = min(-thr * 2, float(fin.min()) * 1.5 if fin.size else -thr)

@@ -23,7 +23,7 @@ def surrogate_errors(pred: np.ndarray, Y: np.ndarray) -> dict:
 
 def fig_surrogate(figs: Figures, inp: Inputs) -> dict:
     """Figure 5: surrogate against the FMU on the test runs; returns the error figures."""
-    from matplotlib.ticker import FuncFormatter
+    from matplotlib.ticker import StrMethodFormatter
     sur, sims, w = inp.surrogate, inp.sims, inp.words
     ok = sims.ok["test"]
     X, Y = sims.X["test"][ok], sims.Y["test"][ok]
@@ -66,7 +66,7 @@ def fig_surrogate(figs: Figures, inp: Inputs) -> dict:
                     label="mean (% of the FMU value)")
     a2.set_xlabel("time since start (s)")
     a2.set_ylabel("error |surrogate - FMU| (%)")
-    a2.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+    a2.yaxis.set_major_formatter(StrMethodFormatter("{x:g}"))
     span = float(f"{e['span']:.3g}")
     a2.set_title(f"Error per time step (test-run range {qty(span, w.out_units)})")
     a2.legend(fontsize=8, loc="best")

@@ -90,16 +90,34 @@ def report(cfg: Config, output_dir: str | os.PathLike, *,
         try:
             with matplotlib.rc_context({"font.size": 10, "axes.titlesize": 11,
                                         "figure.titlesize": 12, "legend.framealpha": 0.85}):
-                summary = _render(cfg, inp, tmp, out, provenance, list(units))
+                # Forked inside the context: the workers draw with the same settings.
+                with _figure_pool(cfg, out) as pool:
+                    summary = _render(cfg, inp, tmp, out, provenance, list(units), pool)
             _install(tmp, out)
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
     return summary
 
 
+def _figure_pool(cfg: Config, out: Path):
+    """A pool of ``report.workers`` processes for :class:`Figures` (none with one worker or
+    one core), shut down with the report, stopped at once on an error or a Ctrl-C."""
+    from contextlib import nullcontext
+
+    from ..errors import Interrupted, TwinmonError
+    from ..executors import closing_pool, start_pool
+    workers = cfg.report.workers or len(os.sched_getaffinity(0))
+    if workers <= 1:
+        return nullcontext(None)
+    return closing_pool(start_pool(workers), TwinmonError(
+        f"{out}: a worker process died while drawing the figures (out of memory?); nothing "
+        "was written; re-run with --set report.workers=1"),
+        Interrupted("report: interrupted; nothing was written"))
+
+
 def _render(cfg: Config, inp: Inputs, tmp: Path, out: Path, provenance: dict,
-            requested: list) -> ReportSummary:
-    figs = Figures(tmp / "figures")
+            requested: list, pool=None) -> ReportSummary:
+    figs = Figures(tmp / "figures", pool)
     w = inp.words
     units = inp.unit_names()
     sections: dict[str, str] = {}
@@ -232,6 +250,7 @@ def _render(cfg: Config, inp: Inputs, tmp: Path, out: Path, provenance: dict,
     if inp.forecast is not None and inp.posterior is None:
         notes.append("The forecast is shown without its posterior: Figure 6 is skipped.")
 
+    figs.finish()
     output_words, indicator_words = words_dict(inp)
     summary = ReportSummary(
         output_dir=str(out), index=str(out / "index.html"),
