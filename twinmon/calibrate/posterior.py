@@ -138,7 +138,7 @@ def year_fit(surrogate, cfg: Config, y: np.ndarray, total_var: np.ndarray,
         The fields of :data:`FIT_FIELDS` but ``extensions``/``converged``; ``status`` is
         ``misfit``, ``edge`` or ``ok``.
     """
-    from scipy import stats
+    from scipy.special import chdtrc     # chi2.sf, see diagnose.stats
 
     from ..diagnose.stats import ljung_box
     cc = cfg.calibrate
@@ -149,7 +149,7 @@ def year_fit(surrogate, cfg: Config, y: np.ndarray, total_var: np.ndarray,
     n = int(ok.sum())
     chi2 = float(np.sum(z[ok] ** 2))
     rms = float(np.sqrt(chi2 / max(n, 1)))
-    p_chi2 = float(stats.chi2.sf(chi2, max(n - d, 1)))
+    p_chi2 = float(chdtrc(max(n - d, 1), chi2))
     blocks = getattr(surrogate, "blocks", None)
     if blocks:
         # Several channels side by side: one Ljung-Box test per channel (a residual's

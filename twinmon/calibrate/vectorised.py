@@ -868,9 +868,9 @@ def run_vectorised(cfg: Config, surrogate, runs: dict, resume: dict, output,
                                        predict=make_predictor(surrogate)[0]))
     elif pending:
         from concurrent.futures import FIRST_COMPLETED, wait
-        # Imported once here, not in every forked worker.
+        # Imported once here, not in every forked worker (scipy.stats is not needed: the
+        # goodness-of-fit p-values come from scipy.special, see diagnose.stats).
         import scipy.special  # noqa: F401
-        import scipy.stats  # noqa: F401
 
         from ..executors import InterruptGuard, open_pool
         from . import sampling_pool
