@@ -138,9 +138,7 @@ def year_fit(surrogate, cfg: Config, y: np.ndarray, total_var: np.ndarray,
         The fields of :data:`FIT_FIELDS` but ``extensions``/``converged``; ``status`` is
         ``misfit``, ``edge`` or ``ok``.
     """
-    from scipy.special import chdtrc     # chi2.sf, see diagnose.stats
-
-    from ..diagnose.stats import ljung_box
+    from ..diagnose.stats import chi2_sf, ljung_box
     cc = cfg.calibrate
     d = draws.shape[1]
     pred = surrogate.predict(draws.mean(axis=0)[None, :])[0]
@@ -149,7 +147,7 @@ def year_fit(surrogate, cfg: Config, y: np.ndarray, total_var: np.ndarray,
     n = int(ok.sum())
     chi2 = float(np.sum(z[ok] ** 2))
     rms = float(np.sqrt(chi2 / max(n, 1)))
-    p_chi2 = float(chdtrc(max(n - d, 1), chi2))
+    p_chi2 = float(chi2_sf(chi2, max(n - d, 1)))
     blocks = getattr(surrogate, "blocks", None)
     if blocks:
         # Several channels side by side: one Ljung-Box test per channel (a residual's

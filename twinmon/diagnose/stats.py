@@ -8,11 +8,16 @@ from __future__ import annotations
 import math
 
 import numpy as np
-# chdtrc(k, x) is scipy.stats.chi2.sf(x, k) (which calls it) without importing scipy.stats,
-# about 1.1 s at every start of calibrate, whose goodness-of-fit checks use these.
 from scipy.special import chdtrc
 
 from ..errors import InputDataError
+
+
+def chi2_sf(x, dof):
+    """Chi-square survival function, ``scipy.stats.chi2.sf(x, dof)`` (the same values: it
+    calls ``chdtrc``) without importing scipy.stats, 0.55-0.60 s at every start of
+    calibrate, whose goodness-of-fit checks use it. Note ``chdtrc`` takes ``dof`` first."""
+    return chdtrc(dof, x)
 
 
 def ljung_box(z: np.ndarray, lags: int) -> float:
@@ -29,14 +34,14 @@ def ljung_box(z: np.ndarray, lags: int) -> float:
         return 1.0
     rho = np.array([float(z[k:] @ z[:-k]) / c0 for k in range(1, lags + 1)])
     q = n * (n + 2) * np.sum(rho ** 2 / (n - np.arange(1, lags + 1)))
-    return float(chdtrc(lags, q))
+    return float(chi2_sf(q, lags))
 
 
 def pooled_onset_pvalues(chi2: np.ndarray, dof: np.ndarray) -> np.ndarray:
     """p-value of the pooled chi-square of the years from each possible onset on, [n_y]."""
     c = np.cumsum(chi2[::-1])[::-1]
     d = np.cumsum(dof[::-1])[::-1]
-    return chdtrc(np.maximum(d, 1), c)
+    return chi2_sf(c, np.maximum(d, 1))
 
 
 def estimate_noise(y: np.ndarray, time: np.ndarray, start: float) -> float:
