@@ -549,14 +549,6 @@ class ForecastConfig:
     #: year-to-year variation beyond estimation error) or ``estimate`` (the paper's Student t
     #: interval for a new yearly estimate).
     predictive: Literal["state", "estimate"] = "state"
-    #: ``state`` with the sequential method: centre the future on lines fitted to what the
-    #: estimates would be if the true inputs followed them -- each year's prior, centred on
-    #: the previous estimate, makes the estimates trail a trending input along directions
-    #: the data barely identify (prognosis.lag_corrected_fit); False: OLS lines through
-    #: the estimates, as the paper. Off by default: it widens the indicator's intervals past
-    #: their level and moves the P > 5 % failure year early (docs/forecast.md, "The
-    #: estimates trail a trending input"). The slopes tested and reported stay the OLS ones.
-    lag_correction: bool = False
 
     def _check(self):
         if not 0.5 <= self.attribution_confidence < 1:

@@ -51,9 +51,9 @@ from . import artifacts
 from .config import Config
 from .errors import ArtifactError, CalibrationError
 from .prognosis import (AMBIGUOUS, HEALTHY, Attribution, IndicatorDrift, attribute,
-                        box_test_uniform, filter_error_covariance, filter_gains,
-                        gradient_from, gradient_points, indicator_drift, lag_corrected_fit,
-                        mid_state, separating_channel, slope_covariance)
+                        box_test_uniform, filter_error_covariance, gradient_from,
+                        gradient_points, indicator_drift, mid_state, separating_channel,
+                        slope_covariance)
 
 #: Config sections recorded in the artifact (and compared by ``twinmon run``).
 SECTIONS = ("model", "forecast", "safety", "seed")
@@ -410,8 +410,7 @@ class StatePredictive:
 
 
 def state_predictive(trends: list, years: np.ndarray, residuals: np.ndarray,
-                     post_cov: np.ndarray, future: np.ndarray,
-                     fit: Optional[tuple] = None) -> StatePredictive:
+                     post_cov: np.ndarray, future: np.ndarray) -> StatePredictive:
     """Where the unit's inputs will truly be, not where next year's estimate will fall.
 
     The yearly estimates scatter around the trend by the true year-to-year variation *and*
@@ -448,11 +447,6 @@ def state_predictive(trends: list, years: np.ndarray, residuals: np.ndarray,
         (:func:`~twinmon.prognosis.filter_error_covariance`), or the yearly posterior
         covariances alone (errors taken independent across years).
     future : ndarray, shape [h]
-    fit : (intercept [d], slope [d], weights [2, d, n, d]), optional
-        Lines fitted jointly, linear in the estimates
-        (:func:`~twinmon.prognosis.lag_corrected_fit`): the predictive is centred on them
-        and the ``a_k(x0)`` above become the blocks ``weights[0] + x0 weights[1]``
-        (``residuals`` are then those of this fit).
     """
     x = np.asarray(years, float)
     n = x.size
@@ -464,21 +458,12 @@ def state_predictive(trends: list, years: np.ndarray, residuals: np.ndarray,
     w, V = np.linalg.eigh(S - Pbar)
     jitter = (V * np.maximum(w, 0.0)) @ V.T
     fut = np.asarray(future, float)
-    if fit is not None:
-        intercept, slope, W = fit
-        G = W[0][None] + fut[:, None, None, None] * W[1][None]            # [h, d, n, d]
-        scatter = np.einsum("hikj,jl,hmkl->him", G, S, G)
-        carried = (np.einsum("hikj,kljm,hnlm->hin", G, post_cov, G) if full
-                   else np.einsum("hikj,kjm,hnkm->hin", G, post_cov, G))
-        loc = intercept[None, :] + fut[:, None] * slope[None, :]
-    else:
-        c = 1 / n + (fut - xbar) ** 2 / sxx                                # [h]
-        a = 1 / n + np.outer(fut - xbar, x - xbar) / sxx                   # [h, n]
-        scatter = c[:, None, None] * S[None]
-        carried = (np.einsum("hk,hl,klij->hij", a, a, post_cov) if full
-                   else np.einsum("hk,kij->hij", a ** 2, post_cov))
-        loc = np.column_stack([t.intercept + t.slope * fut for t in trends])
-    cov = np.array([_cover(scatter[j], carried[j]) for j in range(fut.size)]) + jitter
+    c = 1 / n + (fut - xbar) ** 2 / sxx                                    # [h]
+    a = 1 / n + np.outer(fut - xbar, x - xbar) / sxx                       # [h, n]
+    carried = (np.einsum("hk,hl,klij->hij", a, a, post_cov) if full
+               else np.einsum("hk,kij->hij", a ** 2, post_cov))
+    cov = np.array([_cover(c[j] * S, carried[j]) for j in range(fut.size)]) + jitter
+    loc = np.column_stack([t.intercept + t.slope * fut for t in trends])
     return StatePredictive(loc, cov, max(n - 2, 1))
 
 
@@ -849,19 +834,14 @@ def prognosis_status(up, cfg: Config, windows: list) -> tuple[str, str]:
     return STATUS_OK, ""
 
 
-def sequential_prior_var(cfg: Config) -> np.ndarray:
-    """The sequential method's year-to-year prior variance [d]: ``(prior_width * range)^2``
-    (input units squared)."""
-    return (cfg.calibrate.prior_width * np.diff(cfg.model.bounds, axis=1).ravel()) ** 2
-
-
 def estimate_error_covariance(cfg: Config, post_cov: np.ndarray, sequential: bool) -> np.ndarray:
     """The yearly estimates' error covariance across years [n, n, d, d]
     (:func:`~twinmon.prognosis.filter_error_covariance`) from the posterior covariances
     [n, d, d]: carried from year to year through the sequential prior (``calibrate.
     prior_width``, ``prior_carry_variance``), or independent across years for the joint
     method (``sequential`` False), whose years are tied by the trend instead."""
-    prior_var = sequential_prior_var(cfg) if sequential else None
+    prior_var = ((cfg.calibrate.prior_width * np.diff(cfg.model.bounds, axis=1).ravel()) ** 2
+                 if sequential else None)
     return filter_error_covariance(post_cov, prior_var, cfg.calibrate.prior_carry_variance)
 
 
@@ -1333,15 +1313,8 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict) -> tuple[dict, list
         X = draws[rng.integers(0, draws.shape[0], fc.samples)].transpose(1, 0, 2)
         state = "trend"
     elif fc.predictive == "state":
-        fit, r = None, resid
-        if fc.lag_correction and common.sum() >= 3:
-            gains = filter_gains(post_cov, sequential_prior_var(cfg),
-                                 cfg.calibrate.prior_carry_variance)[common]
-            gains[0] = 0.0      # the segment's first estimate is taken as unbiased
-            *fit, fitted = lag_corrected_fit(years[common], mean[common], gains)
-            r = mean[common] - fitted
-        state = state_predictive([trends[n] for n in names], years[common], r,
-                                 post_cov[common], fut, fit)
+        state = state_predictive([trends[n] for n in names], years[common], resid,
+                                 post_cov[common], fut)
         X = sample_state(state, fc.samples, _unit_rng(cfg, unit, 0))
     else:
         X = sample_predictive([trends[n] for n in names], fut, corr, fc.samples,

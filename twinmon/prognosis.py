@@ -270,74 +270,16 @@ def filter_error_covariance(post_cov: np.ndarray, prior_var: Optional[np.ndarray
         E[k, k] = P[k]
     if prior_var is None:
         return E
-    gains = filter_gains(P, prior_var, carry)
+    gains = [np.zeros((d, d))]
+    for k in range(1, n):
+        q = np.asarray(prior_var, float) + (np.diag(P[k - 1]) if carry else 0.0)
+        gains.append(P[k] / q[None, :])
     for m in range(n):
         M = P[m]
         for k in range(m + 1, n):
             M = gains[k] @ M
             E[k, m], E[m, k] = M, M.T
     return E
-
-
-def filter_gains(post_cov: np.ndarray, prior_var: np.ndarray, carry: bool = True) -> np.ndarray:
-    """The sequential prior's gains ``A_k = P_k Q_k^-1`` [n, d, d] (``A_0 = 0``: the first
-    year's prior is uniform): the share of year ``k``'s estimate that comes from year
-    ``k - 1``'s, direction by direction (see :func:`filter_error_covariance`)."""
-    P = np.asarray(post_cov, float)
-    n, d = P.shape[:2]
-    A = np.zeros((n, d, d))
-    for k in range(1, n):
-        q = np.asarray(prior_var, float) + (np.diag(P[k - 1]) if carry else 0.0)
-        A[k] = P[k] / q[None, :]
-    return A
-
-
-def lag_corrected_fit(years: np.ndarray, means: np.ndarray, gains: np.ndarray
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Trend lines of the true inputs from estimates that lag them.
-
-    Each year's prior is centred on the previous estimate, so for true inputs on a line
-    ``a + b t`` the estimates follow the line *filtered* by the prior (Gaussian algebra:
-    ``m_k = A_k m_{k-1} + (I - A_k) y_k``, ``y_k`` the year's data-only estimate):
-    ``E[m_k] = a + R_k b`` with ``R_0 = t_0 I``, ``R_k = A_k R_{k-1} + (I - A_k) t_k``.
-    Along a direction the data barely identify (``A_k`` near I) the estimates trail a
-    trending input and an OLS line through them is late: on ``benchmarks/prognosis.py``
-    (seeds 11-16, flow only) a pump fault's coefficient 4 years past the last estimate came
-    out 0.095 too high on average (the damping 0.61 too high, along the two inputs' ridge);
-    this fit's bias there is +0.001 (pump) and -0.016 (damping). It is joint in the inputs (``A_k`` mixes
-    them) and unweighted.
-
-    Parameters
-    ----------
-    years : ndarray, shape [n]
-    means : ndarray, shape [n, d]
-        The yearly posterior means (input units).
-    gains : ndarray, shape [n, d, d]
-        :func:`filter_gains` of those years (all zero: plain OLS per input).
-
-    Returns
-    -------
-    intercept, slope : ndarray, shape [d]
-        The true line ``intercept + slope * t``.
-    weights : ndarray, shape [2, d, n, d]
-        The fit as linear in the estimates: ``intercept = weights[0] . means``, ``slope =
-        weights[1] . means`` (contracting the last two axes).
-    fitted : ndarray, shape [n, d]
-        ``E[m_k]`` at the fit: the residuals are ``means - fitted``.
-    """
-    t = np.asarray(years, float)
-    m = np.asarray(means, float)
-    n, d = m.shape
-    eye = np.eye(d)
-    R = np.empty((n, d, d))
-    R[0] = t[0] * eye
-    for k in range(1, n):
-        R[k] = gains[k] @ R[k - 1] + (eye - gains[k]) * t[k]
-    X = np.concatenate([np.broadcast_to(eye, (n, d, d)), R], axis=2).reshape(n * d, 2 * d)
-    W = np.linalg.pinv(X)                                  # [2d, n*d]
-    beta = W @ m.ravel()
-    fitted = (X @ beta).reshape(n, d)
-    return beta[:d], beta[d:], W.reshape(2, d, n, d), fitted
 
 
 def slope_covariance(trends: list, residuals: np.ndarray, years: Optional[np.ndarray] = None,

@@ -410,20 +410,3 @@ def test_a_negative_worker_count_is_refused_in_one_line(setup, command):
     res = CliRunner().invoke(main, [*command, "-c", str(cfg_path), "-j", "-1"])
     assert res.exit_code == 3          # a bad value, as simulate -j -1 (ConfigError)
     assert "workers: expected 0 (one per core) or a positive count, got -1" in res.output
-
-
-def test_lag_correction_moves_the_predictive_not_the_verdicts(setup, tmp_path):
-    """forecast.lag_correction changes the lines the future is drawn from (the verdicts
-    come from the OLS slopes and the indicator, and stay); the draws still follow a unit
-    that degrades (the pump unit fails within the horizon)."""
-    cfg, cfg_path, tmp, s = setup
-    lag = load_config(cfg_path, ["forecast.lag_correction=true"])
-    s2 = forecast(lag, tmp / "post.h5", tmp / "sur.h5", tmp_path / "fc.h5")
-    assert {u: f.root_cause for u, f in s2.units.items()} == \
-        {u: f.root_cause for u, f in s.units.items()}
-    before, after = read_forecast(tmp / "fc.h5"), read_forecast(tmp_path / "fc.h5")
-    moved = [not np.allclose(before.units[u].pred_mean[n], after.units[u].pred_mean[n])
-             for u in before.units for n in before.input_names]
-    assert any(moved)
-    assert s2.units["Pumpy"].failure_year is not None
-    assert s2.units["Healthy"].failure_year is None

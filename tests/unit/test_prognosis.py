@@ -7,8 +7,8 @@ import numpy as np
 from twinmon.backtest import ttf_scores
 from twinmon.forecast import fit_trend
 from twinmon.prognosis import (AMBIGUOUS, attribute, box_distance, box_test,
-                               box_test_uniform, filter_error_covariance, filter_gains,
-                               indicator_drift, lag_corrected_fit, slope_covariance)
+                               box_test_uniform, filter_error_covariance, indicator_drift,
+                               slope_covariance)
 from twinmon.safety import median_failure_year
 
 RATE, TOL = np.array([0.0, -0.02]), np.array([0.25, 0.03])
@@ -134,50 +134,6 @@ def test_filter_error_covariance_carries_errors_along_the_unidentified_direction
     C_car = slope_covariance(tr, res, YEARS, E)
     assert u @ C_car @ u > 2 * (u @ C_ind @ u)
     assert np.allclose(C_ind, slope_covariance(tr, res, YEARS, P))   # [n, d, d] as before
-
-
-def test_lag_corrected_fit_recovers_the_line_the_estimates_trail():
-    """Estimates filtered by the sequential prior (gains of a ridge: tight across, loose
-    along) trail a trending input along the ridge; OLS lines through them are off, the
-    lag-corrected fit gives the true line back, and with no gain it is OLS per input."""
-    d, n = 2, YEARS.size
-    v = np.array([1.0, 1.0]) / np.sqrt(2)
-    u = np.array([1.0, -1.0]) / np.sqrt(2)
-    P = np.repeat((0.0001 * np.outer(v, v) + 0.008 * np.outer(u, u))[None], n, axis=0)
-    A = filter_gains(P, np.array([0.01, 0.01]))
-    assert np.all(A[0] == 0) and u @ A[3] @ u > 0.3 and v @ A[3] @ v < 0.05
-    a, b = np.array([1.0, 2.5]), np.array([0.2, -0.1])
-    t = YEARS.astype(float)
-    m = np.empty((n, d))
-    m[0] = a + b * t[0]
-    for k in range(1, n):
-        m[k] = A[k] @ m[k - 1] + (np.eye(d) - A[k]) @ (a + b * t[k])
-    ols_slope = (t - t.mean()) @ (m - m.mean(0)) / np.sum((t - t.mean()) ** 2)
-    assert np.max(np.abs(ols_slope - b)) > 0.01                # the lag flattens the OLS line
-    ic, sl, W, fitted = lag_corrected_fit(YEARS, m, A)
-    assert np.allclose(ic, a) and np.allclose(sl, b) and np.allclose(fitted, m)
-    assert np.allclose(np.einsum("ikj,kj->i", W[1], m), sl)
-    ic0, sl0, _, _ = lag_corrected_fit(YEARS, m, np.zeros_like(A))
-    assert np.allclose(sl0, ols_slope)
-    assert np.allclose(ic0, m.mean(0) - ols_slope * t.mean())
-
-
-def test_state_predictive_with_a_plain_fit_is_the_ols_one():
-    """The predictive over lines given as weights on the estimates reduces to the OLS one
-    when the weights are OLS's (no gain): same centre, same covariance."""
-    from twinmon.forecast import state_predictive
-    rng = np.random.default_rng(4)
-    tr, res = _trends(np.array([0.1, -0.05]), np.array([0.05, 0.02]), rng)
-    P = np.repeat(np.array([[0.002, 0.001], [0.001, 0.003]])[None], YEARS.size, axis=0)
-    means = np.column_stack([t.intercept + t.slope * YEARS for t in tr]) + res
-    fut = np.arange(11, 16)
-    base = state_predictive(tr, YEARS, res, P, fut)
-    *fit, fitted = lag_corrected_fit(YEARS, means, np.zeros((YEARS.size, 2, 2)))
-    alt = state_predictive(tr, YEARS, means - fitted, P, fut, fit)
-    assert np.allclose(base.loc, alt.loc) and np.allclose(base.cov, alt.cov)
-    E = filter_error_covariance(P, np.array([0.01, 0.01]))
-    assert np.allclose(state_predictive(tr, YEARS, res, E, fut).cov,
-                       state_predictive(tr, YEARS, means - fitted, E, fut, fit).cov)
 
 
 def test_median_failure_year_is_the_first_year_more_likely_unsafe_than_not():
