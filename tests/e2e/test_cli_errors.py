@@ -8,6 +8,8 @@ import sys
 import h5py
 import pytest
 
+from twinmon.artifacts import file_sha256
+
 from ..conftest import CONFIGS, write_yaml
 
 
@@ -77,10 +79,10 @@ def test_failed_stage_keeps_previous_artifact(tmp_path, fmu_path):
                                            "simulate": {"train_size": 8, "test_size": 0}})
     out = tmp_path / "s.h5"
     assert twinmon("simulate", "-c", cfg, "-o", out).returncode == 0
-    before = out.read_bytes()
+    before = file_sha256(out)
     r = twinmon("simulate", "-c", cfg, "--set", "simulate.train_size=-1", "-o", out)
     assert r.returncode == 3
-    assert out.read_bytes() == before
+    assert file_sha256(out) == before
 
 
 def test_verbose_shows_traceback_and_json_is_clean(tmp_path, fmu_path):

@@ -80,7 +80,7 @@ def test_a_second_writer_is_refused_and_a_killed_holder_leaves_no_lock(tmp_path)
     out = tmp_path / "a.h5"
     with artifacts.write_artifact(out, "gap") as f:
         artifacts.put(f, "v", [1.0], "1", "first")
-    before = out.read_bytes()
+    before = artifacts.file_sha256(out)
     ctx = mp.get_context("fork")
     ready, release = ctx.Event(), ctx.Event()
     holder = ctx.Process(target=_hold_lock, args=(out, ready, release))
@@ -89,7 +89,7 @@ def test_a_second_writer_is_refused_and_a_killed_holder_leaves_no_lock(tmp_path)
     with pytest.raises(OutputBusyError, match=rf"a.h5 is being written by .*pid {holder.pid}"):
         with artifacts.write_artifact(out, "gap") as f:
             artifacts.put(f, "v", [2.0], "1", "second")
-    assert out.read_bytes() == before                   # nothing touched
+    assert artifacts.file_sha256(out) == before         # nothing touched
     os.kill(holder.pid, signal.SIGKILL)                  # the kernel drops a dead holder's lock
     holder.join()
     with artifacts.write_artifact(out, "gap") as f:

@@ -16,6 +16,7 @@ import pytest
 from scipy.integrate import solve_ivp
 from scipy.optimize import brentq
 
+from twinmon.artifacts import file_sha256
 from twinmon.errors import SimulationError
 from twinmon.fmu import FMUModel, build_fmu, resolve_fmu, source_hash
 
@@ -253,7 +254,7 @@ def test_build_cache(tmp_path, fmu_path):
     assert source_hash(src) != h
     second = build_fmu(src)
     assert second != first and second.parent.name == source_hash(src)[:16]
-    assert first.read_bytes() != second.read_bytes()
+    assert file_sha256(first) != file_sha256(second)
 
 
 def test_build_error_names_folder(tmp_path):
