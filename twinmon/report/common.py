@@ -251,8 +251,8 @@ def _relink_transforms() -> None:
     and its death pops it, so an unpickled parent is no longer told of a change and draws with
     a stale matrix -- a line cut short, a box missing. Measured before this fix, on a small
     three-unit report drawn with two workers: such collisions in 27 of 100 figures (in each of
-    10 reports), and a figure visibly wrong in 1 to 4 reports of 10 depending on the load (CI
-    failed on it). After it: no stale key and no collision in 60 figures, none wrong. It walks
+    10 reports), and a figure visibly wrong in 1 report of 10 to 3 of 5 depending on the load
+    (CI failed on it). After it: no stale key and no collision in 60 figures, none wrong. It walks
     every object of the process (~60 ms with the report's modules loaded, against 0.3-1.9 s to
     draw a figure).
     """
@@ -262,9 +262,11 @@ def _relink_transforms() -> None:
     from matplotlib.transforms import TransformNode
     for node in gc.get_objects():
         # type(), not isinstance(): a dead weak proxy raises on its __class__.
-        if not issubclass(type(node), TransformNode):
+        links = getattr(node, "_parents", None) if issubclass(type(node), TransformNode) \
+            else None
+        if not links:
             continue
-        parents = [ref() for ref in node._parents.values()]
+        parents = [ref() for ref in links.values()]
         fresh: dict = {}
         for parent in parents:
             if parent is not None:
