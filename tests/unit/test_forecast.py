@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 
 import h5py
 import numpy as np
@@ -352,6 +353,30 @@ def test_json_shape_via_cli(setup, tmp_path):
                                                  "p_value", "test", "normal_rate"}
         assert set(u["indicator"]) == {"median", "q05", "q95"} and isinstance(u["plan"], str)
         assert 0 <= u["fmu_fraction"] <= 1 and "true_failure_year" not in u
+
+
+def test_text_lines_give_the_year_to_act_by_and_the_median_year(setup, tmp_path):
+    from twinmon.cli import main
+    _, cfg_path, tmp, s = setup
+    res = CliRunner().invoke(main, ["forecast", "-c", str(cfg_path), "--posterior",
+                                    str(tmp / "post.h5"), "--surrogate", str(tmp / "sur.h5"),
+                                    "-o", str(tmp_path / "fc.h5")])
+    assert res.exit_code == 0, res.output
+    lines = {ln.split(":")[0]: ln for ln in res.stderr.splitlines() if ": " in ln}
+    for unit, u in s.units.items():
+        if u.status == "withheld":
+            assert "WITHHELD" in lines[unit]
+            continue
+        m = re.search(r"failure year \(P\(unsafe\) > [0-9.]+\) ([^;(]+)", lines[unit])
+        said = m.group(1).strip()
+        if u.failure_year is None:
+            assert said.startswith("none by")
+        elif u.median_failure_year == u.failure_year:
+            assert said == str(u.failure_year)
+        else:
+            med = u.median_failure_year
+            assert said == f"{u.failure_year}, median " + (
+                str(med) if med is not None else f"after {u.years_future[-1]}")
 
 
 # ---------------------------------------------------------------------------------------

@@ -56,6 +56,11 @@ def forecast(config_path, overrides, posterior, surrogate, output, truth, worker
         tests = ", ".join(f"{n} {t.slope:+.3g}/yr p={t.p_value:.2g}"
                           for n, t in u.trends.items())
         fy = u.failure_year if u.failure_year is not None else f"none by {u.years_future[-1]}"
+        # The year to act by is a low quantile of the time to failure; the median year is the
+        # point forecast (benchmarks/prognosis.py scores both): show it where it differs.
+        med = u.median_failure_year
+        if u.failure_year is not None and med != u.failure_year:
+            fy = f"{fy}, median {med if med is not None else 'after ' + str(u.years_future[-1])}"
         true = ""
         if u.has_truth:
             tf = u.true_failure_year
