@@ -174,6 +174,10 @@ def test_terminal_summary_has_one_line_per_unit(pipeline, full):
         line = next(x for x in lines if x.startswith(unit))
         if s.failure_year is not None:
             assert f"fails in year {s.failure_year}" in line
+            # The point forecast beside the year to act by, where they differ.
+            med = s.median_failure_year
+            assert (f"median year {med}" in line) == (med is not None
+                                                       and med != s.failure_year)
         assert s.action in line
 
 

@@ -208,7 +208,7 @@ def page(cfg: Config, words: Words, summary: ReportSummary, figs: list[dict],
                 n = s.failure_year - s.last_year
                 ttf = (f"year {s.failure_year} of service: {n} year{'s' if n != 1 else ''} "
                        f"after the last observation (year {s.last_year}); P(unsafe) "
-                       f"{pct(s.p_unsafe)} in year {s.failure_year}")
+                       f"{pct(s.p_unsafe)} in year {s.failure_year}{s.median_note}")
             st_cls = {"ok": "ok", "none": ""}.get(s.status, "warn")
             anchor = f' id="{e(unit_anchor(u))}"' if fleet is not None else ""
             out.append(f'<tr{anchor}><td class="unit">{e(u)}</td>'

@@ -25,7 +25,9 @@ class UnitSummary:
     root_cause : str or None
         The forecast's verdict (``healthy``, a component name, ``both``), None without one.
     failure_year : int or None
-        First future year with P(unsafe) above the limit (year of service).
+        First future year with P(unsafe) above the limit (year of service): the year to act by.
+    median_failure_year : int or None
+        First future year with P(unsafe) >= 0.5: the point forecast of the failure.
     p_unsafe : float or None
         P(unsafe) in the failure year, or the largest over the horizon when none fails.
     last_year : int or None
@@ -57,6 +59,7 @@ class UnitSummary:
     health: str = "unknown"
     root_cause: Optional[str] = None
     failure_year: Optional[int] = None
+    median_failure_year: Optional[int] = None
     p_unsafe: Optional[float] = None
     last_year: Optional[int] = None
     horizon_end: Optional[int] = None
@@ -97,8 +100,19 @@ class UnitSummary:
             f"{words} (unreliable)" if self.status == "unreliable" else words
 
     @property
+    def median_note(self) -> str:
+        """``"; median year 15"`` where the median failure year (the point forecast) differs
+        from the year to act by, ``"; median after year 17"`` past the horizon, else ""."""
+        med = self.median_failure_year
+        if self.failure_year is None or med == self.failure_year:
+            return ""
+        return f"; median year {med}" if med is not None else \
+            f"; median after year {self.horizon_end}"
+
+    @property
     def time_to_failure(self) -> str:
-        """e.g. ``"fails in year 14 (P(unsafe) 12 % in 14)"``."""
+        """e.g. ``"fails in year 14 (P(unsafe) 12 % in 14; median year 15)"`` (the median
+        year where it differs from the year to act by)."""
         if self.status == "withheld" and not self.forced:
             return "withheld: the twin misses the plant"
         if self.root_cause is None:
@@ -107,13 +121,14 @@ class UnitSummary:
             return f"last {self.indicator} {self.last_indicator_text} (no forecast)"
         if self.failure_year is not None:
             return (f"fails in year {self.failure_year} "
-                    f"(P(unsafe) {pct(self.p_unsafe)} in {self.failure_year})")
+                    f"(P(unsafe) {pct(self.p_unsafe)} in {self.failure_year}{self.median_note})")
         return f"no failure by year {self.horizon_end} (max P(unsafe) {pct(self.p_unsafe)})"
 
     def as_dict(self) -> dict:
         return {
             "health": self.health, "root_cause": self.root_cause,
-            "failure_year": self.failure_year, "p_unsafe": self.p_unsafe,
+            "failure_year": self.failure_year,
+            "median_failure_year": self.median_failure_year, "p_unsafe": self.p_unsafe,
             "last_year": self.last_year, "horizon_end": self.horizon_end,
             "last_indicator": (None if self.last_indicator is None
                                or not np.isfinite(self.last_indicator)
@@ -306,6 +321,7 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
             s.health += " (unreliable)"
             why.append(uf.status_reason)
         s.failure_year = uf.failure_year
+        s.median_failure_year = uf.median_failure_year
         s.p_unsafe_ahead = tuple(float(p) for p in uf.p_unsafe)
         s.p_unsafe_max = max(s.p_unsafe_ahead) if s.p_unsafe_ahead else None
         s.horizon_end = int(uf.years_future[-1])
