@@ -250,7 +250,7 @@ def _relink_transforms() -> None:
     made while drawing often land at those very addresses: a new one overwrites a stale key,
     and its death pops it, so an unpickled parent is no longer told of a change and draws with
     a stale matrix -- a line cut short, a box missing. Measured before this fix, on a small
-    three-unit report drawn with two workers: such collisions in 27 of 100 figures (in each of
+    three-unit report drawn with two workers: such collisions in 20 of 100 figures (in each of
     10 reports), and a figure visibly wrong in 1 report of 10 to 3 of 5 depending on the load
     (CI failed on it). After it: no stale key and no collision in 60 figures, none wrong. It walks
     every object of the process (~60 ms with the report's modules loaded, against 0.3-1.9 s to
