@@ -109,7 +109,8 @@ def _figure_pool(cfg: Config, out: Path):
     workers = cfg.report.workers or len(os.sched_getaffinity(0))
     if workers <= 1:
         return nullcontext(None)
-    return closing_pool(start_pool(workers), TwinmonError(
+    from .common import freeze_inherited
+    return closing_pool(start_pool(workers, freeze_inherited), TwinmonError(
         f"{out}: a worker process died while drawing the figures (out of memory?); nothing "
         "was written; re-run with --set report.workers=1"),
         Interrupted("report: interrupted; nothing was written"))
