@@ -234,8 +234,8 @@ def freeze_inherited() -> None:
     :func:`_relink_transforms` then walks only what the worker made itself (the figures it
     unpickles). On a 300-unit report (25 figures, 2 workers), walking the whole inherited
     heap for each figure took it from 20.5-20.6 s to 23.0-23.8 s; with the freeze it takes
-    21.1-21.5 s (20.6-21.5 s without any re-keying). The garbage collector no longer touches those pages
-    either, so fewer of the parent's pages get copied into the worker."""
+    21.1-21.5 s (20.6-21.5 s without any re-keying). The garbage collector no longer touches
+    those pages either, so fewer of the parent's pages get copied into the worker."""
     import gc
     gc.freeze()
 
