@@ -472,10 +472,11 @@ class CalibrateConfig:
     #: each with its own noise; None: every channel the observations carry and the surrogate
     #: models; []: the output only.
     channels: Optional[tuple[str, ...]] = None
-    #: How the sequential method samples: ``vectorised`` (numpy random-walk Metropolis over
-    #: every unit's chains at once, run until the ESS is met; calibrate/vectorised.py) or
-    #: ``openturns`` (OpenTURNS' sampler, one chain per task: the reference). Same model, same
-    #: diagnostics; docs/calibration.md compares them.
+    #: How either method samples: ``vectorised`` (numpy, every unit's chains at once:
+    #: random-walk Metropolis run until the ESS is met, calibrate/vectorised.py, or the joint
+    #: method's Gibbs sweeps, calibrate/joint_vectorised.py) or ``openturns`` (OpenTURNS'
+    #: samplers, one chain per task: the reference). Same model, same diagnostics;
+    #: docs/calibration.md compares them.
     sampler: Literal["vectorised", "openturns"] = "vectorised"
     #: ``sequential``: the paper's method, each year sampled in turn with a prior centred on
     #: the previous year's estimate (calibrate/sequential.py). ``joint``: each unit's whole

@@ -61,11 +61,8 @@ entry point.
 """
 from __future__ import annotations
 
-from __future__ import annotations
-
 import os
 import zlib
-from functools import partial
 from dataclasses import dataclass, field
 from typing import Callable, Optional
 
@@ -330,13 +327,18 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
             runs[unit] = Kept(p)          # nothing new: kept as it is (either method)
         else:
             runs[unit].resume(p)          # sequential: continue after the stored years
+    # A forked worker has the surrogate already; a spawned one rebuilds it from the file.
+    fork = hasattr(os, "fork") or cfg.calibrate.executor == "dask"
+    pool_args = (_init_worker, (model if fork else None, str(surrogate_path),
+                                cfg.model.output.name, tuple(channels)))
     if cfg.calibrate.sampler == "vectorised" and cfg.calibrate.method == "sequential":
         # every run finished by the vectorised sampler
         from .vectorised import run_vectorised
-        fork = hasattr(os, "fork") or cfg.calibrate.executor == "dask"
-        run_vectorised(cfg, model, runs, resume, output, progress,
-                       (_init_worker, (model if fork else None, str(surrogate_path),
-                                       cfg.model.output.name, tuple(channels))))
+        run_vectorised(cfg, model, runs, resume, output, progress, pool_args)
+    elif cfg.calibrate.sampler == "vectorised":
+        # the joint method's chains, batched across units (joint_vectorised.py)
+        from .joint_vectorised import run_joint_vectorised
+        run_joint_vectorised(cfg, model, runs, output, progress, pool_args)
     if all(r.done for r in runs.values()):      # vectorised, or nothing new (--update)
         pass
     # On a Dask cluster (an address) the cluster's workers do the work, whatever the count.
@@ -351,10 +353,7 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
         # so the parallel grain is the chain: every unit's chains of the same year at once.
         from ..executors import InterruptGuard, open_pool
         # A forked worker has the surrogate already; a Dask worker gets it sent, once.
-        fork = hasattr(os, "fork") or cfg.calibrate.executor == "dask"
-        start_pool = partial(open_pool, cfg, "calibrate")      # process or Dask pool
-        pool = start_pool(workers, _init_worker, (model if fork else None, str(surrogate_path),
-                                                  cfg.model.output.name, tuple(channels)))
+        pool = open_pool(cfg, "calibrate", workers, *pool_args)   # process or Dask pool
         with sampling_pool(pool, output), InterruptGuard() as guard:
             _run_parallel(pool, runs, total, progress, guard)
     posterior = {unit: run.result() for unit, run in runs.items()}
