@@ -845,6 +845,11 @@ def estimate_error_covariance(cfg: Config, post_cov: np.ndarray, sequential: boo
     return filter_error_covariance(post_cov, prior_var, cfg.calibrate.prior_carry_variance)
 
 
+#: Degrees of freedom of the joint method's slope covariance in the tests: taken as known (the
+#: posterior's draws carry their own uncertainty), a Student t with this many is the normal.
+POSTERIOR_DOF = 10 ** 6
+
+
 def judge(cfg: Config, unit: str, plan: dict, ind_obs: np.ndarray, gradient: np.ndarray,
           directions: dict, observed: set) -> tuple[IndicatorDrift, Attribution]:
     """Detection on the health indicator, then attribution (see :mod:`twinmon.prognosis`).
@@ -867,10 +872,18 @@ def judge(cfg: Config, unit: str, plan: dict, ind_obs: np.ndarray, gradient: np.
     trends = plan["trends"]
     tl = [trends[n] for n in names]
     dirs = [directions[n].sign for n in names]
-    err = plan["err_cov"][after][:, after]
-    C = slope_covariance(tl, plan["resid"], years[after], err)
-    drift.p_inputs = box_test_uniform(np.array([t.slope for t in tl]), C, max(tl[0].dof, 1),
-                                      rate, tol, dirs, _unit_rng(cfg, unit, 4))
+    slope_draws = plan.get("slope_draws")
+    if slope_draws is not None:
+        # The joint method sampled the slopes with the years: test its posterior's own
+        # slopes (their spread includes the year-to-year variation and every year's
+        # uncertainty, with the correlations the yearly means' regression cannot see).
+        b, C, dof = slope_draws.mean(axis=0), np.cov(slope_draws, rowvar=False), POSTERIOR_DOF
+    else:
+        err = plan["err_cov"][after][:, after]
+        b = np.array([t.slope for t in tl])
+        C, dof = slope_covariance(tl, plan["resid"], years[after], err), max(tl[0].dof, 1)
+    C = np.atleast_2d(C)
+    drift.p_inputs = box_test_uniform(b, C, dof, rate, tol, dirs, _unit_rng(cfg, unit, 4))
     # Two views of one question, each at alpha / 2 (Bonferroni): the indicator's drift
     # (sees a fault the inputs trade off between) and the inputs' slopes jointly (sees a
     # fault another input's normal ageing hides from the indicator).
@@ -881,7 +894,8 @@ def judge(cfg: Config, unit: str, plan: dict, ind_obs: np.ndarray, gradient: np.
     if not drift.abnormal:
         return drift, Attribution(HEALTHY)
     att = attribute(tl, names, [s.component or n for s, n in zip(specs, names)], C, rate, tol,
-                    dirs, cfg.forecast.attribution_confidence, _unit_rng(cfg, unit, 3))
+                    dirs, cfg.forecast.attribution_confidence, _unit_rng(cfg, unit, 3),
+                    draws=slope_draws)
     if att.verdict == AMBIGUOUS and att.leading_slopes is not None:
         years = plan["years"]
         first = np.array([trends[n].intercept + trends[n].slope * years[0] for n in names])
@@ -1307,11 +1321,12 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict) -> tuple[dict, list
         # The joint method sampled the trend itself: draw the future from its posterior
         # predictive (levels, slopes and year-to-year sd), not from lines refitted to
         # the yearly means.
-        from .calibrate.joint import trend_predictive
+        from .calibrate.joint import last_segment, trend_predictive
         rng = _unit_rng(cfg, unit, 0)
         draws = trend_predictive(trend_post, fut, rng)          # [n, h, d]
         X = draws[rng.integers(0, draws.shape[0], fc.samples)].transpose(1, 0, 2)
         state = "trend"
+        slope_draws = last_segment(trend_post, "slope")         # [n, d]
     elif fc.predictive == "state":
         state = state_predictive([trends[n] for n in names], years[common], resid,
                                  post_cov[common], fut)
@@ -1325,6 +1340,8 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict) -> tuple[dict, list
     plan = dict(years=years, mean=mean, trends=trends, fut=fut, X=X, Xo=Xo, corr=corr,
                 resid=resid, step=step, since=max(since.values()), post_cov=post_cov,
                 err_cov=err_cov, state=state)
+    if trend_post:
+        plan["slope_draws"] = slope_draws
     return plan, [X.reshape(-1, d), Xo.reshape(-1, d), probe]
 
 

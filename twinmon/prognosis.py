@@ -420,7 +420,7 @@ def box_test_uniform(b: np.ndarray, C: np.ndarray, dof: int, normal_rate, tolera
 
 def attribute(trends: list, names: list, components: list, C: np.ndarray,
               normal_rate, tolerance, directions, confidence: float,
-              rng: np.random.Generator) -> Attribution:
+              rng: np.random.Generator, draws: Optional[np.ndarray] = None) -> Attribution:
     """Probabilities of each set of abnormal components, given that the unit drifts.
 
     Parameters
@@ -437,12 +437,16 @@ def attribute(trends: list, names: list, components: list, C: np.ndarray,
     confidence : float
         Probability the leading set needs for a verdict naming it.
     rng : numpy Generator
+    draws : ndarray, shape [n, d], optional
+        Posterior draws of the slopes (the joint method's trend), used as they are instead
+        of the Student-t distribution of ``trends``' slopes with covariance ``C``.
     """
-    b = np.array([t.slope for t in trends])
-    dof = max(trends[0].dof, 1)
-    L = np.linalg.cholesky(C + 1e-300 * np.eye(len(b)))
-    z = rng.standard_normal((DRAWS, len(b))) @ L.T
-    draws = b + z / np.sqrt(rng.chisquare(dof, (DRAWS, 1)) / dof)
+    if draws is None:
+        b = np.array([t.slope for t in trends])
+        dof = max(trends[0].dof, 1)
+        L = np.linalg.cholesky(C + 1e-300 * np.eye(len(b)))
+        z = rng.standard_normal((DRAWS, len(b))) @ L.T
+        draws = b + z / np.sqrt(rng.chisquare(dof, (DRAWS, 1)) / dof)
     normal_rate, tolerance = np.asarray(normal_rate, float), np.asarray(tolerance, float)
     dirs = np.asarray(directions, int)
     dev = draws - normal_rate

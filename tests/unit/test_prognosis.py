@@ -159,6 +159,24 @@ def test_attribution_names_a_clear_fault_and_says_ambiguous_on_a_ridge():
     assert 0.1 < a.probabilities["motor"] < 0.95 and 0.1 < a.probabilities["pump"] < 0.95
 
 
+def test_attribution_from_posterior_slope_draws_counts_them():
+    """The joint method's slope draws are used as they are: the probabilities are the
+    fractions of draws beyond each band, among the draws beyond any."""
+    rng = np.random.default_rng(8)
+    # RATE (0, -0.02), TOL (0.25, 0.03): the pump's band ends at -0.05.
+    draws = np.column_stack([rng.normal(1.0, 0.05, 4000), rng.normal(-0.05, 0.02, 4000)])
+    tr, _ = _trends(np.array([0.0, -0.02]), np.array([0.1, 0.005]), rng)   # not used
+    a = attribute(tr, ["d", "b"], ["motor", "pump"], np.eye(2), RATE, TOL, [1, -1], 0.8,
+                  np.random.default_rng(3), draws=draws)
+    assert a.probabilities["motor"] == 1.0
+    assert a.probabilities["pump"] == np.mean(draws[:, 1] < -0.05)
+    # the pump half in, half out: not sure whether it is one component or two
+    assert a.verdict == AMBIGUOUS
+    a = attribute(tr, ["d", "b"], ["motor", "pump"], np.eye(2), RATE, TOL, [1, -1], 0.8,
+                  np.random.default_rng(3), draws=draws + [0, 0.03])
+    assert a.verdict == "motor" and a.probabilities["pump"] < 0.1
+
+
 def test_posterior_covariance_widens_the_slopes_along_the_ridge():
     rng = np.random.default_rng(6)
     tr, res = _trends(np.array([0.0, -0.02]), np.array([0.05, 0.005]), rng)

@@ -636,6 +636,14 @@ def calibrate_unit_joint(surrogate, cfg: Config, years, flows, noise_std, rng_se
     return run.result()
 
 
+def last_segment(trend: dict, field: str) -> np.ndarray:
+    """Draws [n, d] of ``field`` (``intercept`` or ``slope``) of each input's last segment
+    (the one in force now) from ``UnitPosterior.trend`` (:data:`TREND_FIELDS`)."""
+    start = np.asarray(trend["start"])
+    last = (start >= 0).sum(axis=0) - 1                                 # [d]
+    return np.asarray(trend[field])[:, last, np.arange(start.shape[1])]
+
+
 def trend_predictive(trend: dict, years, rng: np.random.Generator) -> np.ndarray:
     """Draws of the inputs in (future) ``years`` from the trend's posterior predictive:
     ``intercept + slope * (year - start) + sigma * N(0, 1)``, last segment of each input.
@@ -655,10 +663,8 @@ def trend_predictive(trend: dict, years, rng: np.random.Generator) -> np.ndarray
     years = np.asarray(years, float)
     start = np.asarray(trend["start"])
     last = (start >= 0).sum(axis=0) - 1                                 # [d]
-    cols = np.arange(start.shape[1])
-    a = np.asarray(trend["intercept"])[:, last, cols]                   # [n, d]
-    b = np.asarray(trend["slope"])[:, last, cols]
+    a, b = last_segment(trend, "intercept"), last_segment(trend, "slope")   # [n, d]
     s = np.asarray(trend["sigma"])
-    t0 = start[last, cols].astype(float)
+    t0 = start[last, np.arange(start.shape[1])].astype(float)
     mean = a[:, None, :] + b[:, None, :] * (years[None, :, None] - t0)
     return mean + s[:, None, :] * rng.standard_normal(mean.shape)
