@@ -48,7 +48,7 @@ import yaml
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from twinmon.backtest import truncate, ttf_scores  # noqa: E402
+from twinmon.backtest import calibrate_cut, truncate, ttf_scores  # noqa: E402
 from twinmon.calibrate import Posterior, calibrate, read_posterior  # noqa: E402
 from twinmon.config import load_config  # noqa: E402
 from twinmon.fabricate import fabricate, read_truth  # noqa: E402
@@ -124,7 +124,7 @@ def alpha_lambda(cfg, post, sur, truth_eol: dict, cuts, work: Path | None = None
     for k in cuts:
         if cfg.calibrate.method == "joint" and scored:
             cut = recalibrate_cut(cfg, work, scored, k, name)
-            sub = {u: cut.units[u] for u in scored}
+            sub = {u: cut[u] for u in scored}
         else:
             sub = {u: truncate(post.units[u], k) for u in scored}
         res, _, _ = forecast_units(cfg, Posterior(post.input_names, sub, post.path,
@@ -143,26 +143,15 @@ def alpha_lambda(cfg, post, sur, truth_eol: dict, cuts, work: Path | None = None
     return out
 
 
-def recalibrate_cut(cfg, work: Path, units: list, k: int, name: str) -> Posterior:
-    """Calibrate ``units``' years up to ``k`` alone (``work``/cut_<name>_<k>.h5, reused when
-    there)."""
-    from dataclasses import replace
-
-    from twinmon.observations import Observations, read_observations, write_observations
-    out = work / f"cut_{name}_{k}.h5"
-    if not out.exists():
-        obs = read_observations(work / "obs.h5", cfg.model.output.name)
-        kept = {}
-        for u in units:
-            o = obs.units[u]
-            m = o.years <= k
-            kept[u] = replace(o, years=o.years[m], channels={c: v[m] for c, v in
-                                                              o.channels.items()},
-                              events=[e for e in o.events if e.year <= k])
-        cut_obs = work / f"obs_cut_{name}_{k}.h5"
-        write_observations(cut_obs, Observations(obs.time, kept, cut_obs, obs.output))
-        calibrate(cfg, work / "sur.h5", cut_obs, out)
-    return read_posterior(out)
+def recalibrate_cut(cfg, work: Path, units: list, k: int, name: str) -> dict:
+    """``units``' posteriors calibrated from their years up to ``k`` alone
+    (:func:`twinmon.backtest.calibrate_cut`, in ``work``/cuts_<name>/, reused when there)."""
+    cuts = work / f"cuts_{name}"
+    out = cuts / f"posterior_to_{k}.h5"
+    if out.exists():
+        return dict(read_posterior(out).units)
+    cuts.mkdir(exist_ok=True)
+    return calibrate_cut(cfg, work / "sur.h5", work / "obs.h5", units, k, cuts)
 
 
 truth_clean, truth_time = {}, None

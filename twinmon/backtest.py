@@ -26,14 +26,18 @@ metrics NASA's ProgPy implements):
   A forecast that sees no failure within its horizon predicts RUL = horizon + 1 (censored).
 
 The per-cut posteriors are the stored yearly posteriors truncated at the cut: exact for the
-sequential method (each year's posterior uses only earlier years); for the joint method the
-truncated years were calibrated knowing later years, so its back-test is optimistic (the
-trend draws are not used; the forecast refits the trends from the per-year estimates).
+sequential method (each year's posterior uses only earlier years). A joint posterior's years
+were calibrated knowing the later years, so with the joint method each cut's history is
+calibrated again from the observations (``observations_path``; the config's calibrate
+settings, one calibration per cut year). Without the observations the joint posterior is
+truncated instead: the back-test is then optimistic, and says so (``warnings``).
 """
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Optional
@@ -150,6 +154,10 @@ class BacktestSummary:
     ttf: dict = field(default_factory=dict)
     output: str = ""
     confidence: float = 0.9
+    #: Caveats of the scores (a joint posterior truncated instead of calibrated again).
+    warnings: list = field(default_factory=list)
+    #: ``truncated`` (the stored posterior cut at each cut year) or ``recalibrated``.
+    cut_posteriors: str = "truncated"
 
     @property
     def alpha_lambda(self) -> float:
@@ -170,6 +178,7 @@ class BacktestSummary:
                     for u, s in self.ttf.items()},
             "units": {u: {"cuts": b.cuts.tolist(), "failure_pred": b.failure_pred.tolist(),
                           "end_of_life": b.end_of_life} for u, b in self.units.items()},
+            "cut_posteriors": self.cut_posteriors, "warnings": list(self.warnings),
             "output": self.output,
         }
 
@@ -192,10 +201,44 @@ def truncate(up, last_year: int):
     return type(up)(**out)
 
 
+def calibrate_cut(cfg: Config, surrogate_path, observations_path, units: list,
+                  last_year: int, workdir) -> dict:
+    """Posteriors of ``units`` calibrated from their records up to ``last_year`` only.
+
+    Parameters
+    ----------
+    cfg : Config
+        Its ``calibrate`` section (method, sampler, seed) as for the full history.
+    surrogate_path, observations_path : path-like
+    units : list of str
+    last_year : int
+    workdir : path-like
+        Where the cut's observations and posterior are written.
+
+    Returns
+    -------
+    dict unit -> UnitPosterior
+    """
+    from .calibrate import calibrate, read_posterior
+    from .observations import read_observations, write_observations
+    workdir = Path(workdir)
+    obs = read_observations(observations_path, cfg.model.output.name).up_to(last_year, units)
+    cut_obs = workdir / f"observations_to_{last_year}.h5"
+    write_observations(cut_obs, obs)
+    out = workdir / f"posterior_to_{last_year}.h5"
+    calibrate(cfg, surrogate_path, cut_obs, out)
+    return dict(read_posterior(out).units)
+
+
 def backtest(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str | os.PathLike,
              output: str | os.PathLike | None = None, executor=None,
-             progress: Optional[Callable[[int, int], None]] = None) -> BacktestSummary:
+             progress: Optional[Callable[[int, int], None]] = None,
+             observations_path: str | os.PathLike | None = None) -> BacktestSummary:
     """Back-test the forecasts on the history in a posterior (see the module docstring).
+
+    ``observations_path``: the observations the posterior was calibrated from; with a joint
+    posterior, each cut's history is calibrated again from them (without: truncated, and
+    the summary warns that the scores are optimistic). Not used for a sequential posterior.
 
     Raises
     ------
@@ -231,17 +274,27 @@ def backtest(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
     if not all_cuts:
         raise ArtifactError(f"{posterior_path}: no unit has more than backtest.min_years = "
                             f"{bt.min_years} years: nothing to back-test")
+    joint = any(getattr(p, "trend", None) for p in post.units.values())
+    recalibrate = joint and observations_path is not None
+    warnings = []
+    if joint and not recalibrate:
+        warnings.append(f"{posterior_path}: joint posterior truncated at each cut, its years "
+                        "calibrated knowing the later ones: the scores are optimistic; pass "
+                        "the observations (--observations) to calibrate each cut again")
     preds = {u: {} for u in post.units}
-    for n, k in enumerate(all_cuts):
-        sub = {u: truncate(post.units[u], k) for u in post.units if k in cuts_of[u]}
-        cut_post = Posterior(post.input_names, sub, post.path, post.fit_windows)
-        res, _, _ = forecast_units(cfg, cut_post, sur, posterior_path=posterior_path,
-                                   executor=executor, directions=directions, box_ok=box_ok)
-        for u, uf in res.items():
-            preds[u][k] = (uf.indicator_quantiles(q),
-                           -1 if uf.failure_year is None else int(uf.failure_year))
-        if progress:
-            progress(n + 1, len(all_cuts))
+    with tempfile.TemporaryDirectory(prefix="twinmon-backtest-") as tmp:
+        for n, k in enumerate(all_cuts):
+            at = [u for u in post.units if k in cuts_of[u]]
+            sub = (calibrate_cut(cfg, surrogate_path, observations_path, at, k, tmp)
+                   if recalibrate else {u: truncate(post.units[u], k) for u in at})
+            cut_post = Posterior(post.input_names, sub, post.path, post.fit_windows)
+            res, _, _ = forecast_units(cfg, cut_post, sur, posterior_path=posterior_path,
+                                       executor=executor, directions=directions, box_ok=box_ok)
+            for u, uf in res.items():
+                preds[u][k] = (uf.indicator_quantiles(q),
+                               -1 if uf.failure_year is None else int(uf.failure_year))
+            if progress:
+                progress(n + 1, len(all_cuts))
 
     ind = Indicator.from_config(cfg)
     limit = cfg.safety.failure_probability
@@ -270,9 +323,11 @@ def backtest(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
                 ttf[u] = s
     summary = BacktestSummary(units, float(np.mean(pairs_in)) if pairs_in else float("nan"),
                               len(pairs_in), float(np.median(errs)) if errs else float("nan"),
-                              ttf, str(output or ""), c)
+                              ttf, str(output or ""), c, warnings,
+                              "recalibrated" if recalibrate else "truncated")
     if output is not None:
-        write_backtest(output, cfg, summary, ind, [posterior_path, surrogate_path])
+        write_backtest(output, cfg, summary, ind, [posterior_path, surrogate_path] +
+                       ([observations_path] if recalibrate else []))
     return summary
 
 
@@ -280,9 +335,13 @@ def write_backtest(path, cfg: Config, s: BacktestSummary, ind, inputs) -> None:
     """``backtest.h5`` (``twinmon.backtest/1``): per unit the cuts, the forecast interval of
     the indicator per cut and future year, the observed indicator and the failure years."""
     put = artifacts.put
-    with artifacts.write_artifact(path, "backtest", config=cfg.section_yaml(*SECTIONS),
+    # Cuts calibrated again depend on the calibrate section too.
+    sections = SECTIONS + (("calibrate",) if s.cut_posteriors == "recalibrated" else ())
+    with artifacts.write_artifact(path, "backtest", config=cfg.section_yaml(*sections),
                                   inputs=inputs, seed=cfg.seed) as f:
         f.attrs["coverage"] = s.coverage
+        f.attrs["cut_posteriors"] = s.cut_posteriors
+        f.attrs["warnings"] = artifacts.json_attr(list(s.warnings))
         f.attrs["confidence"] = s.confidence
         f.attrs["indicator_mae"] = s.indicator_mae
         f.attrs["alpha_lambda"] = s.alpha_lambda
@@ -326,6 +385,8 @@ def read_backtest(path: str | os.PathLike) -> BacktestSummary:
                 sc = ttf_scores(b.cuts, b.failure_pred, b.end_of_life, b.horizon, alpha, lam)
                 if sc is not None:
                     ttf[u] = sc
+        warnings = json.loads(f.attrs["warnings"]) if "warnings" in f.attrs else []
         return BacktestSummary(units, float(f.attrs["coverage"]), 0,
                                float(f.attrs["indicator_mae"]), ttf, str(path),
-                               float(f.attrs["confidence"]))
+                               float(f.attrs["confidence"]), warnings,
+                               str(f.attrs.get("cut_posteriors", "truncated")))

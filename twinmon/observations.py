@@ -111,6 +111,20 @@ class Observations:
         """The measured output of ``unit``, shape [n_y, n_t]."""
         return self.units[unit].channels[self.output]
 
+    def up_to(self, last_year: int, units=None) -> "Observations":
+        """The records of ``units`` (default: all) up to ``last_year``, as if nothing later
+        had been recorded (later events dropped too); units with no such year left out."""
+        out = {}
+        for name in (self.units if units is None else units):
+            u = self.units[name]
+            keep = np.asarray(u.years) <= last_year
+            if keep.any():
+                out[name] = dataclasses.replace(
+                    u, years=np.asarray(u.years)[keep],
+                    channels={c: np.asarray(v)[keep] for c, v in u.channels.items()},
+                    events=[e for e in u.events if e.year <= last_year])
+        return dataclasses.replace(self, units=out)
+
 
 def write_observations(path: str | os.PathLike, obs: Observations, *, config: str = "",
                        inputs: Sequence[str | os.PathLike] = (), seed: int | None = None,

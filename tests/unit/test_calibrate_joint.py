@@ -257,3 +257,40 @@ def test_method_is_validated(override, message):
     with pytest.raises(ConfigError, match=message):
         load_config(CONFIGS / "pump.yaml", [override])
     assert load_config(CONFIGS / "pump.yaml").calibrate.method == "sequential"
+
+
+def test_backtest_calibrates_each_cut_of_a_joint_history_again(setup, tmp_path):
+    """A joint posterior's early years were estimated knowing the later ones: the back-test
+    calibrates each cut's history again from the observations, and without them says its
+    scores are optimistic."""
+    from twinmon.backtest import backtest, calibrate_cut, read_backtest
+    from twinmon.observations import read_observations
+    cfg, cfg_path, tmp, sur = setup
+    years = YEARS[:5]
+    obs = tmp_path / "obs.h5"
+    write_observations(obs, Observations(sur.time, {
+        u: UnitObservations(years, {"m_flow": _observe(sur, _trend_unit(seed=s)[:5], seed=s)},
+                            {"m_flow": NOISE}) for u, s in (("A", 3), ("B", 4))}, obs))
+    assert read_observations(obs, "m_flow").up_to(3, ["B"]).units["B"].years.tolist() == \
+        [1, 2, 3]
+    quick = load_config(cfg_path, ["calibrate.samples=150", "calibrate.burn_in=50",
+                                   "calibrate.chains=2", "calibrate.max_extensions=0",
+                                   "backtest.min_years=3", "forecast.samples=200",
+                                   "forecast.horizon=3"])
+    calibrate(quick, tmp / "sur.h5", obs, tmp_path / "post.h5")
+    full = read_posterior(tmp_path / "post.h5").units["A"]
+    cut = calibrate_cut(quick, tmp / "sur.h5", obs, ["A"], 3, tmp_path)["A"]
+    assert cut.years.tolist() == [1, 2, 3] and cut.trend["start"].tolist() == [[1, 1]]
+    # The same unit's first three years alone: another posterior than the full history's.
+    assert not np.allclose(cut.mean, full.mean[:3])
+
+    s = backtest(quick, tmp_path / "post.h5", tmp / "sur.h5", tmp_path / "bt.h5",
+                 observations_path=obs)
+    assert s.cut_posteriors == "recalibrated" and s.warnings == []
+    assert s.units["A"].cuts.tolist() == [3, 4] and s.n_pairs == 6
+    again = read_backtest(tmp_path / "bt.h5")
+    assert again.cut_posteriors == "recalibrated" and again.coverage == s.coverage
+    assert "calibrate:" in artifacts.read_provenance(tmp_path / "bt.h5")["config"]
+    t = backtest(quick, tmp_path / "post.h5", tmp / "sur.h5", tmp_path / "bt_trunc.h5")
+    assert t.cut_posteriors == "truncated" and "optimistic" in t.warnings[0]
+    assert read_backtest(tmp_path / "bt_trunc.h5").warnings == t.warnings

@@ -4,7 +4,7 @@ from __future__ import annotations
 import click
 
 from . import main
-from .common import config_options, emit_json, json_option, load, say
+from .common import config_options, emit_json, json_option, load, say, warn
 
 
 @main.command()
@@ -13,10 +13,14 @@ from .common import config_options, emit_json, json_option, load, say
               type=click.Path(), help="Posterior artifact of calibrate.")
 @click.option("--surrogate", default="out/surrogate.h5", show_default=True,
               type=click.Path(), help="Surrogate artifact of reduce.")
+@click.option("--observations", default=None, type=click.Path(),
+              help="Observations the posterior was calibrated from: with a joint posterior "
+                   "(calibrate.method joint), each cut's history is calibrated again from "
+                   "them; without, the back-test of a joint posterior is optimistic.")
 @click.option("-o", "--output", default="out/backtest.h5", show_default=True,
               type=click.Path(), help="Back-test artifact to write.")
 @json_option
-def backtest(config_path, overrides, posterior, surrogate, output, as_json):
+def backtest(config_path, overrides, posterior, surrogate, observations, output, as_json):
     """Forecast from each past year and score against what was later observed.
 
     No truth needed: for each cut year, the forecast from the years up to it is compared with
@@ -26,7 +30,7 @@ def backtest(config_path, overrides, posterior, surrogate, output, as_json):
     """
     from ..backtest import backtest as run
     cfg = load(config_path, overrides)
-    s = run(cfg, posterior, surrogate, output)
+    s = run(cfg, posterior, surrogate, output, observations_path=observations)
     if as_json:
         emit_json(s.as_dict())
         return
@@ -45,4 +49,8 @@ def backtest(config_path, overrides, posterior, surrogate, output, as_json):
                 f"prognostic horizon {t.prognostic_horizon:g} yr")
     else:
         say("time to failure: no unit reached unsafe in its history")
+    if s.cut_posteriors == "recalibrated":
+        say("each cut's history calibrated again (joint method)")
+    for w in s.warnings:
+        warn(w)
     say(f"wrote {output}")
