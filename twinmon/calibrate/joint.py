@@ -35,20 +35,21 @@ same ``theta``, so ``s`` crosses 0 freely). State ``[eps_1 .. eps_K | beta | s]`
   the K years in one surrogate call); proposal from the Gaussian approximation of its
   conditional given ``eps`` (the years' Laplace precisions pulled back through the design);
 
-OpenTURNS adapts every block's proposal scale during the burn-in. That is the reference
-(``calibrate.sampler: openturns``); the default runs the same blocks and proposals for the
-chains of many units at once in numpy (:mod:`.joint_vectorised`), about 6x faster per chain. All blocks share one
+OpenTURNS adapts every block's proposal scale during the burn-in. All blocks share one
 log-density, the joint's (:class:`_JointLogDensity`): OpenTURNS' Gibbs hands the current
 log-posterior from one block to the next, recomputing it only where neighbouring blocks'
 log-densities differ at the first state, which is exact only when they are the same function.
+That is the reference (``calibrate.sampler: openturns``); the default runs the same blocks
+and proposals for the chains of many units at once in numpy (:mod:`.joint_vectorised`),
+about 6x faster per chain.
 
 Why not the centred Gibbs (``theta_k`` by MH, levels and slopes from their Gaussian
 conditional, ``sigma^2`` inverse-gamma): with the per-year posteriors much wider than sigma
 (in the shipped fleet, a per-year sd of ~0.1 against a scatter of 0.01 for one input),
 ``theta`` and ``sigma`` lock each other (the hierarchical "funnel"): on the shipped fleet's
 unit Park, 4 chains of 1500 draws gave a bulk ESS of 18-24 and R-hat 1.16. The non-centred
-form mixes well in that regime; when the years' data are precise against sigma it slows down, which R-hat/ESS
-report (and longer chains follow, ``calibrate.max_extensions``).
+form mixes well in that regime; when the years' data are precise against sigma it slows
+down, which R-hat/ESS report (and longer chains follow, ``calibrate.max_extensions``).
 
 Output: the sequential method's :class:`UnitPosterior` (per year draws, statistics,
 diagnostics, fit) plus ``trend`` (:data:`TREND_FIELDS`).
