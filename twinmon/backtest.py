@@ -201,6 +201,32 @@ def truncate(up, last_year: int):
     return type(up)(**out)
 
 
+def check_calibrated_from(posterior_path, observations_path, units: list) -> None:
+    """The observations must be those the posterior was calibrated from: its provenance
+    lists their hash (a posterior written before provenance recorded it: the units must
+    be there).
+
+    Raises
+    ------
+    ArtifactError
+        A missing or other file, or one without some unit of the posterior.
+    """
+    from .observations import read_observations
+    if not Path(observations_path).is_file():
+        raise ArtifactError(f"{observations_path}: file not found (expected the observations "
+                            f"{posterior_path} was calibrated from)")
+    made_from = {r.get("sha256") for r in artifacts.read_provenance(posterior_path)
+                 .get("inputs", [])}
+    digest = artifacts.file_sha256(observations_path)
+    if made_from and digest not in made_from:
+        raise ArtifactError(f"{observations_path}: not the observations {posterior_path} was "
+                            f"calibrated from (sha256 {digest[:12]} is not among its inputs)")
+    have = read_observations(observations_path).units
+    missing = [u for u in units if u not in have]
+    if missing:
+        raise ArtifactError(f"{observations_path}: no unit {missing[0]!r} of {posterior_path}")
+
+
 def calibrate_cut(cfg: Config, surrogate_path, observations_path, units: list,
                   last_year: int, workdir) -> dict:
     """Posteriors of ``units`` calibrated from their records up to ``last_year`` only.
@@ -276,6 +302,8 @@ def backtest(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
                             f"{bt.min_years} years: nothing to back-test")
     joint = any(getattr(p, "trend", None) for p in post.units.values())
     recalibrate = joint and observations_path is not None
+    if recalibrate:
+        check_calibrated_from(posterior_path, observations_path, list(post.units))
     warnings = []
     if joint and not recalibrate:
         warnings.append(f"{posterior_path}: joint posterior truncated at each cut, its years "

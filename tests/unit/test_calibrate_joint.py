@@ -291,6 +291,16 @@ def test_backtest_calibrates_each_cut_of_a_joint_history_again(setup, tmp_path):
     again = read_backtest(tmp_path / "bt.h5")
     assert again.cut_posteriors == "recalibrated" and again.coverage == s.coverage
     assert "calibrate:" in artifacts.read_provenance(tmp_path / "bt.h5")["config"]
+    # Observations other than those the posterior was calibrated from: refused, one line.
+    other = tmp_path / "other.h5"
+    write_observations(other, Observations(sur.time, {"A": UnitObservations(
+        years, {"m_flow": _observe(sur, _trend_unit(seed=9)[:5], seed=9)}, {"m_flow": NOISE})},
+        other))
+    from twinmon.errors import ArtifactError
+    with pytest.raises(ArtifactError, match="not the observations .* was calibrated from"):
+        backtest(quick, tmp_path / "post.h5", tmp / "sur.h5", tmp_path / "bt_other.h5",
+                 observations_path=other)
+    assert not (tmp_path / "bt_other.h5").exists()
     t = backtest(quick, tmp_path / "post.h5", tmp / "sur.h5", tmp_path / "bt_trunc.h5")
     assert t.cut_posteriors == "truncated" and "optimistic" in t.warnings[0]
     assert read_backtest(tmp_path / "bt_trunc.h5").warnings == t.warnings
