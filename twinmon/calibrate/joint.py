@@ -236,6 +236,17 @@ class _JointTask:
     thin: int
 
 
+def slope_prior(task: _JointTask, lay: _Layout) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Which trend coefficients are slopes (mask [n_beta]; every segment's columns are
+    (level, slope)), and their prior means and precisions, one per slope."""
+    slope = np.zeros(sum(lay.n_coef), bool)
+    slope[1::2] = True
+    mean = np.concatenate([np.full(p, task.slope_mean[i]) for i, p in enumerate(lay.n_coef)])
+    prec = np.concatenate([np.full(p, task.slope_sd[i] ** -2.0)
+                           for i, p in enumerate(lay.n_coef)])
+    return slope, mean[slope], prec[slope]
+
+
 class _JointLogDensity:
     """The joint log-posterior as a function of the whole Gibbs state::
 
@@ -261,13 +272,7 @@ class _JointLogDensity:
         self.M = lay.mean_map(task.X)
         self.n_eps, self.n_beta = lay.n_eps, sum(lay.n_coef)
         self.lo, self.hi = task.bounds[:, 0], task.bounds[:, 1]
-        slope = np.zeros(self.n_beta, bool)
-        slope[1::2] = True           # every segment's columns are (level, slope)
-        self.slope = slope
-        self.slope_mean = np.concatenate([np.full(p, task.slope_mean[i])
-                                          for i, p in enumerate(lay.n_coef)])[slope]
-        self.slope_prec = np.concatenate([np.full(p, task.slope_sd[i] ** -2.0)
-                                          for i, p in enumerate(lay.n_coef)])[slope]
+        self.slope, self.slope_mean, self.slope_prec = slope_prior(task, lay)
         self.A2 = np.asarray(task.cauchy_scale, float) ** 2
         self.cache: list[dict] = [{} for _ in range(lay.K)]
         self._prev = np.full((lay.K, lay.d), np.nan)

@@ -30,7 +30,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from .joint import _JointTask, _Layout
+from .joint import _JointTask, _Layout, slope_prior
 from .vectorised import ADAPT_DOWN, ADAPT_PERIOD, ADAPT_RANGE, ADAPT_UP
 
 #: Sweeps whose random numbers a chain draws from its generator at once.
@@ -89,16 +89,11 @@ class _Rows:
         self.M = np.array([lay.mean_map(t.X) for t in tasks])             # [R, K*d, n_beta]
         self.lo = np.asarray(t0.bounds[:, 0], float)
         self.hi = np.asarray(t0.bounds[:, 1], float)
-        # Priors: slopes are every segment's second column.
-        slope = np.zeros(self.n_beta, bool)
-        slope[1::2] = True
-        self.slope = slope
-        self.slope_mean = np.array([np.concatenate([np.full(p, t.slope_mean[i])
-                                                    for i, p in enumerate(lay.n_coef)])[slope]
-                                    for t in tasks])
-        self.slope_prec = np.array([np.concatenate([np.full(p, t.slope_sd[i] ** -2.0)
-                                                    for i, p in enumerate(lay.n_coef)])[slope]
-                                    for t in tasks])
+        # The slopes' priors, per row [R, n_slopes] (the mask is the layout's).
+        priors = [slope_prior(t, lay) for t in tasks]
+        self.slope = priors[0][0]
+        self.slope_mean = np.array([p[1] for p in priors])
+        self.slope_prec = np.array([p[2] for p in priors])
         self.A2 = np.array([np.asarray(t.cauchy_scale, float) ** 2 for t in tasks])   # [R, d]
         # Proposals' Cholesky factors: per year [R, K, d, d], the trend's [R, p, p].
         self.L_eps = np.linalg.cholesky(np.array([t.eps_cov for t in tasks], float))
