@@ -53,6 +53,7 @@ from twinmon.calibrate import Posterior, calibrate, read_posterior  # noqa: E402
 from twinmon.config import load_config  # noqa: E402
 from twinmon.fabricate import fabricate, read_truth  # noqa: E402
 from twinmon.forecast import forecast, forecast_units  # noqa: E402
+from twinmon.observations import read_observations  # noqa: E402
 from twinmon.reduce import read_surrogate, reduce  # noqa: E402
 from twinmon.simulate import simulate  # noqa: E402
 
@@ -151,7 +152,8 @@ def recalibrate_cut(cfg, work: Path, units: list, k: int, name: str) -> dict:
     if out.exists():
         return dict(read_posterior(out).units)
     cuts.mkdir(exist_ok=True)
-    return calibrate_cut(cfg, work / "sur.h5", work / "obs.h5", units, k, cuts)
+    obs = read_observations(work / "obs.h5", cfg.model.output.name)
+    return calibrate_cut(cfg, work / "sur.h5", obs, units, k, cuts)
 
 
 truth_clean, truth_time = {}, None

@@ -201,10 +201,15 @@ def truncate(up, last_year: int):
     return type(up)(**out)
 
 
-def check_calibrated_from(posterior_path, observations_path, units: list) -> None:
+def check_calibrated_from(cfg: Config, posterior_path, observations_path, units: list):
     """The observations must be those the posterior was calibrated from: its provenance
     lists their hash (a posterior written before provenance recorded it: the units must
     be there).
+
+    Returns
+    -------
+    Observations
+        The file's content, read once for every cut (:func:`calibrate_cut`).
 
     Raises
     ------
@@ -221,21 +226,24 @@ def check_calibrated_from(posterior_path, observations_path, units: list) -> Non
     if made_from and digest not in made_from:
         raise ArtifactError(f"{observations_path}: not the observations {posterior_path} was "
                             f"calibrated from (sha256 {digest[:12]} is not among its inputs)")
-    have = read_observations(observations_path).units
-    missing = [u for u in units if u not in have]
+    obs = read_observations(observations_path, cfg.model.output.name)
+    missing = [u for u in units if u not in obs.units]
     if missing:
         raise ArtifactError(f"{observations_path}: no unit {missing[0]!r} of {posterior_path}")
+    return obs
 
 
-def calibrate_cut(cfg: Config, surrogate_path, observations_path, units: list,
-                  last_year: int, workdir) -> dict:
+def calibrate_cut(cfg: Config, surrogate_path, obs, units: list, last_year: int,
+                  workdir) -> dict:
     """Posteriors of ``units`` calibrated from their records up to ``last_year`` only.
 
     Parameters
     ----------
     cfg : Config
         Its ``calibrate`` section (method, sampler, seed) as for the full history.
-    surrogate_path, observations_path : path-like
+    surrogate_path : path-like
+    obs : Observations
+        The unit's whole records (``read_observations``).
     units : list of str
     last_year : int
     workdir : path-like
@@ -246,11 +254,10 @@ def calibrate_cut(cfg: Config, surrogate_path, observations_path, units: list,
     dict unit -> UnitPosterior
     """
     from .calibrate import calibrate, read_posterior
-    from .observations import read_observations, write_observations
+    from .observations import write_observations
     workdir = Path(workdir)
-    obs = read_observations(observations_path, cfg.model.output.name).up_to(last_year, units)
     cut_obs = workdir / f"observations_to_{last_year}.h5"
-    write_observations(cut_obs, obs)
+    write_observations(cut_obs, obs.up_to(last_year, units))
     out = workdir / f"posterior_to_{last_year}.h5"
     calibrate(cfg, surrogate_path, cut_obs, out)
     return dict(read_posterior(out).units)
@@ -303,7 +310,7 @@ def backtest(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
     joint = any(getattr(p, "trend", None) for p in post.units.values())
     recalibrate = joint and observations_path is not None
     if recalibrate:
-        check_calibrated_from(posterior_path, observations_path, list(post.units))
+        obs = check_calibrated_from(cfg, posterior_path, observations_path, list(post.units))
     warnings = []
     if joint and not recalibrate:
         warnings.append(f"{posterior_path}: joint posterior truncated at each cut, its years "
@@ -313,7 +320,7 @@ def backtest(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
     with tempfile.TemporaryDirectory(prefix="twinmon-backtest-") as tmp:
         for n, k in enumerate(all_cuts):
             at = [u for u in post.units if k in cuts_of[u]]
-            sub = (calibrate_cut(cfg, surrogate_path, observations_path, at, k, tmp)
+            sub = (calibrate_cut(cfg, surrogate_path, obs, at, k, tmp)
                    if recalibrate else {u: truncate(post.units[u], k) for u in at})
             cut_post = Posterior(post.input_names, sub, post.path, post.fit_windows)
             res, _, _ = forecast_units(cfg, cut_post, sur, posterior_path=posterior_path,

@@ -279,7 +279,8 @@ def test_backtest_calibrates_each_cut_of_a_joint_history_again(setup, tmp_path):
                                    "forecast.horizon=3"])
     calibrate(quick, tmp / "sur.h5", obs, tmp_path / "post.h5")
     full = read_posterior(tmp_path / "post.h5").units["A"]
-    cut = calibrate_cut(quick, tmp / "sur.h5", obs, ["A"], 3, tmp_path)["A"]
+    cut = calibrate_cut(quick, tmp / "sur.h5", read_observations(obs, "m_flow"), ["A"], 3,
+                        tmp_path)["A"]
     assert cut.years.tolist() == [1, 2, 3] and cut.trend["start"].tolist() == [[1, 1]]
     # The same unit's first three years alone: another posterior than the full history's.
     assert not np.allclose(cut.mean, full.mean[:3])
