@@ -10,7 +10,9 @@ against the truth, which only this script reads:
 * confusion matrix of verdict vs truth;
 * detection of faulty units whose excess rate is at least twice the tolerance; false alarms
   on healthy units; wrong component named; ambiguous share;
-* coverage of the 90 % prediction intervals of the true future indicator and inputs;
+* coverage of the 90 % prediction intervals of the true future indicator and inputs (the
+  truth file's recorded future: the trajectory with its year-to-year jitter; a truth file
+  from before it was recorded is written again, the observations checked unchanged);
 * failure year within +-1 of the truth, for units that fail within the horizon;
 * alpha-lambda accuracy (alpha 0.2, lambda 0.5) of the time to failure over cut years.
 
@@ -289,6 +291,8 @@ def run_fleet(a, seed: int, work: Path) -> dict:
     obs, tru = work / "obs.h5", work / "truth.h5"
     if not obs.exists():
         fabricate(cfg, obs, tru)
+    elif not read_truth(tru).future_years:
+        refresh_truth(cfg, work)
     if not (work / "sur.h5").exists():
         simulate(cfg, work / "sim.h5")
         reduce(cfg, work / "sim.h5", work / "sur.h5")
@@ -330,6 +334,26 @@ def run_fleet(a, seed: int, work: Path) -> dict:
                 results[f"oracle/{ch}"] = r
                 report(f"oracle/{ch} seed {seed}", r)
     return results
+
+
+def refresh_truth(cfg, work: Path) -> None:
+    """Write the recorded future into a truth file from before it was recorded: fabricate
+    the fleet again (its future comes from its own stream) and keep the new truth only if
+    the observations are the same, so the posteriors in ``work`` still belong to them."""
+    obs, tru = work / "obs.h5", work / "truth.h5"
+    fresh_obs, fresh_tru = work / "obs_refresh.h5", work / "truth_refresh.h5"
+    fabricate(cfg, fresh_obs, fresh_tru)
+    old, new = read_observations(obs), read_observations(fresh_obs)
+    same = set(old.units) == set(new.units) and all(
+        np.array_equal(old.units[u].channels[c], new.units[u].channels[c])
+        for u in old.units for c in old.units[u].channels)
+    fresh_obs.unlink()
+    if not same:
+        fresh_tru.unlink()
+        raise SystemExit(f"{work}: fabricating again gave other observations; "
+                         "remove the folder to start afresh")
+    fresh_tru.replace(tru)
+    print(f"{tru}: the recorded future added (observations unchanged)")
 
 
 def forecast_and_score(a, c, post: Path, work: Path, name: str, kinds, truth, sur) -> dict:

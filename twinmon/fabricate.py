@@ -37,12 +37,18 @@ class FabricateSummary:
                 "truth": self.truth}
 
 
-def true_inputs(cfg: Config, rng: np.random.Generator) -> dict[str, dict[str, np.ndarray]]:
+def true_inputs(cfg: Config, rng: np.random.Generator,
+                years: np.ndarray | None = None) -> dict[str, dict[str, np.ndarray]]:
     """True degradation inputs per unit and year.
+
+    Parameters
+    ----------
+    years : ndarray of int, shape [n], optional
+        Years of service (1 = the first); default the recorded ones, ``1 .. fabricate.years``.
 
     Returns
     -------
-    dict unit -> dict input name -> ndarray, shape [years]
+    dict unit -> dict input name -> ndarray, shape [n]
         Values in each input's units.
 
     Notes
@@ -53,7 +59,8 @@ def true_inputs(cfg: Config, rng: np.random.Generator) -> dict[str, dict[str, np
     events: a unit without events is the same as before events existed.
     """
     fab = cfg.fabricate
-    year = np.arange(fab.years, dtype=float)
+    year = (np.arange(fab.years, dtype=float) if years is None
+            else np.asarray(years, float) - 1)
     out = {}
     for unit, spec in fab.units.items():
         vals = {}
@@ -67,7 +74,7 @@ def true_inputs(cfg: Config, rng: np.random.Generator) -> dict[str, dict[str, np
                 if ev.component == (ispec.component or name):
                     age = np.where(year >= ev.year - 1, year - (ev.year - 1), age)
             vals[name] = (tr.start + tr.slope * age + tr.curvature * age ** 2
-                          + tr.jitter * rng.standard_normal(fab.years))
+                          + tr.jitter * rng.standard_normal(year.size))
         extra = set(spec.trajectories) - set(cfg.model.inputs)
         if extra:
             key = sorted(extra)[0]
@@ -75,6 +82,25 @@ def true_inputs(cfg: Config, rng: np.random.Generator) -> dict[str, dict[str, np
                               f"not an input of the model (inputs: {', '.join(cfg.model.inputs)})")
         out[unit] = vals
     return out
+
+
+def future_inputs(cfg: Config) -> tuple[np.ndarray, dict[str, dict[str, np.ndarray]]]:
+    """The units' true inputs in the ``forecast.horizon`` years after the record, jitter
+    included: what a unit's inputs will really be, the truth a forecast of the unit's
+    *state* is scored against (a line through the recorded true values has no year-to-year
+    variation, so intervals that rightly carry it look too wide against it).
+
+    Drawn from their own stream (``fabricate.seed`` and 1), so the observations and the
+    recorded years' truth are the same as without them.
+
+    Returns
+    -------
+    years : ndarray of int, shape [h]
+    inputs : dict unit -> dict input name -> ndarray, shape [h]
+    """
+    fab = cfg.fabricate
+    years = fab.years + np.arange(1, cfg.forecast.horizon + 1)
+    return years, true_inputs(cfg, np.random.default_rng([fab.seed, 1]), years)
 
 
 def disturbance_signal(d: Disturbance, time: np.ndarray) -> np.ndarray:
@@ -167,7 +193,7 @@ def fabricate(cfg: Config, observations: str | os.PathLike, truth: str | os.Path
                        config=section, inputs=fmu_inputs, seed=fab.seed,
                        units=cfg.model.channel_units)
     _write_truth(truth, cfg, inputs, truth_rows, batch, spec, time, years, out_std,
-                 section, fmu_inputs)
+                 section, fmu_inputs, future_inputs(cfg))
     return FabricateSummary(len(fab.units), fab.years, str(observations), str(truth))
 
 
@@ -178,8 +204,9 @@ def unit_events(spec_u) -> list[Event]:
 
 
 def _write_truth(path, cfg, inputs, truth_rows, batch, spec, time, years, out_std, section,
-                 fmu_inputs) -> None:
+                 fmu_inputs, future) -> None:
     fab = cfg.fabricate
+    future_years, future = future
     with artifacts.write_artifact(path, "truth", config=section, inputs=fmu_inputs,
                                   seed=fab.seed) as f:
         artifacts.put(f, "time", time, "s", "sample times")
@@ -200,6 +227,11 @@ def _write_truth(path, cfg, inputs, truth_rows, batch, spec, time, years, out_st
                 g.attrs["disturbance"] = artifacts.json_attr(
                     {"amplitude": d.amplitude, "period": d.period, "onset": d.onset,
                      "shape": d.shape})
+            artifacts.put(g, "future/years", future_years, "year",
+                          "years after the record (forecast.horizon of them)")
+            for name, v in future[unit].items():
+                artifacts.put(g, f"future/inputs/{name}", v, cfg.model.inputs[name].units,
+                              f"true {name} in the years after the record, jitter included")
             if spec_u.events:
                 put_events(g, unit_events(spec_u))
             rows, clean = truth_rows[unit]
@@ -214,7 +246,9 @@ def _write_truth(path, cfg, inputs, truth_rows, batch, spec, time, years, out_st
 @dataclass
 class Truth:
     """A loaded truth file: per unit, years [n_y], inputs {name: [n_y]}, effects {var: [n_y]},
-    maintenance events (sorted by year; ``[]`` when none)."""
+    maintenance events (sorted by year; ``[]`` when none), and the true inputs of the years
+    after the record, ``future_years`` [h] and ``future_inputs`` {name: [h]} (absent from
+    units of truth files written before they were recorded)."""
 
     years: dict[str, np.ndarray]
     inputs: dict[str, dict[str, np.ndarray]]
@@ -222,6 +256,8 @@ class Truth:
     disturbance: dict[str, dict]
     noise_std: float
     events: dict[str, list[Event]] = field(default_factory=dict)
+    future_years: dict[str, np.ndarray] = field(default_factory=dict)
+    future_inputs: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
 
 
 def read_truth(path: str | os.PathLike) -> Truth:
@@ -230,11 +266,16 @@ def read_truth(path: str | os.PathLike) -> Truth:
     path = Path(path)
     with artifacts.open_artifact(path, "truth") as f:
         years, inputs, effects, dist, events = {}, {}, {}, {}, {}
+        fut_years, fut_inputs = {}, {}
         for unit, g in f["units"].items():
+            if "future" in g:
+                fut_years[unit] = artifacts.get(g, "future/years", path)
+                fut_inputs[unit] = {k: v[()] for k, v in g["future/inputs"].items()}
             years[unit] = artifacts.get(g, "years", path)
             events[unit] = read_events(g, path)
             inputs[unit] = {k: v[()] for k, v in g["inputs"].items()}
             effects[unit] = {k: v[()] for k, v in g["effects"].items()} if "effects" in g else {}
             if "disturbance" in g.attrs:
                 dist[unit] = json.loads(g.attrs["disturbance"])
-        return Truth(years, inputs, effects, dist, float(f.attrs["noise_std"]), events)
+        return Truth(years, inputs, effects, dist, float(f.attrs["noise_std"]), events,
+                     fut_years, fut_inputs)

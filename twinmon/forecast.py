@@ -616,9 +616,13 @@ class UnitForecast:
     fmu_failures : int
     true_failure_year : int or None
     true_indicator : ndarray [h] or None
-        Health indicator of the extended true trajectories (with ``--truth``).
+        Health indicator of the true future inputs (with ``--truth``).
     true_inputs : dict name -> ndarray [h], or None
     true_unsafe : ndarray of bool [h] or None
+    truth_source : str
+        Where the true future inputs come from: ``"recorded future"`` (the truth file's)
+        or ``"trend line"`` (each true trajectory's fitted line extended); ``""`` without
+        a truth.
     """
 
     years_observed: np.ndarray
@@ -644,6 +648,7 @@ class UnitForecast:
     true_inputs: Optional[dict] = None
     true_unsafe: Optional[np.ndarray] = None
     has_truth: bool = False
+    truth_source: str = ""
     #: ``ok``, ``withheld`` (the twin misses the plant: no failure year, no root cause) or
     #: ``unreliable`` (a calibrated year did not converge); see :func:`prognosis_status`.
     status: str = STATUS_OK
@@ -730,6 +735,7 @@ class UnitForecast:
         }
         if self.has_truth:
             d["true_failure_year"] = self.true_failure_year
+            d["truth_source"] = self.truth_source
         return d
 
 
@@ -1245,12 +1251,14 @@ def _check_unit(cfg: Config, posterior_path, unit: str, up) -> None:
 
 
 def _truth_of(truth, truth_path, unit: str):
-    """The unit's (years, inputs) of the truth file, or None without one."""
+    """The unit's (years, inputs, future years, future inputs) of the truth file (the last
+    two None when it has no future), or None without one."""
     if truth is None:
         return None
     if unit not in truth.inputs:
         raise ArtifactError(f"{truth_path}: unit {unit} is missing from the truth file")
-    return np.asarray(truth.years[unit], float), truth.inputs[unit]
+    return (np.asarray(truth.years[unit], float), truth.inputs[unit],
+            truth.future_years.get(unit), truth.future_inputs.get(unit))
 
 
 def _forecast_chunk(state: _TwinState, units: list, *, directions: dict, box_ok: bool,
@@ -1423,18 +1431,31 @@ def _check_plausible(path, unit: str, samples: np.ndarray, cfg: Config) -> None:
 
 def _add_truth(cfg: Config, uf: UnitForecast, unit: str, truth_unit, truth_path, spec,
                executor) -> None:
-    """True failure year: each true trajectory's fitted line extended, run through the FMU.
+    """True future inputs, indicator and failure year, run through the FMU.
 
-    ``truth_unit``: the unit's years [n_y] and inputs {name: [n_y]} from the truth file."""
+    ``truth_unit``: the unit's years [n_y], inputs {name: [n_y]}, and the truth file's
+    future years [h] and inputs {name: [h]} or None. The future is the truth file's where it
+    covers the forecast's years (what the unit will really be, year-to-year jitter
+    included); otherwise (truth files written before it was recorded, a longer horizon) each
+    true trajectory's fitted line extended. ``uf.truth_source`` says which."""
     from .safety import Indicator, is_unsafe
     from .simulate import as_parameters, run_batch
-    ty, inputs = truth_unit
+    ty, inputs, fy, finputs = truth_unit
     Xt = np.empty((uf.years_future.size, len(cfg.model.inputs)))
+    pos = (np.searchsorted(fy, uf.years_future) if fy is not None else None)
+    realised = (pos is not None and np.all(pos < len(fy))
+                and np.array_equal(np.asarray(fy)[np.minimum(pos, len(fy) - 1)],
+                                   uf.years_future))
     for i, name in enumerate(cfg.model.input_names):
         if name not in inputs:
             raise ArtifactError(f"{truth_path}: /units/{unit}/inputs/{name} is missing")
-        slope, icpt = np.polyfit(ty, np.asarray(inputs[name], float), 1)
-        Xt[:, i] = icpt + slope * uf.years_future
+        if realised and name in finputs:
+            Xt[:, i] = np.asarray(finputs[name], float)[pos]
+        else:
+            slope, icpt = np.polyfit(ty, np.asarray(inputs[name], float), 1)
+            Xt[:, i] = icpt + slope * uf.years_future
+    realised = realised and all(n in finputs for n in cfg.model.input_names)
+    uf.truth_source = "recorded future" if realised else "trend line"
     batch = run_batch(spec, as_parameters(cfg, Xt), executor)
     ind = Indicator.from_config(cfg)
     value = np.where(batch.ok, ind(spec.times, batch.outputs[ind.variable]), np.nan)
@@ -1535,14 +1556,15 @@ def _write_unit(f, cfg: Config, unit: str, u: UnitForecast, names: list) -> None
     if u.has_truth:
         g.attrs["true_failure_year"] = (-1 if u.true_failure_year is None
                                         else u.true_failure_year)
+        g.attrs["truth_source"] = u.truth_source
         put(g, "truth/indicator", u.true_indicator, ind.units,
-            f"{ind.name} of the true trajectories' fitted lines, future years (FMU)")
+            f"{ind.name} of the true future inputs ({u.truth_source}), future years (FMU)")
         put(g, "truth/unsafe", u.true_unsafe.astype(np.int8), "1",
             "1 where the true unit is unsafe, future years")
         for name in names:
             put(g, f"truth/inputs/{name}", u.true_inputs[name],
                 cfg.model.inputs[name].units,
-                f"true {name} extended linearly over the future years")
+                f"true {name} over the future years ({u.truth_source})")
 
 
 def _put_per_year(g, name: str, data: np.ndarray, units: str, description: str) -> None:
@@ -1656,6 +1678,7 @@ def _read_unit(f, unit: str, path: Path, names: list, arrays: bool = True) -> Un
         attribution=(Attribution(**json.loads(g.attrs["attribution"]))
                      if "attribution" in g.attrs else None),
         has_truth=has_truth, true_failure_year=None if tfy < 0 else tfy,
+        truth_source=str(g.attrs.get("truth_source", "trend line" if has_truth else "")),
         true_indicator=get(g, "truth/indicator") if has_truth else None,
         true_unsafe=get(g, "truth/unsafe").astype(bool) if has_truth else None,
         true_inputs={n: get(g, f"truth/inputs/{n}") for n in names} if has_truth

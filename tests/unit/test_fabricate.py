@@ -94,3 +94,39 @@ def test_missing_trajectory_is_a_config_error(tmp_path, fmu_path):
     with pytest.raises(ConfigError, match=r"fabricate.units.A.trajectories.pump_coef: required"):
         fabricate(load_config(p), tmp_path / "o.h5", tmp_path / "t.h5")
     assert not (tmp_path / "o.h5").exists()
+
+
+def test_truth_records_the_future_without_changing_the_record(tmp_path, fmu_path):
+    """The truth file carries forecast.horizon future years drawn like the recorded ones
+    (trend, jitter, a replaced part's age), from their own stream: the observations and the
+    recorded truth are those of the same fleet without them."""
+    spec = {"extends": str(CONFIGS / "pump.yaml"),
+            "forecast": {"horizon": 6},
+            "fabricate": {"years": 4, "seed": 5, "units": {
+                "A": {"trajectories": {"motor_damping": {"start": 10.0, "slope": 0.5,
+                                                         "jitter": 0.2},
+                                       "pump_coef": {"start": 3.6, "slope": -0.05}}},
+                "B": {"trajectories": {"motor_damping": {"start": 10.0, "slope": 0.5},
+                                       "pump_coef": {"start": 3.6, "slope": -0.05}},
+                      "events": [{"year": 3, "component": "pump"}]}}}}
+    cfg = load_config(write_yaml(tmp_path / "f.yaml", spec))
+    fabricate(cfg, tmp_path / "o.h5", tmp_path / "t.h5")
+    truth = read_truth(tmp_path / "t.h5")
+    for u in "AB":
+        assert np.array_equal(truth.future_years[u], np.arange(5, 11))
+    # No jitter: exactly the trajectory; B's pump is aged from its replacement in year 3.
+    assert np.allclose(truth.future_inputs["B"]["motor_damping"], 10.0 + 0.5 * np.arange(4, 10))
+    assert np.allclose(truth.future_inputs["B"]["pump_coef"], 3.6 - 0.05 * np.arange(2, 8))
+    dev = truth.future_inputs["A"]["motor_damping"] - (10.0 + 0.5 * np.arange(4, 10))
+    assert 0 < np.abs(dev).max() < 5 * 0.2
+    # A longer horizon draws more years; the record, observations included, is unchanged.
+    spec["forecast"]["horizon"] = 9
+    cfg9 = load_config(write_yaml(tmp_path / "f9.yaml", spec))
+    fabricate(cfg9, tmp_path / "o9.h5", tmp_path / "t9.h5")
+    t9 = read_truth(tmp_path / "t9.h5")
+    assert np.array_equal(t9.future_years["A"], np.arange(5, 14))
+    a, b = read_observations(tmp_path / "o.h5"), read_observations(tmp_path / "o9.h5")
+    for u in "AB":
+        assert np.array_equal(a.output_of(u), b.output_of(u))
+        for n in truth.inputs[u]:
+            assert np.array_equal(truth.inputs[u][n], t9.inputs[u][n])

@@ -59,9 +59,12 @@ def fig_trends(figs: Figures, inp: Inputs, colours: dict) -> None:
     if truth is not None:
         handles.append(Line2D([], [], ls="", marker="o", mfc="none", color="k",
                               label="true value"))
-    if any(f.has_truth for f in fc.units.values()):
+    sources = {f.truth_source for f in fc.units.values() if f.has_truth}
+    if sources:
+        # Recorded futures (jitter included) or, from older truth files, fitted lines.
         handles.append(Line2D([], [], ls="", marker="o", mfc="none", color="grey",
-                              label="true trend, extended"))
+                              label="true future" if sources == {"recorded future"}
+                              else "true trend, extended"))
     fig.legend(handles=handles, loc="outside lower center", ncol=len(handles), fontsize=9)
     fig.suptitle(f"Linear trends of the estimates, extended over {len(yf)} years with "
                  f"{100 * conf:g} % prediction intervals (dotted line: last observation)")
