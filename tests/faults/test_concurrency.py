@@ -12,8 +12,8 @@ import h5py
 import numpy as np
 import pytest
 
-from .conftest import (ARTIFACTS, TIMEOUT, Snapshot, assert_fails, assert_ok, dead_pid, start,
-                       twinmon, wait_for)
+from .conftest import (ARTIFACTS, TIMEOUT, Snapshot, assert_fails, assert_ok, cmd, dead_pid,
+                       start, twinmon, wait_for)
 
 
 def test_two_simulate_into_one_output(work):
@@ -129,6 +129,36 @@ def test_ctrl_c_simulate_exit_130_then_resume(work):
     with h5py.File(out, "r") as f:
         assert (f["train/status"][()] == 0).all()
     snap.check()
+
+
+def test_sigterm_simulate_exit_143_keeps_partial_and_cleans_up(work, tmp_path):
+    """SIGTERM to the command alone (``kill``, ``timeout``, a scheduler's time limit; the
+    workers are in their own process group and do not get it): exit 143, one line saying
+    the next simulate resumes, the partial file kept, and neither the output's lock nor the
+    workers' scratch folder (extracted FMUs) left behind -- Python's default for SIGTERM
+    dies on the spot and leaves both."""
+    cfg = work / "small.yaml"
+    big = ["--set", "simulate.train_size=600", "--set", "simulate.test_size=0",
+           "--set", "simulate.design=sobol", "--set", "model.fmi_type=ModelExchange",
+           "--set", "simulate.executor=process"]
+    scratch = tmp_path / "tmpdir"
+    scratch.mkdir()
+    out, partial = work / "t.h5", work / "t.h5.partial"
+    p = subprocess.Popen(cmd("simulate", "-c", cfg, *big, "-o", out), cwd=work,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         env={**os.environ, "TMPDIR": str(scratch)})
+    assert wait_for(partial.exists, 30, p), "simulate never started its partial file"
+    assert wait_for(lambda: any(scratch.glob("twinmon-pool-*")), 30, p), \
+        "no worker scratch folder to clean up"
+    wait_for(lambda: False, 0.3, p)
+    assert p.poll() is None, "simulate finished before it could be terminated"
+    p.send_signal(signal.SIGTERM)
+    o, e = p.communicate(timeout=INTERRUPT_LIMIT)
+    assert_fails(subprocess.CompletedProcess(p.args, p.returncode, o, e), 143, "terminated",
+                 "resume")
+    assert not out.exists() and partial.exists()
+    assert not list(work.glob(".t.h5*lock")), list(work.iterdir())
+    assert not list(scratch.iterdir()), list(scratch.iterdir())
 
 
 def test_ctrl_c_calibrate_exit_130(work):

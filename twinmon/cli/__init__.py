@@ -7,12 +7,35 @@ code; the traceback is shown only with ``--verbose``.
 """
 from __future__ import annotations
 
+import signal
 import sys
 
 import click
 
 from .. import __version__
-from ..errors import TwinmonError
+from ..errors import Interrupted, TwinmonError
+
+#: Set when SIGTERM arrived: the command ends as after a Ctrl-C, with 143 instead of 130.
+_terminated = False
+
+
+def _on_sigterm(signum, frame) -> None:
+    """SIGTERM (``kill``, ``timeout``, make's or a batch scheduler's time limit) ends a command
+    the way Ctrl-C does: through the SIGINT handler in force (a stage's interrupt guard, or
+    Python's KeyboardInterrupt), so pools are stopped, temporaries and locks removed and a
+    resumable partial file kept. Python's default for SIGTERM is to die on the spot, which
+    leaves the workers' scratch folder and the output's lock behind."""
+    global _terminated
+    _terminated = True
+    handler = signal.getsignal(signal.SIGINT)
+    if callable(handler):
+        handler(signal.SIGINT, frame)
+    else:                       # SIG_IGN or SIG_DFL: nobody catches SIGINT in this process
+        raise KeyboardInterrupt
+
+
+def _terminated_exit(ctx) -> None:
+    ctx.exit(128 + signal.SIGTERM)
 
 
 class TwinmonGroup(click.Group):
@@ -25,11 +48,18 @@ class TwinmonGroup(click.Group):
             if ctx.obj and ctx.obj.get("verbose"):
                 import traceback
                 traceback.print_exc()
+            if _terminated and isinstance(exc, Interrupted):
+                # The stage's own words (what is kept), the shell's code for SIGTERM.
+                click.echo(f"twinmon: terminated: {exc.message}", err=True)
+                _terminated_exit(ctx)
             click.echo(f"twinmon: {exc.family}: {exc.message}", err=True)
             ctx.exit(exc.exit_code)
         except KeyboardInterrupt:
             # Ctrl-C: one line and the shell's code for SIGINT; stages that resume say so
             # themselves (Interrupted above).
+            if _terminated:
+                click.echo("twinmon: terminated", err=True)
+                _terminated_exit(ctx)
             click.echo("twinmon: interrupted", err=True)
             ctx.exit(130)
         except OSError as exc:
@@ -54,8 +84,15 @@ def main(ctx, verbose, quiet):
     """Health monitoring of machines through calibrated digital twins.
 
     Exit codes: 0 ok, 2 usage, 3 config, 4 input data, 5 artifact, 6 simulation,
-    7 calibration, 8 I/O (or output busy), 130 interrupted.
+    7 calibration, 8 I/O (or output busy), 130 interrupted, 143 terminated (SIGTERM).
     """
+    try:
+        old = signal.signal(signal.SIGTERM, _on_sigterm)
+    except ValueError:          # not the main thread (an embedding application's worker)
+        old = None
+    if old is not None:
+        # Put the caller's handler back: main() may run inside a longer-lived process.
+        ctx.call_on_close(lambda: signal.signal(signal.SIGTERM, old))
     ctx.ensure_object(dict)
     ctx.obj["verbose"] = verbose
     ctx.obj["quiet"] = quiet
