@@ -1441,20 +1441,21 @@ def _add_truth(cfg: Config, uf: UnitForecast, unit: str, truth_unit, truth_path,
     from .safety import Indicator, is_unsafe
     from .simulate import as_parameters, run_batch
     ty, inputs, fy, finputs = truth_unit
-    Xt = np.empty((uf.years_future.size, len(cfg.model.inputs)))
-    pos = (np.searchsorted(fy, uf.years_future) if fy is not None else None)
-    realised = (pos is not None and np.all(pos < len(fy))
-                and np.array_equal(np.asarray(fy)[np.minimum(pos, len(fy) - 1)],
-                                   uf.years_future))
-    for i, name in enumerate(cfg.model.input_names):
+    names = cfg.model.input_names
+    realised = False
+    if fy is not None and all(n in finputs for n in names):
+        fy = np.asarray(fy)
+        pos = np.searchsorted(fy, uf.years_future)
+        realised = bool(np.all(pos < fy.size)) and np.array_equal(fy[pos], uf.years_future)
+    Xt = np.empty((uf.years_future.size, len(names)))
+    for i, name in enumerate(names):
         if name not in inputs:
             raise ArtifactError(f"{truth_path}: /units/{unit}/inputs/{name} is missing")
-        if realised and name in finputs:
+        if realised:
             Xt[:, i] = np.asarray(finputs[name], float)[pos]
         else:
             slope, icpt = np.polyfit(ty, np.asarray(inputs[name], float), 1)
             Xt[:, i] = icpt + slope * uf.years_future
-    realised = realised and all(n in finputs for n in cfg.model.input_names)
     uf.truth_source = "recorded future" if realised else "trend line"
     batch = run_batch(spec, as_parameters(cfg, Xt), executor)
     ind = Indicator.from_config(cfg)

@@ -6,6 +6,7 @@ years within one year of the true ones (the truth file's recorded future through
 """
 from __future__ import annotations
 
+import copy
 import time
 
 import numpy as np
@@ -72,6 +73,28 @@ def test_true_inputs_mostly_inside_the_prediction_intervals(fleet):
               & (f.units[u].true_inputs[n] <= f.units[u].pred_hi[n])
               for u in f.units for n in f.input_names]
     assert np.mean(inside) >= 0.75
+
+
+def test_truth_is_the_recorded_future(fleet):
+    """The true future inputs are the truth file's recorded ones (jitter included), not a
+    line; a truth file without them falls back to the line and says so."""
+    cfg, tmp, s = fleet
+    from twinmon.fabricate import read_truth
+    truth = read_truth(tmp / "truth.h5")
+    for unit, u in s.units.items():
+        assert u.truth_source == "recorded future"
+        pos = np.searchsorted(truth.future_years[unit], u.years_future)
+        for n in cfg.model.input_names:
+            assert np.array_equal(u.true_inputs[n], truth.future_inputs[unit][n][pos])
+    assert read_forecast(tmp / "fc.h5").units["Colt"].truth_source == "recorded future"
+    from twinmon.forecast import _add_truth
+    from twinmon.simulate import spec_for
+    old = copy.copy(s.units["Colt"])        # the fixture's forecast stays as it is
+    _add_truth(cfg, old, "Colt", (truth.years["Colt"], truth.inputs["Colt"], None, None),
+               tmp / "truth.h5", spec_for(cfg), None)
+    assert old.truth_source == "trend line"
+    slope, icpt = np.polyfit(truth.years["Colt"], truth.inputs["Colt"]["pump_coef"], 1)
+    assert np.allclose(old.true_inputs["pump_coef"], icpt + slope * old.years_future)
 
 
 def test_unsafe_probability_rises_towards_failure(fleet):
