@@ -19,7 +19,7 @@ import numpy as np
 
 from . import artifacts
 from .config import Config, Disturbance
-from .errors import ConfigError, SimulationError
+from .errors import ArtifactError, ConfigError, SimulationError
 from .observations import (Event, Observations, UnitObservations, put_events, read_events,
                            write_observations)
 from .simulate import run_batch, spec_for
@@ -270,7 +270,14 @@ def read_truth(path: str | os.PathLike) -> Truth:
         for unit, g in f["units"].items():
             if "future" in g:
                 fut_years[unit] = artifacts.get(g, "future/years", path)
+                if "inputs" not in g["future"]:
+                    raise ArtifactError(f"{path}: group {g.name}/future/inputs is missing")
                 fut_inputs[unit] = {k: v[()] for k, v in g["future/inputs"].items()}
+                for k, v in fut_inputs[unit].items():
+                    if v.shape != fut_years[unit].shape:
+                        raise ArtifactError(
+                            f"{path}: {g.name}/future/inputs/{k} has shape {v.shape}, "
+                            f"{g.name}/future/years {fut_years[unit].shape}")
             years[unit] = artifacts.get(g, "years", path)
             events[unit] = read_events(g, path)
             inputs[unit] = {k: v[()] for k, v in g["inputs"].items()}

@@ -130,3 +130,22 @@ def test_truth_records_the_future_without_changing_the_record(tmp_path, fmu_path
         assert np.array_equal(a.output_of(u), b.output_of(u))
         for n in truth.inputs[u]:
             assert np.array_equal(truth.inputs[u][n], t9.inputs[u][n])
+
+
+@pytest.mark.parametrize("damage", ["no_inputs", "short"])
+def test_damaged_future_in_truth_is_an_artifact_error(tmp_path, damage):
+    """A truth file whose recorded future is damaged: one ArtifactError naming the file and
+    the dataset, not a KeyError or an IndexError later in forecast."""
+    import shutil
+    from twinmon.errors import ArtifactError
+    t = tmp_path / "t.h5"
+    shutil.copy(ROOT / "data" / "fleet_truth.h5", t)
+    with h5py.File(t, "a") as f:
+        if damage == "no_inputs":
+            del f["units/Colt/future/inputs"]
+        else:
+            v = f["units/Colt/future/inputs/pump_coef"][()]
+            del f["units/Colt/future/inputs/pump_coef"]
+            f["units/Colt/future/inputs/pump_coef"] = v[:-1]
+    with pytest.raises(ArtifactError, match=r"t\.h5: .*/units/Colt/future/"):
+        read_truth(t)
