@@ -878,7 +878,7 @@ def judge(cfg: Config, unit: str, plan: dict, ind_obs: np.ndarray, gradient: np.
     trends = plan["trends"]
     tl = [trends[n] for n in names]
     dirs = [directions[n].sign for n in names]
-    slope_draws = plan.get("slope_draws")
+    slope_draws = plan["slope_draws"]
     if slope_draws is not None:
         # The joint method sampled the slopes with the years: test its posterior's own
         # slopes (their spread includes the year-to-year variation and every year's
@@ -1322,7 +1322,7 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict) -> tuple[dict, list
     samples_post = np.asarray(up.samples, float)
     post_cov = np.array([np.cov(samples_post[k], rowvar=False).reshape(d, d)
                          for k in range(years.size)])
-    state = None
+    state, slope_draws = None, None
     trend_post = getattr(up, "trend", None) or {}
     err_cov = estimate_error_covariance(cfg, post_cov, sequential=not trend_post)
     if trend_post:
@@ -1347,9 +1347,7 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict) -> tuple[dict, list
     Xo = samples_post[:, pick, :]
     plan = dict(years=years, mean=mean, trends=trends, fut=fut, X=X, Xo=Xo, corr=corr,
                 resid=resid, step=step, since=max(since.values()), post_cov=post_cov,
-                err_cov=err_cov, state=state)
-    if trend_post:
-        plan["slope_draws"] = slope_draws
+                err_cov=err_cov, state=state, slope_draws=slope_draws)
     return plan, [X.reshape(-1, d), Xo.reshape(-1, d), probe]
 
 
