@@ -86,6 +86,8 @@ def main(ctx, verbose, quiet):
     Exit codes: 0 ok, 2 usage, 3 config, 4 input data, 5 artifact, 6 simulation,
     7 calibration, 8 I/O (or output busy), 130 interrupted, 143 terminated (SIGTERM).
     """
+    global _terminated
+    _terminated = False         # a process that runs several commands: this one's SIGTERM only
     try:
         old = signal.signal(signal.SIGTERM, _on_sigterm)
     except ValueError:          # not the main thread (an embedding application's worker)
