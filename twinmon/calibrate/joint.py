@@ -79,6 +79,8 @@ TREND_FIELDS = {
     "slope": ("input units per year", "trend slope [draw, segment, input]"),
     "sigma": ("input units", "standard deviation of the year-to-year variation around the "
               "trend [draw, input]"),
+    "sigma_scale": ("input units", "scale of sigma's half-Cauchy prior, calibrate.prior_width "
+                    "x the input's range [input] (forecast pools sigma over the fleet from it)"),
     "rhat": ("1", "split R-hat of the last segment's intercept, slope, and of sigma "
              "[3, input]"),
     "ess": ("1", "bulk effective sample size of the last segment's intercept, slope, and of "
@@ -590,7 +592,8 @@ class _JointRun:
         flat = n_c * n_s
         return {"start": start, "intercept": a.reshape(flat, S, d),
                 "slope": b.reshape(flat, S, d), "sigma": sigma.reshape(flat, d),
-                "rhat": rhat, "ess": n_eff, "acceptance": np.asarray(acceptance, float)}
+                "sigma_scale": np.asarray(self._setup["A"], float), "rhat": rhat,
+                "ess": n_eff, "acceptance": np.asarray(acceptance, float)}
 
     def result(self) -> UnitPosterior:
         return self._result

@@ -452,6 +452,8 @@ def _put_trend(g: h5py.Group, trend: dict, keep: int) -> None:
     years' (:func:`thin_indices`), their diagnostics of all the draws."""
     from .joint import TREND_DRAWS, TREND_FIELDS
     for key, (units, desc) in TREND_FIELDS.items():
+        if key not in trend:        # sigma_scale of a posterior from before it was recorded
+            continue
         data = np.asarray(trend[key])
         if key in TREND_DRAWS:
             data = data[thin_indices(len(data), keep)]
@@ -459,11 +461,13 @@ def _put_trend(g: h5py.Group, trend: dict, keep: int) -> None:
 
 
 def _get_trend(g: h5py.Group, path: Path) -> dict:
-    """The trend posterior of one unit; empty when it has none (the sequential method)."""
+    """The trend posterior of one unit; empty when it has none (the sequential method).
+    ``sigma_scale`` is absent from posteriors written before it was recorded."""
     from .joint import TREND_FIELDS
     if "trend" not in g:
         return {}
-    return {key: artifacts.get(g["trend"], key, path) for key in TREND_FIELDS}
+    return {key: artifacts.get(g["trend"], key, path) for key in TREND_FIELDS
+            if key != "sigma_scale" or key in g["trend"]}
 
 
 def _put_draws(g: h5py.Group, samples: np.ndarray, keep: int) -> None:
