@@ -550,8 +550,17 @@ class ForecastConfig:
     #: year-to-year variation beyond estimation error) or ``estimate`` (the paper's Student t
     #: interval for a new yearly estimate).
     predictive: Literal["state", "estimate"] = "state"
+    #: The joint method's year-to-year sd: pool it over the fleet (a half-Cauchy prior whose
+    #: scale the fleet's posteriors choose, each unit's draws reweighted to it;
+    #: twinmon/calibrate/fleet.py) when at least ``pool_min_units`` units were calibrated
+    #: jointly. false: each unit's own prior (``calibrate.prior_width``).
+    pool_sigma: bool = True
+    pool_min_units: int = 5
 
     def _check(self):
+        if self.pool_min_units < 2:
+            yield "pool_min_units", "must be >= 2 (one unit cannot inform a fleet's prior)", \
+                self.pool_min_units
         if not 0.5 <= self.attribution_confidence < 1:
             yield "attribution_confidence", "must lie in [0.5, 1)", self.attribution_confidence
         if self.horizon < 1:

@@ -659,6 +659,9 @@ class UnitForecast:
     drift: Optional[IndicatorDrift] = None
     #: Which components the drift comes from, with probabilities.
     attribution: Optional[Attribution] = None
+    #: Effective sample size (fraction of the draws) of the unit's draws reweighted to the
+    #: fleet's prior of the year-to-year sd; NaN when not pooled.
+    pool_ess: float = float("nan")
 
     #: Set by :meth:`slim`: the figures kept when the Monte Carlo arrays are dropped.
     _slim: Optional[dict] = field(default=None, repr=False)
@@ -733,6 +736,8 @@ class UnitForecast:
             "fmu_fraction": round(self.fmu_fraction, 4),
             "fmu_failures": self.fmu_failures,
         }
+        if np.isfinite(self.pool_ess):
+            d["pool_ess"] = round(self.pool_ess, 3)
         if self.has_truth:
             d["true_failure_year"] = self.true_failure_year
             d["truth_source"] = self.truth_source
@@ -780,11 +785,13 @@ class ForecastSummary:
     box_physical: bool = True
     #: Plain-words warnings (an input whose degrading direction could not be told).
     warnings: list = field(default_factory=list)
+    #: The fleet's prior of the joint method's year-to-year sd (:func:`_pooling_dict`).
+    pooling: dict = field(default_factory=lambda: {"pooled": False})
 
     def as_dict(self) -> dict:
         return {"units": {u: f.as_dict() for u, f in self.units.items()},
                 "output": self.output, "wall_time": round(self.wall_time, 3),
-                "warnings": list(self.warnings)}
+                "warnings": list(self.warnings), "sigma_pooling": self.pooling}
 
 
 # ---------------------------------------------------------------------------------------
@@ -1042,18 +1049,62 @@ def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
         truth = read_truth(truth_path)
     directions = degrading_directions(cfg, sur)
     box_ok = box_is_physical(cfg)
+    fleet = fleet_sigma_prior(cfg, post)
     units = {}
     with _open_forecast(output, cfg, names, directions, box_ok, seed=cfg.seed + SEED_OFFSET,
                         inputs=[posterior_path, surrogate_path] +
                         ([truth_path] if truth_path else [])) as f:
+        f.attrs["sigma_pooling"] = artifacts.json_attr(_pooling_dict(fleet, names))
         for unit, uf in iter_forecast(cfg, post, sur, posterior_path=posterior_path,
                                       truth=truth, truth_path=truth_path, executor=executor,
                                       workers=workers, progress=progress,
-                                      directions=directions, box_ok=box_ok):
+                                      directions=directions, box_ok=box_ok, fleet=fleet):
             _write_unit(f, cfg, unit, uf, names)
             units[unit] = uf.slim()
     return ForecastSummary(units, str(output), _time.perf_counter() - start, box_ok,
-                           [d.note for d in directions.values() if d.note])
+                           [d.note for d in directions.values() if d.note],
+                           _pooling_dict(fleet, names))
+
+
+def fleet_sigma_prior(cfg: Config, post) -> Optional["FleetPrior"]:
+    """The fleet's prior of the joint method's year-to-year sd (:mod:`.calibrate.fleet`),
+    fitted on the posterior's jointly calibrated units; None when ``forecast.pool_sigma`` is
+    off or fewer than ``forecast.pool_min_units`` units were calibrated jointly.
+
+    Each unit is read once more for its ``sigma`` draws ([keep_draws, d] each), before the
+    units stream through the forecast. A posterior written before the prior's scale was
+    recorded (``trend/sigma_scale``) is taken to have been calibrated with this config's
+    ``calibrate.prior_width``.
+    """
+    from .calibrate.fleet import fit_fleet_prior
+    if not cfg.forecast.pool_sigma:
+        return None
+    default = cfg.calibrate.prior_width * np.diff(cfg.model.bounds, axis=1).ravel()
+    sigmas, bases = [], []
+    for u in post.units:
+        trend = getattr(post.units[u], "trend", None) or {}
+        if trend:
+            sigmas.append(np.asarray(trend["sigma"], float))
+            bases.append(np.asarray(trend.get("sigma_scale", default), float))
+    if len(sigmas) < cfg.forecast.pool_min_units:
+        return None
+    if not np.allclose(bases, bases[0], rtol=1e-9):
+        raise CalibrationError(
+            f"{post.path}: the jointly calibrated units were calibrated with different "
+            "priors of their year-to-year sd (calibrate.prior_width); pooling them needs one "
+            "(re-run calibrate, or set forecast.pool_sigma: false)")
+    return fit_fleet_prior(sigmas, bases[0])
+
+
+def _pooling_dict(fleet, names: list) -> dict:
+    """What the forecast pooled: the fleet's log-normal prior of the year-to-year sd (median,
+    log-sd) and the calibration's half-Cauchy scale, per input."""
+    if fleet is None:
+        return {"pooled": False}
+    return {"pooled": True, "units": fleet.n_units,
+            "median": dict(zip(names, np.round(fleet.median, 6).tolist())),
+            "log_sd": dict(zip(names, np.round(fleet.tau, 4).tolist())),
+            "calibration_scale": dict(zip(names, np.round(fleet.base, 6).tolist()))}
 
 
 def forecast_units(cfg: Config, post, sur, *, posterior_path="<memory>", truth=None,
@@ -1076,7 +1127,8 @@ def forecast_units(cfg: Config, post, sur, *, posterior_path="<memory>", truth=N
         box_ok = box_is_physical(cfg)
     units = dict(iter_forecast(cfg, post, sur, posterior_path=posterior_path, truth=truth,
                                truth_path=truth_path, executor=executor, workers=workers,
-                               progress=progress, directions=directions, box_ok=box_ok))
+                               progress=progress, directions=directions, box_ok=box_ok,
+                               fleet=fleet_sigma_prior(cfg, post)))
     return units, directions, box_ok
 
 
@@ -1089,7 +1141,7 @@ TASKS_PER_WORKER = 2
 
 def iter_forecast(cfg: Config, post, sur, *, directions: dict, box_ok: bool,
                   posterior_path="<memory>", truth=None, truth_path=None, executor=None,
-                  workers: Optional[int] = None, progress=None):
+                  workers: Optional[int] = None, progress=None, fleet=None):
     """Forecast the units of ``post`` one chunk at a time; yields ``(unit, UnitForecast)`` in
     the posterior's order.
 
@@ -1117,6 +1169,10 @@ def iter_forecast(cfg: Config, post, sur, *, directions: dict, box_ok: bool,
         Processes over units (default ``cfg.simulate.workers``; 0 = one per core).
     progress : callable, optional
         ``progress(done, total)`` over the units.
+    fleet : FleetPrior, optional
+        From :func:`fleet_sigma_prior`: the jointly calibrated units' draws are resampled to
+        the fleet's prior of their year-to-year sd. The one thing a unit's forecast takes
+        from the rest of its fleet.
 
     Raises
     ------
@@ -1136,7 +1192,7 @@ def iter_forecast(cfg: Config, post, sur, *, directions: dict, box_ok: bool,
         n_workers = 1
     spec = spec_for(cfg)
     context = dict(directions=directions, box_ok=box_ok, fit_windows=post.fit_windows,
-                   truth_path=truth_path)
+                   truth_path=truth_path, fleet=fleet)
 
     def chunk_of(names_):
         ups = []
@@ -1262,7 +1318,7 @@ def _truth_of(truth, truth_path, unit: str):
 
 
 def _forecast_chunk(state: _TwinState, units: list, *, directions: dict, box_ok: bool,
-                    fit_windows: list, truth_path) -> list:
+                    fit_windows: list, truth_path, fleet=None) -> list:
     """Forecast a chunk of units: their Monte Carlo points go through the twin in one batch.
 
     Parameters
@@ -1277,7 +1333,7 @@ def _forecast_chunk(state: _TwinState, units: list, *, directions: dict, box_ok:
     cfg = state.cfg
     plans, points = [], []
     for unit, up, _ in units:
-        p, pts = _plan_unit(cfg, unit, up, directions)
+        p, pts = _plan_unit(cfg, unit, up, directions, fleet)
         plans.append(p)
         points += pts
     twin = evaluate_twin(cfg, state.sur, np.concatenate(points), state.executor,
@@ -1293,14 +1349,27 @@ def _forecast_chunk(state: _TwinState, units: list, *, directions: dict, box_ok:
     return out
 
 
-def _plan_unit(cfg: Config, unit: str, up, directions: dict) -> tuple[dict, list]:
+def _plan_unit(cfg: Config, unit: str, up, directions: dict,
+               fleet=None) -> tuple[dict, list]:
     """A unit's trends, tests and Monte Carlo points (future states, posterior draws of the
-    observed years, the probes of the indicator's gradient) before the twin runs."""
+    observed years, the probes of the indicator's gradient) before the twin runs.
+
+    With ``fleet`` (:func:`fleet_sigma_prior`), a jointly calibrated unit's draws -- the
+    years' and the trend's, which are the same chain states -- are first resampled to its
+    posterior under the fleet's prior of the year-to-year sd; its yearly estimates are then
+    those draws' means."""
     fc = cfg.forecast
     names = cfg.model.input_names
     d = len(names)
     years = np.asarray(up.years, int)
     mean = np.asarray(up.mean, float)
+    samples_post = np.asarray(up.samples, float)
+    trend_post = getattr(up, "trend", None) or {}
+    pool_ess = float("nan")
+    if fleet is not None and trend_post:
+        trend_post, samples_post, pool_ess = _pool_unit(cfg, unit, trend_post, samples_post,
+                                                        fleet)
+        mean = samples_post.mean(axis=1)
     since = repair_years(cfg, up, years)
     trends = {}
     for i, name in enumerate(names):
@@ -1319,11 +1388,9 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict) -> tuple[dict, list
     # detection's normal-ageing band), evaluated with every other point.
     probe, step = gradient_points(cfg, mid_state(trends, names))
     fut = years[-1] + np.arange(1, fc.horizon + 1)
-    samples_post = np.asarray(up.samples, float)
     post_cov = np.array([np.cov(samples_post[k], rowvar=False).reshape(d, d)
                          for k in range(years.size)])
     state, slope_draws = None, None
-    trend_post = getattr(up, "trend", None) or {}
     err_cov = estimate_error_covariance(cfg, post_cov, sequential=not trend_post)
     if trend_post:
         # The joint method sampled the trend itself: draw the future from its posterior
@@ -1347,8 +1414,23 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict) -> tuple[dict, list
     Xo = samples_post[:, pick, :]
     plan = dict(years=years, mean=mean, trends=trends, fut=fut, X=X, Xo=Xo, corr=corr,
                 resid=resid, step=step, since=max(since.values()), post_cov=post_cov,
-                err_cov=err_cov, state=state, slope_draws=slope_draws)
+                err_cov=err_cov, state=state, slope_draws=slope_draws, pool_ess=pool_ess)
     return plan, [X.reshape(-1, d), Xo.reshape(-1, d), probe]
+
+
+def _pool_unit(cfg: Config, unit: str, trend: dict, samples: np.ndarray,
+               fleet) -> tuple[dict, np.ndarray, float]:
+    """A jointly calibrated unit's trend draws and years' draws [n_y, n, d] resampled to the
+    fleet's prior of the year-to-year sd; returns them and the weights' effective sample
+    size (fraction of the draws)."""
+    from .calibrate.joint import TREND_DRAWS
+    idx, ess_frac = fleet.resample(np.asarray(trend["sigma"], float), _unit_rng(cfg, unit, 5))
+    pooled = {k: (np.asarray(v)[idx] if k in TREND_DRAWS else v) for k, v in trend.items()}
+    # The artifact thins the years' and the trend's draws alike, so draw j is one chain
+    # state in both; a posterior whose counts differ keeps its years' draws as they are.
+    if samples.shape[1] == idx.size:
+        samples = samples[:, idx, :]
+    return pooled, samples, ess_frac
 
 
 def _finish_unit(cfg: Config, unit: str, up, p: dict, twin: TwinResult,
@@ -1392,7 +1474,7 @@ def _finish_unit(cfg: Config, unit: str, up, p: dict, twin: TwinResult,
         indicator_observed=ind_obs, p_unsafe_observed=p_obs,
         failure_year=fyear, root_cause=attribution.verdict,
         fmu_failures=int(np.sum(twin.source[sl] == SOURCE_FAILED)),
-        drift=drift, attribution=attribution)
+        drift=drift, attribution=attribution, pool_ess=p["pool_ess"])
     uf.plan = maintenance_plan(trends, p["fut"], p_unsafe, fyear,
                                int(p["years"][-1]), float(p_obs[-1]), cfg.safety,
                                drift=drift, attribution=attribution, cfg=cfg)
@@ -1552,6 +1634,8 @@ def _write_unit(f, cfg: Config, unit: str, u: UnitForecast, names: list) -> None
                   f"{ind.name} of posterior samples per observed year [year, sample]")
     put(g, "p_unsafe_observed", u.p_unsafe_observed, "1",
         "probability of being unsafe per observed year (posterior samples)")
+    if np.isfinite(u.pool_ess):
+        g.attrs["pool_ess"] = u.pool_ess
     if u.has_truth:
         g.attrs["true_failure_year"] = (-1 if u.true_failure_year is None
                                         else u.true_failure_year)
@@ -1591,6 +1675,8 @@ class Forecast:
     #: The health indicator the forecast was made with (name, label, units, limit, sense,
     #: variable, kind); empty for files written before it was recorded.
     indicator: dict = field(default_factory=dict)
+    #: The fleet's prior of the joint method's year-to-year sd (:func:`_pooling_dict`).
+    sigma_pooling: dict = field(default_factory=lambda: {"pooled": False})
 
 
 def read_forecast(path: str | os.PathLike, arrays: bool = True) -> Forecast:
@@ -1614,7 +1700,8 @@ def read_forecast(path: str | os.PathLike, arrays: bool = True) -> Forecast:
         unit_names = list(f["units"])
         out = Forecast(path, names, float(f.attrs["confidence"]), {},
                        json.loads(f.attrs["directions"]),
-                       json.loads(f.attrs["indicator"]) if "indicator" in f.attrs else {})
+                       json.loads(f.attrs["indicator"]) if "indicator" in f.attrs else {},
+                       json.loads(f.attrs.get("sigma_pooling", '{"pooled": false}')))
     out.units = artifacts.LazyUnits(path, "forecast", unit_names,
                                     lambda f, unit, p: _read_unit(f, unit, p, names, arrays))
     return out
@@ -1673,6 +1760,7 @@ def _read_unit(f, unit: str, path: Path, names: list, arrays: bool = True) -> Un
         status=str(g.attrs.get("status", STATUS_OK)),
         status_reason=str(g.attrs.get("status_reason", "")),
         forced=bool(g.attrs.get("forced", False)),
+        pool_ess=float(g.attrs.get("pool_ess", np.nan)),
         drift=_drift_from(json.loads(g.attrs["detection"])) if "detection" in g.attrs else None,
         attribution=(Attribution(**json.loads(g.attrs["attribution"]))
                      if "attribution" in g.attrs else None),

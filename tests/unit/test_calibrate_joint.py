@@ -305,3 +305,50 @@ def test_backtest_calibrates_each_cut_of_a_joint_history_again(setup, tmp_path):
     t = backtest(quick, tmp_path / "post.h5", tmp / "sur.h5", tmp_path / "bt_trunc.h5")
     assert t.cut_posteriors == "truncated" and "optimistic" in t.warnings[0]
     assert read_backtest(tmp_path / "bt_trunc.h5").warnings == t.warnings
+
+
+def test_forecast_pools_the_year_to_year_sd_over_the_fleet(setup, tmp_path):
+    """Five jointly calibrated units: forecast fits the fleet's prior of sigma from their
+    draws (the calibration's scale is recorded with them), resamples each unit to it and
+    records both scales and each unit's effective sample size; below
+    forecast.pool_min_units, or with pool_sigma off, nothing is pooled."""
+    from twinmon.forecast import fleet_sigma_prior, forecast, read_forecast
+    cfg, cfg_path, tmp, sur = setup
+    years = YEARS[:4]
+    obs = tmp_path / "obs.h5"
+    write_observations(obs, Observations(sur.time, {
+        f"U{s}": UnitObservations(years, {"m_flow": _observe(sur, _trend_unit(seed=s)[:4],
+                                                             seed=s)}, {"m_flow": NOISE})
+        for s in range(5)}, obs))
+    quick = ["calibrate.samples=150", "calibrate.burn_in=50", "calibrate.chains=2",
+             "calibrate.max_extensions=0", "calibrate.keep_draws=200", "forecast.samples=200",
+             "forecast.horizon=3", "forecast.observed_samples=50"]
+    q = load_config(cfg_path, quick)
+    calibrate(q, tmp / "sur.h5", obs, tmp_path / "post.h5")
+    post = read_posterior(tmp_path / "post.h5")
+    span = np.diff(q.model.bounds, axis=1).ravel()
+    assert np.allclose(post.units["U0"].trend["sigma_scale"], q.calibrate.prior_width * span)
+
+    fleet = fleet_sigma_prior(q, post)
+    assert fleet is not None and fleet.n_units == 5
+    assert np.all(fleet.median < fleet.base)    # four years: the wide prior's sigma shrinks
+    s = forecast(q, tmp_path / "post.h5", tmp / "sur.h5", tmp_path / "fc.h5")
+    pooling = s.as_dict()["sigma_pooling"]
+    assert pooling["pooled"] and pooling["units"] == 5
+    assert pooling["median"]["pump_coef"] == round(float(fleet.median[1]), 6)
+    prov = artifacts.read_provenance(tmp_path / "fc.h5")
+    assert '"pooled": true' in prov["sigma_pooling"]
+    fc = read_forecast(tmp_path / "fc.h5")
+    ess_frac = np.array([u.pool_ess for u in fc.units.values()])
+    assert np.all((ess_frac > 0) & (ess_frac <= 1))
+
+    off = forecast(load_config(cfg_path, quick + ["forecast.pool_sigma=false"]),
+                   tmp_path / "post.h5", tmp / "sur.h5", tmp_path / "off.h5")
+    few = forecast(load_config(cfg_path, quick + ["forecast.pool_min_units=6"]),
+                   tmp_path / "post.h5", tmp / "sur.h5", tmp_path / "few.h5")
+    assert off.pooling == few.pooling == {"pooled": False}
+    a, b = read_forecast(tmp_path / "off.h5"), read_forecast(tmp_path / "few.h5")
+    for u in a.units:
+        assert np.isnan(a.units[u].pool_ess)
+        assert np.array_equal(a.units[u].samples, b.units[u].samples)
+        assert not np.array_equal(a.units[u].samples, fc.units[u].samples)

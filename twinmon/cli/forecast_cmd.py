@@ -77,4 +77,8 @@ def forecast(config_path, overrides, posterior, surrogate, output, truth, worker
             say(f"  warning: {u.fmu_failures} FMU run(s) failed and were counted unsafe")
     for w in s.warnings:
         warn(f"forecast: {w}")
+    if s.pooling.get("pooled"):
+        med = ", ".join(f"{n} {v:.3g}" for n, v in s.pooling["median"].items())
+        say(f"forecast: year-to-year sd pooled over {s.pooling['units']} jointly calibrated "
+            f"units (fleet median: {med})")
     say(f"forecast: {len(s.units)} units in {s.wall_time:.1f} s -> {output}")

@@ -250,6 +250,13 @@ def _render(cfg: Config, inp: Inputs, tmp: Path, out: Path, provenance: dict,
         notes.append("A truth file was given but no posterior or forecast to compare it with.")
     if inp.forecast is not None and inp.posterior is None:
         notes.append("The forecast is shown without its posterior: Figure 6 is skipped.")
+    pooling = getattr(inp.forecast, "sigma_pooling", None) or {}
+    if pooling.get("pooled"):
+        med = ", ".join(f"{n} {v:.3g} {_units(cfg, n)}".rstrip()
+                        for n, v in pooling["median"].items())
+        notes.append(f"The year-to-year variation of the inputs was pooled over the "
+                     f"{pooling['units']} jointly calibrated units (fleet median sd: {med}): "
+                     "each unit's trend and forecast use the fleet's estimate of it.")
 
     figs.finish()
     output_words, indicator_words = words_dict(inp)
@@ -353,3 +360,9 @@ def _install(tmp: Path, out: Path) -> None:
     shutil.rmtree(old, ignore_errors=True)
     os.replace(tmp / "summary.json", out / "summary.json")
     os.replace(tmp / "index.html", out / "index.html")
+
+
+def _units(cfg: Config, name: str) -> str:
+    """An input's units from the config ("" for one it does not list)."""
+    spec = cfg.model.inputs.get(name)
+    return spec.units if spec is not None else ""
