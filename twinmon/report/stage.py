@@ -363,6 +363,7 @@ def _install(tmp: Path, out: Path) -> None:
 
 
 def _units(cfg: Config, name: str) -> str:
-    """An input's units from the config ("" for one it does not list)."""
+    """An input's units from the config, "" for a dimensionless one ("1") or one it does not
+    list."""
     spec = cfg.model.inputs.get(name)
-    return spec.units if spec is not None else ""
+    return spec.units if spec is not None and spec.units != "1" else ""
