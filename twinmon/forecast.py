@@ -60,6 +60,10 @@ SECTIONS = ("model", "forecast", "safety", "seed")
 
 #: Offset added to ``cfg.seed`` for this stage's random streams (other stages use others).
 SEED_OFFSET = 5000
+#: Below this effective number of posterior draws after pooling, forecast warns: the unit's
+#: Monte Carlo rests on that many distinct trend states (the benchmark's seeds 11-16, 1000
+#: kept draws: 31-72 at the fewest, 154-276 the median).
+POOL_MIN_ESS = 30
 #: Confidence of the slope interval reported as ``slope_ci90``.
 SLOPE_CI = 0.90
 #: Prognosis status of a unit.
@@ -1074,16 +1078,14 @@ def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
                            warnings, _pooling_dict(fleet, names))
 
 
-#: Below this effective number of posterior draws after pooling, forecast warns: the unit's
-#: Monte Carlo rests on that many distinct trend states (the benchmark's seeds 11-12, 1000
-#: kept draws: 44-47 at the lowest, 150-180 the median).
-POOL_MIN_ESS = 30
-
-
-def fleet_sigma_prior(cfg: Config, post) -> Optional["FleetPrior"]:
+def fleet_sigma_prior(cfg: Config, post):
     """The fleet's prior of the joint method's year-to-year sd (:mod:`.calibrate.fleet`),
     fitted on the posterior's jointly calibrated units; None when ``forecast.pool_sigma`` is
     off or fewer than ``forecast.pool_min_units`` units were calibrated jointly.
+
+    Returns
+    -------
+    FleetPrior or None
 
     Each unit is read once more for its ``sigma`` draws ([keep_draws, d] each), before the
     units stream through the forecast. A posterior written before the prior's scale was
@@ -1381,9 +1383,9 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict,
     trend_post = getattr(up, "trend", None) or {}
     pool_ess = float("nan")
     if fleet is not None and trend_post:
-        trend_post, samples_post, pool_ess = _pool_unit(cfg, unit, trend_post, samples_post,
-                                                        fleet)
-        mean = samples_post.mean(axis=1)
+        trend_post, pooled, pool_ess = _pool_unit(cfg, unit, trend_post, samples_post, fleet)
+        if pooled is not samples_post:
+            samples_post, mean = pooled, pooled.mean(axis=1)
     since = repair_years(cfg, up, years)
     trends = {}
     for i, name in enumerate(names):
