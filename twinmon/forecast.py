@@ -1087,8 +1087,8 @@ def fleet_sigma_prior(cfg: Config, post):
     -------
     FleetPrior or None
 
-    Each unit is read once more for its ``sigma`` draws ([keep_draws, d] each), before the
-    units stream through the forecast. A posterior written before the prior's scale was
+    The units' ``sigma`` draws ([keep_draws, d] each) are read before the units stream
+    through the forecast. A posterior written before the prior's scale was
     recorded (``trend/sigma_scale``) is taken to have been calibrated with this config's
     ``calibrate.prior_width``.
     """
@@ -1097,11 +1097,23 @@ def fleet_sigma_prior(cfg: Config, post):
         return None
     default = cfg.calibrate.prior_width * np.diff(cfg.model.bounds, axis=1).ravel()
     sigmas, bases = [], []
-    for u in post.units:
-        trend = getattr(post.units[u], "trend", None) or {}
-        if trend:
-            sigmas.append(np.asarray(trend["sigma"], float))
-            bases.append(np.asarray(trend.get("sigma_scale", default), float))
+    d = default.size
+    for unit, trend in _sigma_draws(post):
+        sigma = np.asarray(trend["sigma"], float)
+        base = np.asarray(trend.get("sigma_scale", default), float)
+        where = f"{post.path}: /units/{unit}/trend/sigma"
+        if sigma.ndim != 2 or sigma.shape[1] != d or not sigma.size:
+            raise ArtifactError(f"{where} must have shape (draws, {d}), got {sigma.shape}")
+        bad = ~(np.isfinite(sigma) & (sigma >= 0))
+        if bad.any():
+            j, i = np.argwhere(bad)[0]
+            raise ArtifactError(f"{where} must hold finite values >= 0, got {sigma[j, i]} "
+                                f"at draw {j}, input {i}")
+        if base.shape != (d,) or not np.all(np.isfinite(base) & (base > 0)):
+            raise ArtifactError(f"{post.path}: /units/{unit}/trend/sigma_scale must hold "
+                                f"{d} finite values > 0, got {base.tolist()}")
+        sigmas.append(sigma)
+        bases.append(base)
     if len(sigmas) < cfg.forecast.pool_min_units:
         return None
     if not np.allclose(bases, bases[0], rtol=1e-9):
@@ -1110,6 +1122,26 @@ def fleet_sigma_prior(cfg: Config, post):
             "priors of their year-to-year sd (calibrate.prior_width); pooling them needs one "
             "(re-run calibrate, or set forecast.pool_sigma: false)")
     return fit_fleet_prior(sigmas, bases[0])
+
+
+def _sigma_draws(post):
+    """``(unit, {"sigma": [n, d][, "sigma_scale": [d]]})`` per jointly calibrated unit. From
+    a file only those datasets are read, in one opening of it: a sequential posterior, which
+    has no trend, costs a look at each unit's group."""
+    units = post.units
+    if not isinstance(units, artifacts.LazyUnits):
+        for u in units:
+            trend = getattr(units[u], "trend", None) or {}
+            if trend:
+                yield u, trend
+        return
+    with artifacts.open_artifact(units.path, "posterior") as f:
+        for u in units:
+            g = f["units"][u]
+            if "trend" in g:
+                yield u, {key: artifacts.get(g["trend"], key, units.path)
+                          for key in ("sigma", "sigma_scale")
+                          if key == "sigma" or key in g["trend"]}
 
 
 def _pooling_dict(fleet, names: list) -> dict:

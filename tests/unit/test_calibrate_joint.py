@@ -352,3 +352,22 @@ def test_forecast_pools_the_year_to_year_sd_over_the_fleet(setup, tmp_path):
         assert np.isnan(a.units[u].pool_ess)
         assert np.array_equal(a.units[u].samples, b.units[u].samples)
         assert not np.array_equal(a.units[u].samples, fc.units[u].samples)
+
+    # A damaged sigma (NaN) or calibrations under different priors: one line, nothing written.
+    import shutil
+
+    import h5py
+
+    from twinmon.errors import ArtifactError, CalibrationError
+    shutil.copy(tmp_path / "post.h5", tmp_path / "nan.h5")
+    with h5py.File(tmp_path / "nan.h5", "r+") as f:
+        f["units/U2/trend/sigma"][3, 0] = np.nan
+    with pytest.raises(ArtifactError, match=r"nan.h5: /units/U2/trend/sigma must hold finite "
+                       r"values >= 0, got nan at draw 3, input 0"):
+        forecast(q, tmp_path / "nan.h5", tmp / "sur.h5", tmp_path / "fc_nan.h5")
+    shutil.copy(tmp_path / "post.h5", tmp_path / "mixed.h5")
+    with h5py.File(tmp_path / "mixed.h5", "r+") as f:
+        f["units/U4/trend/sigma_scale"][0] *= 2
+    with pytest.raises(CalibrationError, match="different priors of their year-to-year sd"):
+        forecast(q, tmp_path / "mixed.h5", tmp / "sur.h5", tmp_path / "fc_mixed.h5")
+    assert not (tmp_path / "fc_nan.h5").exists() and not (tmp_path / "fc_mixed.h5").exists()
