@@ -26,7 +26,7 @@ tell ``sigma`` from 0 (its likelihood is flat from 0 to about the years' estimat
 and a family that reaches 0 follows that flat stretch down. On benchmarks/prognosis.py
 (fabricated sigma 0.15 and 0.01) a fitted half-Cauchy scale came out a third of the truth
 (0.046 and 0.0036 on seed 11); the log-normal, whose density vanishes at 0, put the fleet's
-median at 0.09-0.16 and 0.009-0.012 over seeds 11-12. ``tau`` is kept at or above
+median at 0.078-0.132 and 0.0088-0.0257 over seeds 11-16 (docs/forecast.md). ``tau`` is kept at or above
 :data:`MIN_TAU`: the units' ``sigma`` may differ, and a prior narrower than that leaves a
 unit only a few percent of its draws.
 
