@@ -550,8 +550,8 @@ class ForecastConfig:
     #: year-to-year variation beyond estimation error) or ``estimate`` (the paper's Student t
     #: interval for a new yearly estimate).
     predictive: Literal["state", "estimate"] = "state"
-    #: The joint method's year-to-year sd: pool it over the fleet (a half-Cauchy prior whose
-    #: scale the fleet's posteriors choose, each unit's draws reweighted to it;
+    #: The joint method's year-to-year sd: pool it over the fleet (a log-normal prior fitted
+    #: on the fleet's posteriors, each unit's draws reweighted to it;
     #: twinmon/calibrate/fleet.py) when at least ``pool_min_units`` units were calibrated
     #: jointly. false: each unit's own prior (``calibrate.prior_width``).
     pool_sigma: bool = True
