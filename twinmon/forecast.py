@@ -1093,9 +1093,10 @@ def fleet_sigma_prior(cfg: Config, post):
     ``calibrate.prior_width``.
     """
     from .calibrate.fleet import fit_fleet_prior
+    from .calibrate.joint import sigma_prior_scale
     if not cfg.forecast.pool_sigma:
         return None
-    default = cfg.calibrate.prior_width * np.diff(cfg.model.bounds, axis=1).ravel()
+    default = sigma_prior_scale(cfg)
     sigmas, bases = [], []
     d = default.size
     for unit, trend in _sigma_draws(post):

@@ -26,9 +26,9 @@ tell ``sigma`` from 0 (its likelihood is flat from 0 to about the years' estimat
 and a family that reaches 0 follows that flat stretch down. On benchmarks/prognosis.py
 (fabricated sigma 0.15 and 0.01) a fitted half-Cauchy scale came out a third of the truth
 (0.046 and 0.0036 on seed 11); the log-normal, whose density vanishes at 0, put the fleet's
-median at 0.078-0.132 and 0.0088-0.0257 over seeds 11-16 (docs/forecast.md). ``tau`` is kept at or above
-:data:`MIN_TAU`: the units' ``sigma`` may differ, and a prior narrower than that leaves a
-unit only a few percent of its draws.
+median at 0.078-0.132 and 0.0088-0.0257 over seeds 11-16 (docs/forecast.md). ``tau`` is
+kept at or above :data:`MIN_TAU`: the units' ``sigma`` may differ, and a prior narrower than
+that leaves a unit only a few percent of its draws.
 
 With fewer than ``forecast.pool_min_units`` units the fleet's ``sigma`` is no better known
 than one unit's, and nothing is pooled.
@@ -58,7 +58,7 @@ def _log_ratio(sigma: np.ndarray, mu: np.ndarray, tau: np.ndarray,
     Parameters
     ----------
     sigma : ndarray, shape [n, d]
-        Draws of the year-to-year sd, input units (> 0).
+        Draws of the year-to-year sd, input units (>= 0).
     mu, tau : ndarray, shape [d]
         The log-normal's log-median and log-sd.
     base : ndarray, shape [d]
@@ -68,6 +68,8 @@ def _log_ratio(sigma: np.ndarray, mu: np.ndarray, tau: np.ndarray,
     -------
     ndarray, shape [n]
     """
+    # A draw at exactly 0 (s crossed 0 in the sampler) has log-normal density 0.
+    sigma = np.maximum(sigma, np.finfo(float).tiny)
     ls = np.log(sigma)
     log_ln = -ls - np.log(tau) - 0.5 * np.log(2 * np.pi) - 0.5 * ((ls - mu) / tau) ** 2
     # hc(s; A) = 2 / (pi A (1 + (s / A)^2))
@@ -98,9 +100,7 @@ class FleetPrior:
 
     def weights(self, sigma: np.ndarray) -> np.ndarray:
         """Normalised importance weights [n] of a unit's draws ``sigma`` [n, d]."""
-        # A draw at exactly 0 (s crossed 0 in the sampler) has log-normal density 0.
-        sigma = np.maximum(np.asarray(sigma, float), np.finfo(float).tiny)
-        lr = _log_ratio(sigma, np.log(self.median), self.tau, self.base)
+        lr = _log_ratio(np.asarray(sigma, float), np.log(self.median), self.tau, self.base)
         return np.exp(lr - logsumexp(lr))
 
     def resample(self, sigma: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, float]:
@@ -137,7 +137,7 @@ def fit_fleet_prior(sigmas: Sequence[np.ndarray], base: np.ndarray) -> FleetPrio
     """
     base = np.asarray(base, float)
     d = base.size
-    sig = [np.maximum(np.asarray(s, float), np.finfo(float).tiny) for s in sigmas]
+    sig = [np.asarray(s, float) for s in sigmas]
 
     def neg_log_marginal(x: np.ndarray) -> float:
         mu, tau = x[:d], np.exp(x[d:])
@@ -145,7 +145,7 @@ def fit_fleet_prior(sigmas: Sequence[np.ndarray], base: np.ndarray) -> FleetPrio
 
     # Start at the units' pooled posterior median of log sigma; mu ranges over the
     # calibration prior's reach (1e-4 A .. 10 A).
-    start = np.median(np.log(np.concatenate(sig)), axis=0)
+    start = np.median(np.log(np.maximum(np.concatenate(sig), np.finfo(float).tiny)), axis=0)
     bounds = ([(float(np.log(b * 1e-4)), float(np.log(b * 10))) for b in base]
               + [(float(np.log(MIN_TAU)), float(np.log(MAX_TAU)))] * d)
     r = minimize(neg_log_marginal, np.r_[np.clip(start, *np.array(bounds[:d]).T),

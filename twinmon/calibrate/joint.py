@@ -452,7 +452,7 @@ class _JointRun:
             ratio[k] = float(np.mean(s_var / noise_var))
             x_ml[k], cov[k] = find_map(make_log_density(sur, self.flows[k], total[k], uniform))
         H = np.linalg.inv(cov)                                          # [K, d, d]
-        A = cfg.calibrate.prior_width * span
+        A = sigma_prior_scale(cfg)
         slope_mean = np.array([s.normal_rate for s in cfg.model.inputs.values()], float)
         # A first guess of sigma: the scatter of the years' maximum-likelihood points about
         # their least-squares lines, less their own variance, at least a tenth of A.
@@ -643,6 +643,12 @@ def calibrate_unit_joint(surrogate, cfg: Config, years, flows, noise_std, rng_se
     while not run.done:
         run.finish(chains(run.plan()))
     return run.result()
+
+
+def sigma_prior_scale(cfg: Config) -> np.ndarray:
+    """Scale ``A`` [d] of sigma's half-Cauchy prior, input units: ``calibrate.prior_width``
+    times each input's design range (recorded with the trend as ``sigma_scale``)."""
+    return cfg.calibrate.prior_width * np.diff(cfg.model.bounds, axis=1).ravel()
 
 
 def last_segment(trend: dict, field: str) -> np.ndarray:
