@@ -311,9 +311,7 @@ def run_fleet(a, seed: int, work: Path) -> dict:
     results = {}
     for method in a.methods.split(","):
         for ch in a.channels.split(","):
-            over = [f"calibrate.channels={CHANNELS[ch]}", *a.set]
-            if method != "sequential":
-                over.append(f"calibrate.method={method}")
+            over = [f"calibrate.channels={CHANNELS[ch]}", f"calibrate.method={method}", *a.set]
             c = load_config(cfg_path, over)
             tag = f"{method}/{ch}"
             post = work / f"post_{method}_{ch}.h5"

@@ -240,7 +240,8 @@ def calibrate_cut(cfg: Config, surrogate_path, obs, units: list, last_year: int,
     Parameters
     ----------
     cfg : Config
-        Its ``calibrate`` section (method, sampler, seed) as for the full history.
+        Its ``calibrate`` section (sampler, seed) as for the full history; the method is
+        the joint one (only a joint posterior's cuts are calibrated again).
     surrogate_path : path-like
     obs : Observations
         The unit's whole records (``read_observations``).
@@ -255,6 +256,9 @@ def calibrate_cut(cfg: Config, surrogate_path, obs, units: list, last_year: int,
     """
     from .calibrate import calibrate, read_posterior
     from .observations import write_observations
+    # The cut's units are fewer than the fleet's: ``calibrate.method: auto`` would pick by
+    # their count, where the cut must be calibrated as the full history was (jointly).
+    cfg = dataclasses.replace(cfg, calibrate=dataclasses.replace(cfg.calibrate, method="joint"))
     workdir = Path(workdir)
     cut_obs = workdir / f"observations_to_{last_year}.h5"
     write_observations(cut_obs, obs.up_to(last_year, units))

@@ -482,7 +482,12 @@ class CalibrateConfig:
     #: the previous year's estimate (calibrate/sequential.py). ``joint``: each unit's whole
     #: history in one posterior with a linear trend per input (restarted at maintenance
     #: events) and its year-to-year scatter inside (calibrate/joint.py; docs/calibration.md).
-    method: Literal["sequential", "joint"] = "sequential"
+    #: ``auto``: ``joint`` when the observations hold a fleet whose year-to-year sd
+    #: ``forecast`` can pool (``forecast.pool_sigma`` and at least ``forecast.pool_min_units``
+    #: units), else ``sequential``: on benchmarks/prognosis.py the pooled joint method is
+    #: the better calibrated one, the unpooled one is not (docs/forecast.md, "The default
+    #: method").
+    method: Literal["auto", "sequential", "joint"] = "auto"
     #: ``joint`` only: moves of the whole trend (levels, slopes, scatter) per Gibbs sweep,
     #: each one surrogate call over the unit's years; the years' own moves are one each.
     joint_trend_moves: int = 5
@@ -785,6 +790,12 @@ class Config:
         result (``EXECUTION_ONLY``) are left out, so changing them does not make ``twinmon
         run`` redo a stage."""
         out = {n: to_plain(getattr(self, n)) for n in names}
+        if "calibrate" in out and self.calibrate.method == "auto":
+            # auto picks the method by forecast's pooling settings, so they decide calibrate's
+            # result: recorded with it (changing them re-runs calibrate, refuses --update).
+            out["calibrate"]["auto_by"] = {"forecast.pool_sigma": self.forecast.pool_sigma,
+                                           "forecast.pool_min_units":
+                                               self.forecast.pool_min_units}
         for section, keys in EXECUTION_ONLY.items():
             if isinstance(out.get(section), dict):
                 for k in keys:

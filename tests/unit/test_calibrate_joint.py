@@ -14,7 +14,8 @@ from twinmon.calibrate.joint_vectorised import run_joint_tasks
 from twinmon.calibrate.vectorised import make_predictor
 from twinmon.config import load_config
 from twinmon.errors import ConfigError
-from twinmon.observations import Observations, UnitObservations, write_observations
+from twinmon.observations import (Observations, UnitObservations, read_observations,
+                                  write_observations)
 from twinmon.reduce import read_surrogate, reduce
 from twinmon.simulate import simulate
 
@@ -250,13 +251,40 @@ def test_calibrate_stage_writes_the_trend_and_reads_it_back(setup, tmp_path):
 
 
 @pytest.mark.parametrize("override, message", [
-    ("calibrate.method=both", r"calibrate.method: expected one of sequential, joint"),
+    ("calibrate.method=both", r"calibrate.method: expected one of auto, sequential, joint"),
     ("calibrate.joint_trend_moves=0", r"calibrate.joint_trend_moves: must be >= 1"),
 ])
 def test_method_is_validated(override, message):
     with pytest.raises(ConfigError, match=message):
         load_config(CONFIGS / "pump.yaml", [override])
-    assert load_config(CONFIGS / "pump.yaml").calibrate.method == "sequential"
+    cfg = load_config(CONFIGS / "pump.yaml")
+    assert cfg.calibrate.method == "auto"
+
+
+def test_auto_picks_the_joint_method_for_a_fleet_it_can_pool():
+    """``calibrate.method: auto``: joint from forecast.pool_min_units units on (the pooled
+    joint method is the better calibrated one), sequential below or without pooling; a
+    method named in the config is used as it is."""
+    from twinmon.calibrate import resolve_method
+    cfg = load_config(CONFIGS / "pump.yaml")
+    assert resolve_method(cfg, 3) == ("sequential", "calibrate.method auto: sequential, 3 "
+                                      "unit(s) < forecast.pool_min_units 5")
+    method, why = resolve_method(cfg, 5)
+    assert method == "joint" and "5 units >= forecast.pool_min_units 5" in why
+    off = load_config(CONFIGS / "pump.yaml", ["forecast.pool_sigma=false"])
+    assert resolve_method(off, 500) == ("sequential", "calibrate.method auto: sequential, "
+                                        "forecast.pool_sigma is false")
+    named = load_config(CONFIGS / "pump.yaml", ["calibrate.method=sequential"])
+    assert resolve_method(named, 500) == ("sequential", "")
+    # The pooling settings decide auto's pick, so calibrate's recorded config holds them
+    # (twinmon run re-runs calibrate when they change); a named method does not need them.
+    three = ["forecast.pool_min_units=3"]
+    assert load_config(CONFIGS / "pump.yaml", three).section_yaml("calibrate") != \
+        cfg.section_yaml("calibrate")
+    assert "forecast.pool_min_units: 3" in \
+        load_config(CONFIGS / "pump.yaml", three).section_yaml("calibrate")
+    assert load_config(CONFIGS / "pump.yaml", three + ["calibrate.method=sequential"]
+                       ).section_yaml("calibrate") == named.section_yaml("calibrate")
 
 
 def test_backtest_calibrates_each_cut_of_a_joint_history_again(setup, tmp_path):
@@ -264,7 +292,6 @@ def test_backtest_calibrates_each_cut_of_a_joint_history_again(setup, tmp_path):
     calibrates each cut's history again from the observations, and without them says its
     scores are optimistic."""
     from twinmon.backtest import backtest, calibrate_cut, read_backtest
-    from twinmon.observations import read_observations
     cfg, cfg_path, tmp, sur = setup
     years = YEARS[:5]
     obs = tmp_path / "obs.h5"
@@ -323,8 +350,24 @@ def test_forecast_pools_the_year_to_year_sd_over_the_fleet(setup, tmp_path):
     quick = ["calibrate.samples=150", "calibrate.burn_in=50", "calibrate.chains=2",
              "calibrate.max_extensions=0", "calibrate.keep_draws=200", "forecast.samples=200",
              "forecast.horizon=3", "forecast.observed_samples=50"]
-    q = load_config(cfg_path, quick)
-    calibrate(q, tmp / "sur.h5", obs, tmp_path / "post.h5")
+    # calibrate.method auto: five units are a fleet to pool over, sampled jointly.
+    q = load_config(cfg_path, quick + ["calibrate.method=auto"])
+    cal = calibrate(q, tmp / "sur.h5", obs, tmp_path / "post.h5")
+    assert cal.method == "joint" and cal.as_dict()["method"] == "joint"
+    assert artifacts.read_provenance(tmp_path / "post.h5")["method"] == "joint"
+    # Four units next time: auto picks the sequential method, which cannot continue a
+    # joint history. Refused, the posterior untouched.
+    from twinmon.errors import ArtifactError
+    four = tmp_path / "obs4.h5"
+    whole = read_observations(obs, "m_flow")
+    write_observations(four, Observations(sur.time, {f"U{s}": whole.units[f"U{s}"]
+                                                     for s in range(4)}, four))
+    before = (tmp_path / "post.h5").read_bytes()
+    with pytest.raises(ArtifactError, match=r"post.h5: sampled with the joint method, this run "
+                       r"uses the sequential method \(calibrate.method auto, 4 units\); "
+                       r"re-run calibrate without --update"):
+        calibrate(q, tmp / "sur.h5", four, tmp_path / "post.h5", update=True)
+    assert (tmp_path / "post.h5").read_bytes() == before
     post = read_posterior(tmp_path / "post.h5")
     span = np.diff(q.model.bounds, axis=1).ravel()
     assert np.allclose(post.units["U0"].trend["sigma_scale"], q.calibrate.prior_width * span)
@@ -358,7 +401,7 @@ def test_forecast_pools_the_year_to_year_sd_over_the_fleet(setup, tmp_path):
 
     import h5py
 
-    from twinmon.errors import ArtifactError, CalibrationError
+    from twinmon.errors import CalibrationError
     shutil.copy(tmp_path / "post.h5", tmp_path / "nan.h5")
     with h5py.File(tmp_path / "nan.h5", "r+") as f:
         f["units/U2/trend/sigma"][3, 0] = np.nan

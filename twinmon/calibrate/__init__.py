@@ -112,6 +112,9 @@ class CalibrateSummary:
     channels: list = field(default_factory=list)
     #: What ``--update`` kept and sampled (:func:`.update.plan_update`); None for a full run.
     update: Optional[dict] = None
+    #: The method the units were sampled with, and why (``calibrate.method: auto``).
+    method: str = "sequential"
+    method_reason: str = ""
 
     def as_dict(self) -> dict:
         units = {}
@@ -143,12 +146,43 @@ class CalibrateSummary:
                             for u, p in self.posterior.items()},
             "warnings": list(self.warnings),
             "output": self.output,
+            "method": self.method,
+            "method_reason": self.method_reason,
         }
         if self.truth_check is not None:
             out["truth_check"] = self.truth_check
         if self.update is not None:
             out["update"] = self.update
         return out
+
+
+def resolve_method(cfg: Config, n_units: int) -> tuple[str, str]:
+    """The method a calibration of ``n_units`` units uses, and why.
+
+    ``calibrate.method`` when it names one; ``auto`` is ``joint`` when ``forecast`` will
+    pool the year-to-year sd over the fleet (``forecast.pool_sigma`` and ``n_units >=
+    forecast.pool_min_units``), else ``sequential``. The joint method is the better
+    calibrated one only pooled: with each unit's own sd its intervals are too wide, and
+    the paper's method is the one for a unit or a handful (docs/forecast.md, "The
+    default method").
+
+    Returns
+    -------
+    method : {"sequential", "joint"}
+    reason : str
+        One line for the user ("" when the config named the method).
+    """
+    method = cfg.calibrate.method
+    if method != "auto":
+        return method, ""
+    fc = cfg.forecast
+    if fc.pool_sigma and n_units >= fc.pool_min_units:
+        return "joint", (f"calibrate.method auto: joint, {n_units} units >= "
+                         f"forecast.pool_min_units {fc.pool_min_units} share a pooled "
+                         "year-to-year sd")
+    why = ("forecast.pool_sigma is false" if not fc.pool_sigma else
+           f"{n_units} unit(s) < forecast.pool_min_units {fc.pool_min_units}")
+    return "sequential", f"calibrate.method auto: sequential, {why}"
 
 
 def _unit_seed(cfg: Config, unit: str) -> int:
@@ -299,6 +333,7 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
             raise ArtifactError(f"{truth_path}: no truth for unit {missing[0]!r}")
 
     model, channels, channel_warnings = _likelihood_model(cfg, surrogate, surrogate_path, obs)
+    method, method_reason = resolve_method(cfg, len(obs.units))
     runs, channel_info = {}, {}
     for unit, u in obs.units.items():
         noise, source = _noise_for(cfg, u)
@@ -308,7 +343,7 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
         if channels:  # one noise per channel, records side by side
             noise, channel_info[unit] = channel_noise(cfg, u, model, noise, source)
             y = stacked_rows(u, model, cfg.model.output.name)
-        if cfg.calibrate.method == "joint":   # the parallel grain: the unit's chains
+        if method == "joint":   # the parallel grain: the unit's chains
             from .joint import _JointRun
             runs[unit] = _JointRun(model, cfg, u.years, y, noise, _unit_seed(cfg, unit),
                                    source, getattr(u, "events", []))
@@ -317,8 +352,8 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
                                   source)
     from .update import Kept, plan_update, year_digests
     digests = {unit: year_digests(r.flows, r.noise) for unit, r in runs.items()}
-    resume, update_info = plan_update(cfg, surrogate.fingerprint(), output, runs) if update \
-        else ({}, None)
+    resume, update_info = plan_update(cfg, surrogate.fingerprint(), output, runs, method) \
+        if update else ({}, None)
     total = sum(len(r.years) for r in runs.values())
     n_tasks = len(runs) * cfg.calibrate.chains
     workers = min(cfg.calibrate.workers or len(os.sched_getaffinity(0)), n_tasks)
@@ -331,7 +366,7 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
     fork = hasattr(os, "fork") or cfg.calibrate.executor == "dask"
     pool_args = (_init_worker, (model if fork else None, str(surrogate_path),
                                 cfg.model.output.name, tuple(channels)))
-    if cfg.calibrate.sampler == "vectorised" and cfg.calibrate.method == "sequential":
+    if cfg.calibrate.sampler == "vectorised" and method == "sequential":
         # every run finished by the vectorised sampler
         from .vectorised import run_vectorised
         run_vectorised(cfg, model, runs, resume, output, progress, pool_args)
@@ -376,10 +411,11 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
     # neither read nor compressed again.
     base = output if any(p.samples_from for p in posterior.values()) else None
     write_posterior(output, posterior, names, cfg, inputs, surrogate_id=surrogate.fingerprint(),
-                    base=base)
+                    base=base, method=method)
     check = truth_check(posterior, truth, names) if truth is not None else None
     return CalibrateSummary(names, posterior, warnings, str(output), check, windows,
-                            channels=[cfg.model.output.name] + channels, update=update_info)
+                            channels=[cfg.model.output.name] + channels, update=update_info,
+                            method=method, method_reason=method_reason)
 
 
 def sampling_pool(pool, output):

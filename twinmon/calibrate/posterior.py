@@ -303,7 +303,7 @@ def _records(p: UnitPosterior) -> np.ndarray:
 
 def write_posterior(path, posterior: dict[str, UnitPosterior], input_names: list[str],
                     cfg: Config, inputs, surrogate_id: str = "",
-                    base: str | os.PathLike | None = None) -> None:
+                    base: str | os.PathLike | None = None, method: str = "") -> None:
     """Write ``posterior.h5`` atomically (layout in the module docstring).
 
     A unit is two datasets: its per-year results as one compound ``record`` [n_y]
@@ -315,7 +315,8 @@ def write_posterior(path, posterior: dict[str, UnitPosterior], input_names: list
     thinning. Both datasets can grow along the years.
 
     ``surrogate_id`` is the :meth:`~twinmon.reduce.Surrogate.fingerprint` of the surrogate
-    the posterior was sampled through.
+    the posterior was sampled through; ``method`` the method it was sampled with
+    (``sequential`` or ``joint``: what ``calibrate.method: auto`` resolved to).
 
     ``base``: the ``twinmon.posterior/2`` file that ``calibrate --update`` continues. The new
     file starts as its copy; a unit with ``samples_from > 0`` keeps the draws of its first
@@ -331,6 +332,8 @@ def write_posterior(path, posterior: dict[str, UnitPosterior], input_names: list
                                   compact=True, base=base) as f:
         if surrogate_id:
             f.attrs["surrogate_id"] = surrogate_id
+        if method:
+            f.attrs["method"] = method
         f.attrs["input_names"] = json.dumps(list(input_names))
         f.attrs["input_units"] = json.dumps([cfg.model.inputs[n].units for n in input_names])
         out_units = cfg.model.output.units

@@ -79,7 +79,8 @@ class Kept:
 
 
 def plan_update(cfg: Config, surrogate_id: str, output: str | os.PathLike,
-                runs: dict) -> tuple[dict[str, UnitPosterior], dict]:
+                runs: dict, method: str = "sequential"
+                ) -> tuple[dict[str, UnitPosterior], dict]:
     """Which units continue an earlier ``posterior.h5`` and from where.
 
     Parameters
@@ -91,6 +92,8 @@ def plan_update(cfg: Config, surrogate_id: str, output: str | os.PathLike,
         The posterior to update (also the one to write).
     runs : dict unit -> object with ``years``, ``flows``, ``noise``
         This run's units and their data.
+    method : {"sequential", "joint"}
+        The method this run samples with (:func:`~twinmon.calibrate.resolve_method`).
 
     Returns
     -------
@@ -127,8 +130,16 @@ def plan_update(cfg: Config, surrogate_id: str, output: str | os.PathLike,
         raise ArtifactError(f"{path}: made through another surrogate (surrogate_id "
                             f"{str(prov.get('surrogate_id', ''))[:12] or 'missing'}, this one "
                             f"{surrogate_id[:12]}); re-run calibrate without --update")
-    resume, new, redone = {}, [], []
     stored = dict(post.units.each())        # one opening of the file for the whole fleet
+    # ``calibrate.method: auto`` picks by the fleet's size, so the same config can pick
+    # another method once units are added: the stored years cannot be continued then.
+    was = prov.get("method") or ("joint" if any(p.trend for p in stored.values())
+                                 else "sequential")
+    if was != method:
+        raise ArtifactError(f"{path}: sampled with the {was} method, this run uses the "
+                            f"{method} method (calibrate.method {cfg.calibrate.method}, "
+                            f"{len(runs)} units); re-run calibrate without --update")
+    resume, new, redone = {}, [], []
     for unit, run in runs.items():
         if unit not in stored:
             new.append(unit)
@@ -144,7 +155,7 @@ def plan_update(cfg: Config, surrogate_id: str, output: str | os.PathLike,
             list(p.digest) == year_digests(run.flows, run.noise)[:n]
         if not same:
             redone.append(unit)
-        elif n == len(years) or getattr(cfg.calibrate, "method", "sequential") == "sequential":
+        elif n == len(years) or method == "sequential":
             resume[unit] = p      # a joint history is one posterior: new years redo it all
     kept = sum(len(p.years) for p in resume.values())
     return resume, {"from": str(path), "kept_years": kept, "new_years": total - kept,

@@ -41,6 +41,8 @@ def calibrate(config_path, overrides, surrogate, observations, truth, output, up
         emit_json(s.as_dict())
         return
     d = s.as_dict()
+    if s.method_reason:
+        say(f"calibrate: {s.method_reason}")
     if s.update is not None:
         u = s.update
         say(f"calibrate --update: {u['kept_years']} unit-year(s) kept from "

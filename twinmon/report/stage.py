@@ -189,6 +189,9 @@ def _render(cfg: Config, inp: Inputs, tmp: Path, out: Path, provenance: dict,
             if sub.posterior.units:
                 errors.append((len(sub.posterior.units), fig_estimates(figs, sub, colours)))
         calibration_info = calibration_diagnostics(inp)
+        note = _method_note(inp.posterior.path, len(inp.posterior.units))
+        if note:
+            notes.append(note)
         check = _pooled_truth_check(errors)
         if check:
             calibration_info["truth_check"] = check
@@ -330,6 +333,23 @@ def _only(diag: dict, units: list) -> dict:
                         "min_ess": min(d["min_ess"] for d in per_unit.values()),
                         "warned_units": len({x.split(" year ")[0] for x in diag["warnings"]})}
     return out
+
+
+def _method_note(path, n_units: int) -> str:
+    """Which calibration method the posterior was sampled with (``calibrate.method: auto``
+    picks it by the fleet's size, so the reader is told); "" for a posterior made before it
+    was recorded."""
+    try:
+        method = artifacts.read_provenance(path).get("method", "")
+    except OSError:
+        return ""
+    if method == "joint":
+        return (f"Calibrated with the joint method: each of the {n_units} units' whole "
+                "history in one posterior, its trend inside.")
+    if method == "sequential":
+        return ("Calibrated with the sequential (paper's) method: each year in turn, its "
+                "prior centred on the year before.")
+    return ""
 
 
 def _pooled_truth_check(errors: list) -> dict:
