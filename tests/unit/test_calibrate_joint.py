@@ -392,6 +392,14 @@ def test_forecast_pools_the_year_to_year_sd_over_the_fleet(setup, tmp_path):
     assert off.pooling == few.pooling == {"pooled": False}
     a, b = read_forecast(tmp_path / "off.h5"), read_forecast(tmp_path / "few.h5")
     for u in a.units:
+        # The slopes reported and tested per input are the posterior's, not an OLS fit to
+        # the yearly means (which the trend smooths: its interval would be far too narrow).
+        slopes = post.units[u].trend["slope"][:, 0, :]
+        for i, name in enumerate(q.model.input_names):
+            t = a.units[u].trends[name]
+            assert np.allclose(t.slope_ci, np.quantile(slopes[:, i], [0.05, 0.95]))
+            assert t.slope == pytest.approx(slopes[:, i].mean())
+            assert t.test.startswith("one-sided test on the joint posterior's slope (normal)")
         assert np.isnan(a.units[u].pool_ess)
         assert np.array_equal(a.units[u].samples, b.units[u].samples)
         assert not np.array_equal(a.units[u].samples, fc.units[u].samples)

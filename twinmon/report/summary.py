@@ -345,12 +345,12 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
         for name, t in uf.trends.items():
             if t.rejects:
                 lo, hi = t.slope_ci
-                why.append(f"{name} drifts {t.slope:+.3g}/yr (90 % CI {lo:+.3g} to {hi:+.3g}) "
-                           f"against normal ageing {t.normal_rate:+.3g} +- {t.tolerance:.3g}/yr "
-                           f"({'one' if t.direction else 'two'}-sided t test, p = {t.p_value:.1g})")
+                why.append(f"{name} drifts {t.slope:+.3g}/yr (90 % interval {lo:+.3g} to "
+                           f"{hi:+.3g}) against normal ageing {t.normal_rate:+.3g} +- {t.tolerance:.3g}/yr "
+                           f"({'one' if t.direction else 'two'}-sided test, p = {t.p_value:.1g})")
         if not comps:
             pmin = min(t.p_value for t in uf.trends.values())
-            why.append(f"every input drifts within normal ageing (t tests of the slopes, all "
+            why.append(f"every input drifts within normal ageing (tests of the slopes, all "
                        f"p >= {np.floor(pmin * 100) / 100:.2f})")
         why.append(f"P(unsafe) from {uf.n_samples} Monte Carlo draws of the {ind.name} "
                    f"per year through the twin; failure = first year above {100 * limit:g} %")
