@@ -87,8 +87,8 @@ __all__ = [
     "STATUS_OK", "STATUS_UNCONVERGED", "CalibrateSummary", "LogDensity", "Posterior", "Prior",
     "UnitPosterior", "calibrate", "calibrate_unit", "diagnostics_warnings", "ess",
     "estimate_noise", "find_map", "fit_warnings", "make_log_density", "plan_chains",
-    "read_posterior", "run_chain", "sample_posterior", "split_rhat", "truth_check",
-    "write_posterior", "year_fit", "year_prior",
+    "read_posterior", "resolve_method", "run_chain", "sample_posterior", "split_rhat",
+    "truth_check", "write_posterior", "year_fit", "year_prior",
 ]
 
 ACCEPTANCE_RANGE = (0.1, 0.7)
