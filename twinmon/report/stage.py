@@ -189,7 +189,7 @@ def _render(cfg: Config, inp: Inputs, tmp: Path, out: Path, provenance: dict,
             if sub.posterior.units:
                 errors.append((len(sub.posterior.units), fig_estimates(figs, sub, colours)))
         calibration_info = calibration_diagnostics(inp)
-        note = _method_note(inp.posterior.path, len(inp.posterior.units))
+        note = _method_note(provenance.get("posterior", {}), len(inp.posterior.units))
         if note:
             notes.append(note)
         check = _pooled_truth_check(errors)
@@ -335,14 +335,11 @@ def _only(diag: dict, units: list) -> dict:
     return out
 
 
-def _method_note(path, n_units: int) -> str:
+def _method_note(posterior_provenance: dict, n_units: int) -> str:
     """Which calibration method the posterior was sampled with (``calibrate.method: auto``
-    picks it by the fleet's size, so the reader is told); "" for a posterior made before it
-    was recorded."""
-    try:
-        method = artifacts.read_provenance(path).get("method", "")
-    except OSError:
-        return ""
+    picks it by the fleet's size, so the reader is told), from its provenance attributes;
+    "" for a posterior made before it was recorded."""
+    method = posterior_provenance.get("method", "")
     if method == "joint":
         return (f"Calibrated with the joint method: each of the {n_units} units' whole "
                 "history in one posterior, its trend inside.")
