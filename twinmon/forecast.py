@@ -50,8 +50,8 @@ import numpy as np
 from . import artifacts
 from .config import Config
 from .errors import ArtifactError, CalibrationError
-from .prognosis import (AMBIGUOUS, HEALTHY, Attribution, IndicatorDrift, attribute,
-                        box_test_uniform, filter_error_covariance, gradient_from,
+from .prognosis import (AMBIGUOUS, HEALTHY, POSTERIOR_DOF, Attribution, IndicatorDrift,
+                        attribute, box_test_uniform, filter_error_covariance, gradient_from,
                         gradient_points, indicator_drift, mid_state, separating_channel,
                         slope_covariance)
 
@@ -896,11 +896,6 @@ def estimate_error_covariance(cfg: Config, post_cov: np.ndarray, sequential: boo
     return filter_error_covariance(post_cov, prior_var, cfg.calibrate.prior_carry_variance)
 
 
-#: Degrees of freedom of the joint method's slope covariance in the tests: taken as known (the
-#: posterior's draws carry their own uncertainty), a Student t with this many is the normal.
-POSTERIOR_DOF = 10 ** 6
-
-
 def judge(cfg: Config, unit: str, plan: dict, ind_obs: np.ndarray, gradient: np.ndarray,
           directions: dict, observed: set) -> tuple[IndicatorDrift, Attribution]:
     """Detection on the health indicator, then attribution (see :mod:`twinmon.prognosis`).
@@ -918,12 +913,17 @@ def judge(cfg: Config, unit: str, plan: dict, ind_obs: np.ndarray, gradient: np.
     alpha = cfg.forecast.alpha
     years = plan["years"]
     after = years >= plan["since"]     # a repair restarts the trends
+    slope_draws = plan["slope_draws"]
+    # A joint unit's indicator slope is its posterior trend's (the slopes of the last
+    # segments, i.e. after any repair), through the gradient: the null is built on the same
+    # linearisation.
     drift = indicator_drift(years[after], ind_obs[after], gradient, rate, tol,
-                            ind.sense, alpha, _unit_rng(cfg, unit, 2))
+                            ind.sense, alpha, _unit_rng(cfg, unit, 2),
+                            slope_draws=None if slope_draws is None
+                            else slope_draws @ np.asarray(gradient, float))
     trends = plan["trends"]
     tl = [trends[n] for n in names]
     dirs = [directions[n].sign for n in names]
-    slope_draws = plan["slope_draws"]
     if slope_draws is not None:
         # The joint method sampled the slopes with the years: test its posterior's own
         # slopes (their spread includes the year-to-year variation and every year's

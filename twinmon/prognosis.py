@@ -7,7 +7,8 @@ slope can then sit inside its normal-ageing band while the health indicator -- w
 data do identify -- drifts abnormally. So a unit is judged in two steps:
 
 1. **Detection** (:func:`indicator_drift`): the OLS trend of the unit's yearly indicator
-   (the posterior median of the indicator of each calibrated year) is tested against the
+   (the posterior median of the indicator of each calibrated year; for a jointly calibrated
+   unit, its posterior trend slopes through the twin's gradient) is tested against the
    indicator drift that normal ageing of every input produces. Under normal ageing each
    input's yearly rate is taken as uniform on ``normal_rate +- normal_rate_tolerance``,
    independently across inputs; through the twin's gradient at the unit's mid-history state
@@ -45,6 +46,9 @@ DRAWS = 50_000
 #: Null draws of :func:`box_test_uniform` (each one a projection on the box): the Monte
 #: Carlo sd of a p-value near alpha / 2 = 0.005 is 0.0005.
 BOX_DRAWS = 20_000
+#: Degrees of freedom that stand for "normal": a slope's error taken from posterior draws
+#: (their count is no small-sample correction). ``twinmon.forecast`` uses the same value.
+POSTERIOR_DOF = 10 ** 6
 #: Verdict when no component can be named with enough confidence.
 AMBIGUOUS = "ambiguous"
 HEALTHY = "healthy"
@@ -63,9 +67,10 @@ class IndicatorDrift:
     values : ndarray, shape [n]
         Posterior median of the indicator per year (indicator units).
     slope, slope_se : float
-        OLS slope (indicator units per year) and its standard error; NaN with < 3 years.
+        OLS slope (indicator units per year) and its standard error, or a joint posterior's
+        (:func:`indicator_drift`'s ``slope_draws``); NaN with < 3 years.
     dof : int
-        ``n - 2``.
+        ``n - 2``, or :data:`POSTERIOR_DOF` for a joint posterior's slope.
     normal_slope : float
         Indicator slope when every input ages at its normal rate (indicator units/yr).
     normal_halfwidth : ndarray, shape [d]
@@ -160,7 +165,8 @@ def yearly_indicator(years: np.ndarray, ind_obs: np.ndarray) -> tuple[np.ndarray
 
 
 def indicator_drift(years, ind_obs, gradient, normal_rate, tolerance, sense: int,
-                    alpha: float, rng: np.random.Generator) -> IndicatorDrift:
+                    alpha: float, rng: np.random.Generator,
+                    slope_draws: Optional[np.ndarray] = None) -> IndicatorDrift:
     """Test a unit's indicator trend against what normal ageing of every input produces.
 
     Parameters
@@ -177,6 +183,13 @@ def indicator_drift(years, ind_obs, gradient, normal_rate, tolerance, sense: int
     alpha : float
     rng : numpy Generator
         For the Monte Carlo convolution (seeded per unit by the caller).
+    slope_draws : ndarray, shape [n], optional
+        Posterior draws of the indicator's slope (indicator units per year): a joint
+        posterior's trend slopes through ``gradient``. The slope and its standard error are
+        then theirs (normal error), not the OLS fit's to the yearly values. Those values
+        are smoothed towards the joint trend, so their scatter about a line understates the
+        slope's uncertainty: 4.4 times, median over the 96 healthy units of
+        ``benchmarks/prognosis.py --healthy-only 96``, seed 31.
     """
     from scipy import stats
     yrs, vals = yearly_indicator(years, ind_obs)
@@ -186,13 +199,17 @@ def indicator_drift(years, ind_obs, gradient, normal_rate, tolerance, sense: int
     if yrs.size < 3:
         return IndicatorDrift(yrs, vals, np.nan, np.nan, max(yrs.size - 2, 0), normal, half, g,
                               sense, np.nan, False)
-    x = yrs.astype(float)
-    xc = x - x.mean()
-    sxx = float(xc @ xc)
-    slope = float(xc @ (vals - vals.mean()) / sxx)
-    resid = vals - vals.mean() - slope * xc
-    dof = yrs.size - 2
-    se = float(np.sqrt(resid @ resid / dof / sxx))
+    if slope_draws is not None:
+        draws = np.asarray(slope_draws, float)
+        slope, se, dof = float(draws.mean()), float(draws.std(ddof=1)), POSTERIOR_DOF
+    else:
+        x = yrs.astype(float)
+        xc = x - x.mean()
+        sxx = float(xc @ xc)
+        slope = float(xc @ (vals - vals.mean()) / sxx)
+        resid = vals - vals.mean() - slope * xc
+        dof = yrs.size - 2
+        se = float(np.sqrt(resid @ resid / dof / sxx))
     excess = sense * (slope - normal)
     # Null: excess = sum_i half_i * U(-1, 1) + se * t_dof. The uniform sum is drawn, the t
     # tail is exact given it.

@@ -221,3 +221,24 @@ def test_a_repair_restarts_the_component_trend():
     assert abs(t.slope - spec.normal_rate) < 1e-9 and t.n == 5
     t = segment_trend(YEARS, vals, 9, spec)            # two years since: assumed
     assert t.slope == spec.normal_rate and not t.rejects and "repaired in year 9" in t.test
+
+
+def test_indicator_drift_takes_a_joint_posteriors_slope_draws_over_its_smoothed_years():
+    """A joint posterior's yearly values lie close to its trend: their OLS slope error is
+    far too small. With the posterior's slope draws the test uses their mean and spread."""
+    rng = np.random.default_rng(3)
+    normal = float(GRAD @ RATE)
+    band = float(np.sum(np.abs(GRAD) * TOL))
+    slope = normal + 1.05 * band                    # just past the band's edge
+    smooth = _indicator(slope, 0.0, rng)            # years on the line: OLS se ~ 0
+    ols = indicator_drift(YEARS, smooth, GRAD, RATE, TOL, +1, 0.01, np.random.default_rng(1))
+    draws = slope + 0.15 * rng.standard_normal(4000)
+    post = indicator_drift(YEARS, smooth, GRAD, RATE, TOL, +1, 0.01, np.random.default_rng(1),
+                           slope_draws=draws)
+    assert ols.slope_se < 0.01 and ols.abnormal
+    assert abs(post.slope - draws.mean()) < 1e-12
+    assert abs(post.slope_se - draws.std(ddof=1)) < 1e-12
+    # 1.05 bands out with sd 0.15 (0.4 of a band): a slope inside the band is plausible
+    # (p 0.039 against the OLS fit's < 0.01 at alpha 0.01).
+    assert ols.p_value < 0.01 < 0.02 < post.p_value and not post.abnormal
+    assert post.years.tolist() == YEARS.tolist()    # the yearly values still shown
