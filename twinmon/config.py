@@ -304,15 +304,44 @@ class SimulateConfig:
 
 
 @dataclass(frozen=True)
+class TrajectoryChange:
+    """A change of a part's wear from service year ``year`` on: the input jumps by ``size``
+    (a sudden fault) and, when ``slope`` is given, ages at that rate from then on (``0``: it
+    stays where the jump left it)."""
+
+    year: int
+    size: float = 0.0
+    slope: Optional[float] = None
+
+
+@dataclass(frozen=True)
 class TrajectorySpec:
-    """True yearly trajectory of one input: ``start + slope * (year - 1)`` plus jitter."""
+    """True yearly trajectory of one input, as a function of the part's age ``a`` (years
+    since it was new: ``year - 1``, or since its replacement):
+    ``start + slope * g(a) + curvature * a**2`` plus jitter, where ``g(a) = a`` for linear
+    wear and ``g(a) = (exp(growth * a) - 1) / growth`` for exponential wear (its rate is
+    ``slope`` when new and grows by ``exp(growth)`` a year); then ``changes`` in order."""
 
     start: float
     slope: float = 0.0
     #: Standard deviation of the year-to-year jitter, in the input's units.
     jitter: float = 0.0
-    #: Quadratic term, for trajectories that are not quite linear.
+    #: Quadratic term (accelerating wear when it has the slope's sign), per year squared.
     curvature: float = 0.0
+    #: Exponential growth of the wear rate, per year; 0: linear.
+    growth: float = 0.0
+    #: Steps and changes of rate, in service years (``[{year, size[, slope]}]``).
+    changes: tuple[TrajectoryChange, ...] = ()
+
+    def _check(self):
+        for i, c in enumerate(self.changes):
+            if c.year < 2:
+                yield f"changes.{i}.year", "must be >= 2 (a change needs a year before it)", \
+                    c.year
+            if i and c.year <= self.changes[i - 1].year:
+                yield f"changes.{i}.year", \
+                    f"must be after the previous change's year ({self.changes[i - 1].year})", \
+                    c.year
 
 
 @dataclass(frozen=True)
@@ -346,6 +375,9 @@ class FabricateEvent:
     #: Only a replacement can be fabricated (the part is as new).
     action: Literal["replaced"] = "replaced"
     note: str = ""
+    #: False: the part is replaced but the plant does not record it (the observations
+    #: carry no event; the truth file does, among ``unrecorded_events``).
+    recorded: bool = True
 
 
 @dataclass(frozen=True)
@@ -353,8 +385,20 @@ class UnitSpec:
     trajectories: dict[str, TrajectorySpec]
     effects: dict[str, InjectedEffect] = field(default_factory=dict)
     disturbance: Optional[Disturbance] = None
-    #: Maintenance events, ``[{year, component[, action, note]}]``.
+    #: Maintenance events, ``[{year, component[, action, note, recorded]}]``.
     events: tuple[FabricateEvent, ...] = ()
+    #: The unit's record ends in this year (a thin history); None: ``fabricate.years``.
+    last_year: Optional[int] = None
+    #: Years the plant did not record (the unit still ages through them).
+    missing_years: tuple[int, ...] = ()
+    #: Share of the output's samples lost at random (NaN in the observations).
+    nan_fraction: float = 0.0
+
+    def _check(self):
+        if self.last_year is not None and self.last_year < 1:
+            yield "last_year", "must be >= 1", self.last_year
+        if not 0 <= self.nan_fraction < 1:
+            yield "nan_fraction", "must lie in [0, 1)", self.nan_fraction
 
 
 @dataclass(frozen=True)
@@ -389,6 +433,17 @@ class FabricateConfig:
         if self.noise_std is not None and self.noise_std < 0:
             yield "noise_std", "must be >= 0", self.noise_std
         for unit, spec in self.units.items():
+            end = spec.last_year or self.years
+            if end > self.years:
+                yield f"units.{unit}.last_year", f"must be <= years ({self.years})", end
+            kept = set(range(1, end + 1)) - set(spec.missing_years)
+            for i, y in enumerate(spec.missing_years):
+                if not 1 <= y < end:
+                    yield f"units.{unit}.missing_years.{i}", \
+                        f"must lie in [1, {end - 1}] (the record's last year stays)", y
+            if len(kept) < 2:
+                yield f"units.{unit}.missing_years", "must leave at least two recorded years", \
+                    list(spec.missing_years)
             seen = set()
             for i, ev in enumerate(spec.events):
                 # Year 1 is the first recording: an event then has no "before" to end.
@@ -396,6 +451,11 @@ class FabricateConfig:
                     yield f"units.{unit}.events.{i}.year", \
                         f"must lie in [2, {self.years}] (after the first year, within years)", \
                         ev.year
+                end = spec.last_year or self.years
+                if ev.recorded and (ev.year > end or ev.year in spec.missing_years):
+                    yield f"units.{unit}.events.{i}.year", \
+                        "a recorded event needs that year's recording (it is after the " \
+                        "unit's last year or among its missing_years)", ev.year
                 if (ev.year, ev.component) in seen:
                     yield f"units.{unit}.events.{i}", \
                         f"a second event for {ev.component!r} in year {ev.year}", to_plain(ev)

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from . import artifacts
-from .config import Config, Disturbance
+from .config import Config, Disturbance, TrajectorySpec
 from .errors import ArtifactError, ConfigError, SimulationError
 from .observations import (Event, Observations, UnitObservations, put_events, read_events,
                            write_observations)
@@ -38,13 +38,14 @@ class FabricateSummary:
 
 
 def true_inputs(cfg: Config, rng: np.random.Generator,
-                years: np.ndarray | None = None) -> dict[str, dict[str, np.ndarray]]:
+                years: np.ndarray | dict | None = None) -> dict[str, dict[str, np.ndarray]]:
     """True degradation inputs per unit and year.
 
     Parameters
     ----------
-    years : ndarray of int, shape [n], optional
-        Years of service (1 = the first); default the recorded ones, ``1 .. fabricate.years``.
+    years : ndarray of int, shape [n], or dict unit -> ndarray, optional
+        Years of service (1 = the first), the same for every unit or each unit's own;
+        default ``1 .. fabricate.years``.
 
     Returns
     -------
@@ -54,27 +55,32 @@ def true_inputs(cfg: Config, rng: np.random.Generator,
     Notes
     -----
     The trajectory is a function of the part's age, ``year - 1`` for the original part and
-    ``year - event year`` after a replacement of its component, so a replaced part starts
-    again from ``start`` and ages as the first did. The jitter draws do not depend on the
-    events: a unit without events is the same as before events existed.
+    ``year - event year`` after a replacement of its component (recorded or not), so a
+    replaced part starts again from ``start`` and ages as the first did
+    (:func:`trajectory_path`). The jitter draws do not depend on the events nor on the
+    trajectory's shape: one draw per unit, input and year, in that order.
     """
     fab = cfg.fabricate
-    year = (np.arange(fab.years, dtype=float) if years is None
-            else np.asarray(years, float) - 1)
     out = {}
     for unit, spec in fab.units.items():
+        yrs = years.get(unit) if isinstance(years, dict) else years
+        year = (np.arange(fab.years, dtype=float) if yrs is None
+                else np.asarray(yrs, float) - 1)
         vals = {}
         for name, ispec in cfg.model.inputs.items():
             tr = spec.trajectories.get(name)
             if tr is None:
                 raise ConfigError(f"{cfg.source}: fabricate.units.{unit}.trajectories.{name}: "
                                   "required key is missing")
-            age = year.copy()
+            installed = np.zeros_like(year)
             for ev in sorted(spec.events, key=lambda e: e.year):
                 if ev.component == (ispec.component or name):
-                    age = np.where(year >= ev.year - 1, year - (ev.year - 1), age)
-            vals[name] = (tr.start + tr.slope * age + tr.curvature * age ** 2
-                          + tr.jitter * rng.standard_normal(year.size))
+                    installed = np.where(year >= ev.year - 1, ev.year - 1.0, installed)
+            det = np.empty_like(year)
+            for inst in np.unique(installed):
+                on = installed == inst
+                det[on] = trajectory_path(tr, year[on] - inst, inst)
+            vals[name] = det + tr.jitter * rng.standard_normal(year.size)
         extra = set(spec.trajectories) - set(cfg.model.inputs)
         if extra:
             key = sorted(extra)[0]
@@ -84,9 +90,57 @@ def true_inputs(cfg: Config, rng: np.random.Generator,
     return out
 
 
-def future_inputs(cfg: Config) -> tuple[np.ndarray, dict[str, dict[str, np.ndarray]]]:
-    """The units' true inputs in the ``forecast.horizon`` years after the record, jitter
-    included: what a unit's inputs will really be, the truth a forecast of the unit's
+def trajectory_path(tr: TrajectorySpec, age: np.ndarray, installed: float = 0.0,
+                    n_changes: int | None = None) -> np.ndarray:
+    """A trajectory without its jitter.
+
+    Parameters
+    ----------
+    tr : TrajectorySpec
+    age : ndarray, shape [n]
+        Ages of the part, years (0 in its first year of service).
+    installed : float
+        Years of service before the part was fitted (0: the original part). A change dated
+        before then happened to an older part and is left out.
+    n_changes : int, optional
+        Apply only the first ``n_changes`` changes (all by default).
+
+    Returns
+    -------
+    ndarray, shape [n]
+        ``start + slope * g(age) + curvature * age**2`` with ``g(a) = a`` (linear) or
+        ``expm1(growth * a) / growth`` (exponential), then each change: from its year the
+        value jumps by ``size`` and, with a ``slope``, goes on from the value it had reached
+        at that rate.
+    """
+    age = np.asarray(age, float)
+    g = age if tr.growth == 0 else np.expm1(tr.growth * age) / tr.growth
+    out = tr.start + tr.slope * g + tr.curvature * age ** 2
+    changes = tr.changes if n_changes is None else tr.changes[:n_changes]
+    for k, c in enumerate(changes):
+        at = c.year - 1 - installed
+        if at < 0:
+            continue
+        after = age >= at
+        if c.slope is not None:
+            ref = float(trajectory_path(tr, np.array([at]), installed, k)[0])
+            out = np.where(after, ref + c.slope * (age - at), out)
+        out = np.where(after, out + c.size, out)
+    return out
+
+
+def recorded_years(cfg: Config, unit: str) -> np.ndarray:
+    """The years of ``unit`` the plant recorded, shape [n_y]: ``1 .. last_year`` without
+    its ``missing_years``."""
+    fab = cfg.fabricate
+    spec = fab.units[unit]
+    end = spec.last_year or fab.years
+    return np.array([y for y in range(1, end + 1) if y not in spec.missing_years])
+
+
+def future_inputs(cfg: Config) -> tuple[dict[str, np.ndarray], dict[str, dict[str, np.ndarray]]]:
+    """The units' true inputs in the ``forecast.horizon`` years after each unit's record,
+    jitter included: what a unit's inputs will really be, the truth a forecast of the unit's
     *state* is scored against (a line through the recorded true values has no year-to-year
     variation, so intervals that rightly carry it look too wide against it).
 
@@ -95,11 +149,12 @@ def future_inputs(cfg: Config) -> tuple[np.ndarray, dict[str, dict[str, np.ndarr
 
     Returns
     -------
-    years : ndarray of int, shape [h]
+    years : dict unit -> ndarray of int, shape [h]
     inputs : dict unit -> dict input name -> ndarray, shape [h]
     """
     fab = cfg.fabricate
-    years = fab.years + np.arange(1, cfg.forecast.horizon + 1)
+    years = {u: int(recorded_years(cfg, u)[-1]) + np.arange(1, cfg.forecast.horizon + 1)
+             for u in fab.units}
     return years, true_inputs(cfg, np.random.default_rng([fab.seed, 1]), years)
 
 
@@ -180,11 +235,19 @@ def fabricate(cfg: Config, observations: str | os.PathLike, truth: str | os.Path
         for c in channels:
             x = batch.outputs[c][rows]
             chans[c] = x + ch_std[c] * rng.standard_normal(x.shape)
+        # Every year is simulated and its noise drawn (the streams stay the same), then the
+        # years the plant did not record are left out and lost samples blanked.
+        kept = np.isin(years, recorded_years(cfg, unit))
+        chans = {c: x[kept] for c, x in chans.items()}
+        if spec_u.nan_fraction > 0:
+            lost = (np.random.default_rng([fab.seed, 2, list(fab.units).index(unit)])
+                    .random(chans[out_name].shape) < spec_u.nan_fraction)
+            chans[out_name] = np.where(lost, np.nan, chans[out_name])
         # Noise-free data (noise_fraction 0) record no level: zero is not a usable std.
         noise = ({k: v for k, v in {out_name: out_std, **ch_std}.items() if v > 0}
                  if fab.record_noise else {})
-        obs_units[unit] = UnitObservations(years.copy(), chans, noise, unit_events(spec_u))
-        truth_rows[unit] = (rows, clean)
+        obs_units[unit] = UnitObservations(years[kept], chans, noise, unit_events(spec_u))
+        truth_rows[unit] = ([r for r, k in zip(rows, kept) if k], clean[kept], kept)
 
     section = cfg.section_yaml("model", "fabricate")
     fmu_inputs = [spec.fmu]
@@ -197,10 +260,11 @@ def fabricate(cfg: Config, observations: str | os.PathLike, truth: str | os.Path
     return FabricateSummary(len(fab.units), fab.years, str(observations), str(truth))
 
 
-def unit_events(spec_u) -> list[Event]:
-    """A fabricated unit's events as the plant records them, sorted by year."""
-    return sorted((Event(e.year, e.component, e.action, e.note) for e in spec_u.events),
-                  key=lambda e: e.year)
+def unit_events(spec_u, recorded_only: bool = True) -> list[Event]:
+    """A fabricated unit's events as the plant records them (``recorded_only``) or as they
+    happened, sorted by year."""
+    return sorted((Event(e.year, e.component, e.action, e.note) for e in spec_u.events
+                   if e.recorded or not recorded_only), key=lambda e: e.year)
 
 
 def _write_truth(path, cfg, inputs, truth_rows, batch, spec, time, years, out_std, section,
@@ -212,13 +276,14 @@ def _write_truth(path, cfg, inputs, truth_rows, batch, spec, time, years, out_st
         artifacts.put(f, "time", time, "s", "sample times")
         f.attrs["noise_std"] = out_std
         for unit, spec_u in fab.units.items():
+            rows, clean, kept = truth_rows[unit]
             g = f.create_group(f"units/{unit}")
-            artifacts.put(g, "years", years, "year", "year of service")
+            artifacts.put(g, "years", years[kept], "year", "year of service")
             for name, v in inputs[unit].items():
-                artifacts.put(g, f"inputs/{name}", v, cfg.model.inputs[name].units,
+                artifacts.put(g, f"inputs/{name}", v[kept], cfg.model.inputs[name].units,
                               f"true {name} ({cfg.model.inputs[name].variable}) per year")
             for var, eff in spec_u.effects.items():
-                on = years >= eff.onset
+                on = years[kept] >= eff.onset
                 artifacts.put(g, f"effects/{var}", np.where(on, eff.value, np.nan), "",
                               f"injected value of {var} per year; NaN = off (FMU default)")
                 g[f"effects/{var}"].attrs["onset"] = eff.onset
@@ -227,14 +292,17 @@ def _write_truth(path, cfg, inputs, truth_rows, batch, spec, time, years, out_st
                 g.attrs["disturbance"] = artifacts.json_attr(
                     {"amplitude": d.amplitude, "period": d.period, "onset": d.onset,
                      "shape": d.shape})
-            artifacts.put(g, "future/years", future_years, "year",
+            artifacts.put(g, "future/years", future_years[unit], "year",
                           "years after the record (forecast.horizon of them)")
             for name, v in future[unit].items():
                 artifacts.put(g, f"future/inputs/{name}", v, cfg.model.inputs[name].units,
                               f"true {name} in the years after the record, jitter included")
             if spec_u.events:
-                put_events(g, unit_events(spec_u))
-            rows, clean = truth_rows[unit]
+                put_events(g, unit_events(spec_u, recorded_only=False))
+                hidden = [{"year": e.year, "component": e.component}
+                          for e in spec_u.events if not e.recorded]
+                if hidden:
+                    g.attrs["unrecorded_events"] = artifacts.json_attr(hidden)
             out = cfg.model.output
             artifacts.put(g, f"{out.name}_clean", clean, out.units,
                           f"noise-free {out.label} (with effects and disturbance)")
@@ -258,6 +326,8 @@ class Truth:
     events: dict[str, list[Event]] = field(default_factory=dict)
     future_years: dict[str, np.ndarray] = field(default_factory=dict)
     future_inputs: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
+    #: Per unit, the events the plant did not record, ``[(year, component)]``.
+    unrecorded: dict[str, list[tuple[int, str]]] = field(default_factory=dict)
 
 
 def read_truth(path: str | os.PathLike) -> Truth:
@@ -265,7 +335,7 @@ def read_truth(path: str | os.PathLike) -> Truth:
     import json
     path = Path(path)
     with artifacts.open_artifact(path, "truth") as f:
-        years, inputs, effects, dist, events = {}, {}, {}, {}, {}
+        years, inputs, effects, dist, events, hidden = {}, {}, {}, {}, {}, {}
         fut_years, fut_inputs = {}, {}
         for unit, g in f["units"].items():
             if "future" in g:
@@ -284,5 +354,7 @@ def read_truth(path: str | os.PathLike) -> Truth:
             effects[unit] = {k: v[()] for k, v in g["effects"].items()} if "effects" in g else {}
             if "disturbance" in g.attrs:
                 dist[unit] = json.loads(g.attrs["disturbance"])
+            hidden[unit] = [(int(e["year"]), str(e["component"]))
+                            for e in json.loads(g.attrs.get("unrecorded_events", "[]"))]
         return Truth(years, inputs, effects, dist, float(f.attrs["noise_std"]), events,
-                     fut_years, fut_inputs)
+                     fut_years, fut_inputs, hidden)

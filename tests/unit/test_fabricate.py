@@ -149,3 +149,111 @@ def test_damaged_future_in_truth_is_an_artifact_error(tmp_path, damage):
             f["units/Colt/future/inputs/pump_coef"] = v[:-1]
     with pytest.raises(ArtifactError, match=r"t\.h5: .*/units/Colt/future/"):
         read_truth(t)
+
+
+@pytest.fixture(scope="module")
+def dcdrive_fmu_built():
+    from twinmon.fmu import build_fmu
+    return build_fmu(ROOT / "fmus" / "DCDrive")
+
+
+def _dcdrive_fleet(tmp_path, units: dict, years: int = 8):
+    """A DC drive fleet (not the pump: the shapes are the model's business, not the
+    fabricator's) without noise, so the truth can be compared exactly."""
+    spec = {"extends": str(CONFIGS / "dcdrive.yaml"), "forecast": {"horizon": 3},
+            "fabricate": {"years": years, "noise_std": 0.0, "seed": 3, "units": units}}
+    cfg = load_config(write_yaml(tmp_path / "dc.yaml", spec))
+    fabricate(cfg, tmp_path / "o.h5", tmp_path / "t.h5")
+    return cfg, read_observations(tmp_path / "o.h5"), read_truth(tmp_path / "t.h5")
+
+
+def test_trajectory_shapes(tmp_path, dcdrive_fmu_built):
+    """Exponential wear, a step with a new rate after it, and a step on an exponential
+    part replaced in between: each follows its formula; the jitter-free truth equals it."""
+    flat = {"start": 1.0}
+    units = {
+        "Exp": {"trajectories": {"bearing_friction": {"start": 0.001, "slope": 1e-5,
+                                                      "growth": 0.3},
+                                 "winding_resistance": flat}},
+        "Step": {"trajectories": {"bearing_friction": {"start": 0.001, "slope": 1e-5,
+                                                       "changes": [{"year": 5, "size": 2e-4,
+                                                                    "slope": 0.0}]},
+                                  "winding_resistance": flat}},
+        "Repl": {"trajectories": {"bearing_friction": {"start": 0.001, "slope": 2e-5,
+                                                       "changes": [{"year": 3, "size": 1e-4},
+                                                                   {"year": 7, "size": 5e-5}]},
+                                  "winding_resistance": flat},
+                 "events": [{"year": 5, "component": "bearing"}]}}
+    cfg, obs, truth = _dcdrive_fleet(tmp_path, units)
+    age = np.arange(8.0)
+    exp = 0.001 + 1e-5 * np.expm1(0.3 * age) / 0.3
+    assert np.allclose(truth.inputs["Exp"]["bearing_friction"], exp, rtol=1e-12)
+    step = np.where(age >= 4, 0.001 + 1e-5 * 4 + 2e-4, 0.001 + 1e-5 * age)
+    assert np.allclose(truth.inputs["Step"]["bearing_friction"], step, rtol=1e-12)
+    # The step of year 3 belonged to the part replaced in year 5; the new part, fitted at
+    # the start of year 5, is 2 years old in year 7 when its own step comes.
+    new_age = age - 4
+    repl = np.where(age < 4, 0.001 + 2e-5 * age + np.where(age >= 2, 1e-4, 0.0),
+                    0.001 + 2e-5 * new_age + np.where(age >= 6, 5e-5, 0.0))
+    assert np.allclose(truth.inputs["Repl"]["bearing_friction"], repl, rtol=1e-12)
+    # The future continues the shapes: the step's unit stays flat after its step.
+    assert np.allclose(truth.future_inputs["Step"]["bearing_friction"], step[-1])
+    assert truth.future_inputs["Exp"]["bearing_friction"][0] == pytest.approx(
+        0.001 + 1e-5 * np.expm1(0.3 * 8) / 0.3)
+
+
+def test_thin_irregular_records_and_unrecorded_repairs(tmp_path, dcdrive_fmu_built):
+    """A record that ends early, missing years and lost samples leave the plant's file as
+    a plant would have it; an unrecorded repair changes the inputs but only the truth file
+    knows of it; the fleet's other units are the same as without these options."""
+    tr = {"bearing_friction": {"start": 0.001, "slope": 2e-5, "jitter": 1e-5},
+          "winding_resistance": {"start": 1.0, "slope": 0.01, "jitter": 0.002}}
+    plain = {"A": {"trajectories": tr}, "B": {"trajectories": tr}}
+    (tmp_path / "plain").mkdir()
+    _, obs0, truth0 = _dcdrive_fleet(tmp_path / "plain", plain)
+    odd = {"A": {"trajectories": tr},
+           "B": {"trajectories": tr, "last_year": 6, "missing_years": [2, 4],
+                 "nan_fraction": 0.2,
+                 "events": [{"year": 3, "component": "bearing", "recorded": False},
+                            {"year": 5, "component": "winding"}]}}
+    (tmp_path / "odd").mkdir()
+    _, obs, truth = _dcdrive_fleet(tmp_path / "odd", odd)
+    assert np.array_equal(obs.units["B"].years, [1, 3, 5, 6])
+    assert np.array_equal(truth.years["B"], [1, 3, 5, 6])
+    assert np.array_equal(truth.future_years["B"], [7, 8, 9])
+    y = obs.output_of("B")
+    assert 0.05 < np.isnan(y).mean() < 0.4
+    assert [(e.year, e.component) for e in obs.units["B"].events] == [(5, "winding")]
+    assert [(e.year, e.component) for e in truth.events["B"]] == [(3, "bearing"),
+                                                                    (5, "winding")]
+    assert truth.unrecorded["B"] == [(3, "bearing")] and truth.unrecorded["A"] == []
+    # Unit A is untouched by B's options (same draws).
+    assert np.array_equal(obs.output_of("A"), obs0.output_of("A"))
+    assert np.array_equal(truth.inputs["A"]["bearing_friction"],
+                          truth0.inputs["A"]["bearing_friction"])
+
+
+@pytest.mark.parametrize("unit, key", [
+    ({"missing_years": [8]}, "missing_years.0"),
+    ({"last_year": 9}, "last_year"),
+    ({"missing_years": [2, 3], "last_year": 3}, "missing_years"),
+    ({"events": [{"year": 4, "component": "bearing"}], "missing_years": [4]}, "events.0.year"),
+    ({"nan_fraction": 1.0}, "nan_fraction"),
+])
+def test_bad_record_options_name_the_key(tmp_path, unit, key):
+    tr = {"bearing_friction": {"start": 0.001}, "winding_resistance": {"start": 1.0}}
+    p = write_yaml(tmp_path / "bad.yaml", {
+        "extends": str(CONFIGS / "dcdrive.yaml"),
+        "fabricate": {"years": 8, "units": {"U": {"trajectories": tr, **unit}}}})
+    with pytest.raises(ConfigError, match=rf"fabricate.units.U.{key}"):
+        load_config(p)
+
+
+def test_changes_must_be_in_order(tmp_path):
+    p = write_yaml(tmp_path / "bad.yaml", {
+        "extends": str(CONFIGS / "dcdrive.yaml"),
+        "fabricate": {"years": 8, "units": {"U": {"trajectories": {
+            "bearing_friction": {"start": 0.001, "changes": [{"year": 5}, {"year": 4}]},
+            "winding_resistance": {"start": 1.0}}}}}})
+    with pytest.raises(ConfigError, match=r"bearing_friction.changes.1.year"):
+        load_config(p)
