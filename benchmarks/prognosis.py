@@ -62,13 +62,8 @@ from twinmon.observations import read_observations  # noqa: E402
 from twinmon.reduce import read_surrogate, reduce  # noqa: E402
 from twinmon.simulate import simulate  # noqa: E402
 
-TOL = {"motor_damping": 0.25, "pump_coef": 0.03}
-NORMAL = {"motor_damping": 0.0, "pump_coef": -0.02}
-SIGN = {"motor_damping": 1, "pump_coef": -1}
-COMPONENT = {"motor_damping": "motor", "pump_coef": "pump"}
-#: Excess rates, in tolerances, of the single-component faults (the pump's box allows less).
-MULT = {"pump_coef": [1.25, 1.5, 2.0, 2.0, 2.25, 2.5, 2.75, 3.0, 3.0, 3.25, 3.5, 3.75],
-        "motor_damping": [1.25, 1.5, 2.0, 2.0, 2.5, 3.0, 3.5, 4.0, 4.5, 5.0, 6.0, 7.0]}
+from families import COMPONENT, FAMILIES, NORMAL, SIGN, TOL, fleet  # noqa: E402,F401
+
 CHANNELS = {"flow": [], "speed": ["motor.w"]}
 #: Cut years of the alpha-lambda scores: from the fifth year to the tenth, the whole recorded
 #: history. ``twinmon backtest`` stops at the last year but one, because it scores against
@@ -77,40 +72,6 @@ CHANNELS = {"flow": [], "speed": ["motor.w"]}
 #: year 10) or later was scored on the year-9 forecast, i.e. at lambda of about 0.4
 #: (stops 17-21 did so).
 ALPHA_LAMBDA_CUTS = range(5, 11)
-
-
-def fleet(seed: int, n_healthy: int = 12, n_both: int = 8,
-          faulty: bool = True) -> tuple[dict, dict]:
-    """Fabricate specs of the fleet and each unit's (kind, excess multiple); ``faulty``
-    False: the healthy units alone."""
-    rng = np.random.default_rng(seed)
-    units, kinds = {}, {}
-
-    def add(name, kind, rates, excess):
-        start = {"motor_damping": rng.uniform(9.5, 10.5), "pump_coef": rng.uniform(3.55, 3.75)}
-        units[name] = {"trajectories": {
-            n: {"start": round(float(start[n]), 4), "slope": round(float(rates[n]), 5),
-                "jitter": 0.15 if n == "motor_damping" else 0.01} for n in TOL}}
-        kinds[name] = (kind, float(excess))
-
-    def normal(n):
-        return NORMAL[n] + TOL[n] * rng.uniform(-1, 1)
-
-    for i in range(n_healthy):
-        add(f"H{i:02d}", "healthy", {n: normal(n) for n in TOL}, 0.0)
-    if not faulty:
-        return units, kinds
-    for inp, mults in MULT.items():
-        other = next(n for n in TOL if n != inp)
-        for i, m in enumerate(mults):
-            add(f"{COMPONENT[inp][0].upper()}{i:02d}", COMPONENT[inp],
-                {other: normal(other), inp: NORMAL[inp] + SIGN[inp] * TOL[inp] * m}, m)
-    for i in range(n_both):
-        mm, mp = rng.uniform(1.5, 4.0), rng.uniform(1.5, 3.0)
-        add(f"B{i:02d}", "both", {"motor_damping": TOL["motor_damping"] * mm,
-                                  "pump_coef": NORMAL["pump_coef"] - TOL["pump_coef"] * mp},
-            min(mm, mp))
-    return units, kinds
 
 
 def true_end_of_life(cfg, uf, truth, unit) -> int | None:
@@ -204,6 +165,11 @@ def score(cfg, summary, kinds, truth) -> dict:
     within50 = [rows[u][3].median_failure_year is not None
                 and abs(rows[u][3].median_failure_year - eol[u]) <= 1 for u in fails]
     healthy = [r for r in rows.values() if r[0] == "healthy"]
+    # A unit that truly fails within 3 years of its last record must not be told it is
+    # fine: max P(unsafe) under 5 % with status ok is a confident miss.
+    soon = [u for u in rows if eol[u] is not None and last[u] < eol[u] <= last[u] + 3]
+    missed_soon = [u for u in soon if rows[u][3].status == "ok"
+                   and float(np.max(rows[u][3].p_unsafe)) < 0.05]
     # (successes, trials) of every rate: seeds pool by adding them.
     counts = {"detected": (sum(r[2] != "healthy" for r in strong), len(strong)),
               "false_alarm": (sum(r[2] != "healthy" for r in healthy), len(healthy)),
@@ -213,13 +179,14 @@ def score(cfg, summary, kinds, truth) -> dict:
               "cover_indicator": (int(np.sum(ci)), len(ci)),
               "cover_inputs": (int(np.sum(cx)), len(cx)),
               "fail_within1": (int(np.sum(within)), len(within)),
-              "fail50_within1": (int(np.sum(within50)), len(within50))}
+              "fail50_within1": (int(np.sum(within50)), len(within50)),
+              "soon_missed": (len(missed_soon), len(soon))}
     out = {key: k / n if n else float("nan") for key, (k, n) in counts.items()}
     return {**out, "counts": counts, "confusion": conf, "labels": labels,
             "n_strong": len(strong),
             "failure_years": {u: (rows[u][3].failure_year, rows[u][3].median_failure_year,
                                   eol[u]) for u in fails},
-            "n_fail": len(fails), "eol": eol,
+            "n_fail": len(fails), "eol": eol, "missed_soon": missed_soon,
             "misses": [(u, rows[u][0], round(rows[u][1], 2), rows[u][2]) for u in rows
                        if (rows[u][0] == "healthy") != (rows[u][2] == "healthy")
                        or rows[u][2] not in ("healthy", "ambiguous", rows[u][0])]}
@@ -250,6 +217,8 @@ def main() -> int:
     ap.add_argument("--healthy-only", type=int, default=None, metavar="N",
                     help="fleets of N healthy units and no faulty one: the false-alarm rate "
                          "measured on more units than a mixed fleet's 12")
+    ap.add_argument("--family", default="linear", choices=FAMILIES,
+                    help="the shape of the faulty units' wear (benchmarks/families.py)")
     ap.add_argument("--oracle", action="store_true",
                     help="also score the sequential posteriors centred on the truth "
                          "(tag oracle/CHANNELS)")
@@ -297,8 +266,8 @@ def run_fleet(a, seed: int, work: Path) -> dict:
     configuration; print each one's confusion matrix. Returns tag -> scores."""
     global truth_time
     work.mkdir(parents=True, exist_ok=True)
-    units, kinds = (fleet(seed) if a.healthy_only is None
-                    else fleet(seed, n_healthy=a.healthy_only, faulty=False))
+    units, kinds = (fleet(seed, a.family) if a.healthy_only is None
+                    else fleet(seed, a.family, n_healthy=a.healthy_only, faulty=False))
     cfg_path = work / "bench.yaml"
     cfg_path.write_text(yaml.safe_dump({
         "extends": str(ROOT / "configs" / "pump.yaml"),
@@ -429,6 +398,9 @@ def report(tag: str, r: dict) -> None:
           f"(median failure year {r['fail50_within1']:.3f})")
     print("  failure years (P>5 %, median, true):",
           " ".join(f"{u} {a}/{b}/{c}" for u, (a, b, c) in sorted(r["failure_years"].items())))
+    k, n = r["counts"]["soon_missed"]
+    print(f"  failing within 3 years of the record but told ok with max P(unsafe) < 5 %: "
+          f"{k} of {n} (target 0){': ' + ', '.join(r['missed_soon']) if k else ''}")
     if r["misses"]:
         print("  not right:", r["misses"])
 
