@@ -62,7 +62,7 @@ for unit, u in art.units.items():
 print(rss0, hwm(), time.perf_counter() - t, len(art.units))
 """
 
-#: The commit whose posterior reader read every unit at once (before issue 10, item 4).
+#: The commit whose posterior reader read every unit at once (the layout ``--before`` measures).
 BEFORE = "1bc8e1f"
 
 

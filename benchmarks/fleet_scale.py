@@ -1,4 +1,4 @@
-"""Fleet scale (issue 10): every stage's cost per unit-year at 30, 300 and 1000 units x 10 years.
+"""Fleet scale: every stage's cost per unit-year at 30, 300 and 1000 units x 10 years.
 
 A fabricate config is written in a work folder (it extends configs/pump.yaml; each unit is
 healthy, has a pump fault or a motor fault, with start, slope and fault rate drawn from a
@@ -28,10 +28,10 @@ its pool workers or Dask cluster), as the sum of their proportional set sizes sa
 0.25 s (forked workers share the parent's pages: a sum of RSS would count them once per
 process); "1 proc RSS" is the largest single process's high-water mark (``wait4``), exact.
 
-The default (``make bench``) is the issue's full run. On this 2-core machine 1000 units took
+The default (``make bench``) is the full run. On this 2-core machine 1000 units took
 801 s from simulate through report (``--sizes 30 1000 --dask-sizes 30 --update-sizes 1000
 --reference 0``, load 1.4-2.5: 28 min in all with the 9-year runs and the updates; report
-33 s with its figures drawn by two processes, 43 s before); the
+33 s with its figures drawn by two processes, 43 s in one); the
 default adds 300 units, Dask at 300 and OpenTURNS' sampler at 30 units: about 45 min.
 
     .venv/bin/python benchmarks/fleet_scale.py                 # 30, 300, 1000 (make bench)
@@ -67,7 +67,7 @@ KINDS = ("healthy", "pump", "motor")
 #: The stages timed per fleet size (simulate and reduce run once for all sizes).
 PIPELINE = ("calibrate", "forecast", "diagnose", "report")
 
-#: Targets of issue 10 on this 2-core machine.
+#: The fleet-scale targets on this 2-core machine.
 TARGET_TOTAL_S = 15 * 60
 TARGET_SCALE = 1.3
 TARGET_DASK = 1.25
@@ -203,7 +203,7 @@ class Row:
 
 def sampler_overrides() -> list[str]:
     """The sequential method's vectorised sampler: the one this benchmark's targets were set
-    for. ``calibrate.method: auto`` (the default since stop 21) would sample fleets of 5
+    for. ``calibrate.method: auto`` (the default) would sample fleets of 5
     units or more jointly, at about 17x the CPU per unit-year (docs/forecast.md)."""
     names = {f.name for f in dataclasses.fields(CalibrateConfig)}
     return (["--set", "calibrate.sampler=vectorised"] if "sampler" in names else []) + \

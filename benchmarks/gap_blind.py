@@ -32,7 +32,7 @@ from twinmon.config import Disturbance  # noqa: E402
 from twinmon.fabricate import disturbance_signal, fabricate, read_truth  # noqa: E402
 from twinmon.fmu import FMUModel, resolve_fmu  # noqa: E402
 
-#: Effects whose flow signature is distinct (DESIGN.md section 2: transient-type effects);
+#: Effects whose flow signature is distinct (the transient-type effects of docs/model.md);
 #: the plateau-type ones look alike on the flow channel alone.
 FLOW_SEPARABLE = ("sensor.tau", "valve.opening_time", "motor.start_delay")
 

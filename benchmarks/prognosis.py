@@ -1,4 +1,4 @@
-"""Prognosis benchmark (issue 9): detection, attribution, intervals and time to failure.
+"""Prognosis benchmark: detection, attribution, intervals and time to failure.
 
 A seeded fleet of pump units (configs/pump.yaml's model) over ten years: healthy units whose
 inputs age anywhere inside their normal band, pump faults, motor faults and both, with excess
@@ -69,8 +69,7 @@ CHANNELS = {"flow": [], "speed": ["motor.w"]}
 #: history. ``twinmon backtest`` stops at the last year but one, because it scores against
 #: later recordings. Here the truth knows the years after the tenth, so the forecast made in
 #: year 10 can be scored too. Without it, a unit failing in year 15 (lambda = 0.5 falls on
-#: year 10) or later was scored on the year-9 forecast, i.e. at lambda of about 0.4
-#: (stops 17-21 did so).
+#: year 10) or later would be scored on the year-9 forecast, i.e. at lambda of about 0.4.
 ALPHA_LAMBDA_CUTS = range(5, 11)
 
 

@@ -1,4 +1,4 @@
-"""Shared fixtures: the real FMU (built once per session) and small configs in tmp folders."""
+"""Shared fixtures: the real FMU (built once per test run) and small configs in tmp folders."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -70,7 +70,7 @@ def small_fleet_config(tmp_path, fmu_path) -> Path:
 
 @pytest.fixture(scope="session")
 def calibrated_fleet(tmp_path_factory, fmu_path):
-    """The shipped fleet through the real stages once per session: simulate, reduce,
+    """The shipped fleet through the real stages once per test run: simulate, reduce,
     fabricate (configs/fleet.yaml) and calibrate with the truth check.
 
     Returns (cfg, folder, calibrate summary); the folder holds sims.h5, sur.h5, fleet.h5,

@@ -1,6 +1,6 @@
-"""Fault injection: shared helpers and the artifacts every case starts from.
+"""Fault injection: shared functions and the artifacts every case starts from.
 
-The artifacts are made ONCE per session by one ``twinmon run`` on a small design (24 + 8
+The artifacts are made ONCE per test run by one ``twinmon run`` on a small design (24 + 8
 simulations, 2 chains of 200 draws, a fleet of 3 units x 4 years) and copied into each test's
 own folder, so that a case can damage its copy without touching anyone else's.
 

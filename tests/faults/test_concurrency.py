@@ -19,7 +19,7 @@ from .conftest import (ARTIFACTS, TIMEOUT, Snapshot, assert_fails, assert_ok, cm
 def test_two_simulate_into_one_output(work):
     """The second writer stops at once (exit 8, "is being written by"); the first finishes
     and its output is complete. The design (5000 serial runs, a few seconds) is smaller than
-    the issue's 20000 to keep the suite within its time budget; it still holds the lock for
+    20000 runs to keep the suite within its time budget; it still holds the lock for
     seconds after the second one starts."""
     cfg = work / "small.yaml"
     out = work / "big" / "s.h5"
@@ -47,7 +47,7 @@ def test_two_simulate_into_one_output(work):
 
 
 def test_two_runs_into_one_workdir(built):
-    """Made by the session fixture: while the first `twinmon run` (the one that built the
+    """Made by the shared fixture (once per test run): while the first `twinmon run` (the one that built the
     shared artifacts) held its workdir, a second `run` into the same workdir was started."""
     assert built["lock_seen"], "the first run never took the workdir lock"
     second = built["concurrent_run"]

@@ -1,7 +1,7 @@
 """calibrate on the shipped fleet, through the real stages (seeded).
 
 simulate -> reduce -> fabricate (configs/fleet.yaml) -> calibrate --truth.
-Targets from the issue: mean relative error of the posterior mean below 3 % for both inputs
+Targets: mean relative error of the posterior mean below 3 % for both inputs
 (the paper reaches 3.5 % / 3.4 %), 90 % interval coverage between 80 % and 98 %, and chains
 that converged (R-hat, ESS, acceptance within the warning thresholds).
 """

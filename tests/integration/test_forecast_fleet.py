@@ -1,7 +1,7 @@
 """forecast on the shipped fleet, end to end through the real stages (seeded).
 
 fabricate (configs/fleet.yaml) -> simulate -> reduce -> calibrate -> forecast --truth.
-Targets from the issue: root cause Park healthy, Colt pump, Monk motor; predicted failure
+Targets: root cause Park healthy, Colt pump, Monk motor; predicted failure
 years within one year of the true ones (the truth file's recorded future through the FMU).
 """
 from __future__ import annotations

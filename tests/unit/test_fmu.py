@@ -1,6 +1,6 @@
 """Tests of twinmon.fmu and of the PumpCircuit FMU against an independent scipy integration.
 
-The reference below is written from DESIGN.md section 2 and docs/model.md (not ported from
+The reference below is written from the equations of docs/model.md (not ported from
 the C sources): same equations, same guards, integrated with scipy's DOP853 at rtol 1e-10.
 """
 from __future__ import annotations
@@ -41,7 +41,7 @@ DESIGN_POINTS = [(10.0, 3.61), (5.0, 3.0), (25.0, 2.6), (15.0, 3.9)]
 
 
 # ----------------------------------------------------------------------------------------
-# independent reference model (DESIGN.md section 2)
+# independent reference model (docs/model.md)
 
 UALIM, VROT, LM, RM, KI, JM, JP = 380.0, 1400.0, 1.0, 1e-5, 1.0, 4.0, 10.0
 A1, A2, A3 = -88.67, 0.0, 43.15

@@ -1,0 +1,83 @@
+"""The ``forecast`` and ``backtest`` sections: the prognosis (horizon, confidence, trend
+tests, what the future inputs are drawn from) and its scoring on truncated histories."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+
+@dataclass(frozen=True)
+class ForecastConfig:
+    horizon: int = 7
+    confidence: float = 0.90
+    samples: int = 2000
+    #: Significance level of the detection and root-cause trend tests. 0.03 keeps false
+    #: alarms on healthy units within 5 %: on benchmarks/prognosis.py (10 seeds, 120
+    #: healthy units, flow only) 3 false alarms, and 0.959 of the faults at least twice the
+    #: tolerance detected (0.01: none and 0.929).
+    alpha: float = 0.03
+    #: Draw the inputs of a future year jointly, correlated as their regression residuals
+    #: (a multivariate Student t); false: independent Student t marginals.
+    correlate: bool = True
+    #: Posterior samples per observed year run through the twin (P(unsafe) and the
+    #: indicator's history).
+    observed_samples: int = 500
+    #: A unit's prognosis is withheld when at least this many of its years miss the plant or
+    #: sit on the box edge (or its last year does): a twin that misses the data gives none.
+    withhold_years: int = 2
+    #: Give the prognosis of such units anyway (experts; labelled "forced" everywhere).
+    force_prognosis: bool = False
+    #: A degrading unit's verdict names the components abnormal with at least this
+    #: probability; when none is, it is "ambiguous" (with the probabilities).
+    attribution_confidence: float = 0.8
+    #: What the future inputs are drawn from: ``state`` (the unit's true inputs: the trend
+    #: line's uncertainty, including estimation errors carried from year to year, plus the
+    #: year-to-year variation beyond estimation error) or ``estimate`` (the paper's Student t
+    #: interval for a new yearly estimate).
+    predictive: Literal["state", "estimate"] = "state"
+    #: The joint method's year-to-year sd: pool it over the fleet (a log-normal prior fitted
+    #: on the fleet's posteriors, each unit's draws reweighted to it;
+    #: twinmon/calibrate/fleet.py) when at least ``pool_min_units`` units were calibrated
+    #: jointly. false: each unit's own prior (``calibrate.prior_width``).
+    pool_sigma: bool = True
+    pool_min_units: int = 5
+
+    def _check(self):
+        if self.pool_min_units < 2:
+            yield "pool_min_units", "must be >= 2 (one unit cannot inform a fleet's prior)", \
+                self.pool_min_units
+        if not 0.5 <= self.attribution_confidence < 1:
+            yield "attribution_confidence", "must lie in [0.5, 1)", self.attribution_confidence
+        if self.horizon < 1:
+            yield "horizon", "must be >= 1", self.horizon
+        if not 0 < self.confidence < 1:
+            yield "confidence", "must lie in (0, 1)", self.confidence
+        if self.samples < 10:
+            yield "samples", "must be >= 10", self.samples
+        if not 0 < self.alpha < 1:
+            yield "alpha", "must lie in (0, 1)", self.alpha
+        if self.observed_samples < 1:
+            yield "observed_samples", "must be >= 1", self.observed_samples
+        if self.withhold_years < 1:
+            yield "withhold_years", "must be >= 1", self.withhold_years
+
+
+@dataclass(frozen=True)
+class BacktestConfig:
+    """``twinmon backtest``: forecasts from truncated histories scored on the later years."""
+
+    #: The first cut sees this many years (the trends need at least 3).
+    min_years: int = 5
+    #: alpha-lambda accuracy: the predicted RUL must lie within +- alpha * true RUL ...
+    alpha: float = 0.2
+    #: ... at the cut this fraction of the way from the first cut to the end of life.
+    lambda_value: float = 0.5
+
+    def _check(self):
+        if self.min_years < 3:
+            yield "min_years", "must be >= 3 (a trend with intervals needs 3 years)", \
+                self.min_years
+        if not 0 < self.alpha < 1:
+            yield "alpha", "must lie in (0, 1)", self.alpha
+        if not 0 <= self.lambda_value <= 1:
+            yield "lambda_value", "must lie in [0, 1]", self.lambda_value

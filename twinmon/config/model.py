@@ -1,0 +1,184 @@
+"""The ``model`` section: which FMU, which of its inputs are calibrated, what is observed.
+
+:class:`ModelConfig` names the FMU and its calibrated (degradation) inputs
+(:class:`InputSpec`), the observed output and its sample grid (:class:`OutputSpec`,
+:class:`TimeGrid`), further recorded channels (:class:`ChannelSpec`) and the candidate
+unmodelled effects that ``diagnose`` screens (:class:`EffectSpec`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal, Optional
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class InputSpec:
+    """One calibrated (degradation) input of the model.
+
+    ``low``/``high`` bound the design box that the surrogate is trained on and that the
+    year-1 uniform prior covers; ``normal_rate`` is the yearly drift normal ageing allows
+    (signed: a pump coefficient normally falls a little), used for root-cause tests.
+    """
+
+    variable: str
+    low: float
+    high: float
+    nominal: float
+    units: str = "1"
+    description: str = ""
+    component: str = ""
+    normal_rate: float = 0.0
+    normal_rate_tolerance: float = 0.0
+    #: Which way the input moves as the unit degrades (raises the risk of the health
+    #: indicator): ``up`` or ``down``; None: inferred from the twin by ``forecast``.
+    degrading: Optional[Literal["up", "down"]] = None
+
+    def _check(self):
+        if not self.low < self.high:
+            yield "high", f"must be greater than low ({self.low})", self.high
+        if not self.low <= self.nominal <= self.high:
+            yield "nominal", f"must lie in [{self.low}, {self.high}]", self.nominal
+        if self.normal_rate_tolerance < 0:
+            yield "normal_rate_tolerance", "must be >= 0", self.normal_rate_tolerance
+
+
+@dataclass(frozen=True)
+class TimeGrid:
+    """Sample times ``start, start+step, ..., stop`` in seconds."""
+
+    start: float = 2.0
+    stop: float = 50.0
+    step: float = 2.0
+
+    def _check(self):
+        if self.step <= 0:
+            yield "step", "must be > 0", self.step
+        if self.start <= 0:
+            yield "start", "must be > 0 (the model starts from rest at t = 0)", self.start
+        if self.stop < self.start + self.step:
+            yield "stop", f"must be at least start + step ({self.start + self.step:g}): a " \
+                "transient needs two samples or more", self.stop
+
+    @property
+    def times(self) -> np.ndarray:
+        """Sample times, shape [n_t], seconds."""
+        n = int(round((self.stop - self.start) / self.step)) + 1
+        return self.start + self.step * np.arange(n)
+
+
+@dataclass(frozen=True)
+class OutputSpec:
+    """The observed model output and its sample grid.
+
+    ``variable`` is the FMU variable; ``name`` is the channel's name in observation files
+    (default: the variable itself, so a file written for one FMU names what it measured);
+    ``label`` is the words the report uses (default: the name)."""
+
+    variable: str
+    name: str = ""
+    label: str = ""
+    units: str = "1"
+    times: TimeGrid = TimeGrid()
+
+    def __post_init__(self):
+        # Derived defaults, resolved once so every reader sees the same words.
+        if not self.name:
+            object.__setattr__(self, "name", self.variable)
+        if not self.label:
+            object.__setattr__(self, "label", self.name)
+
+    def _check(self):
+        if not self.variable:
+            yield "variable", "must name an FMU variable", self.variable
+
+
+@dataclass(frozen=True)
+class ChannelSpec:
+    """A further FMU variable recorded as an observation channel (speed, pressure, ...)."""
+
+    units: str = ""
+    label: str = ""
+
+
+@dataclass(frozen=True)
+class EffectSpec:
+    """A candidate unmodelled effect, keyed by its FMU parameter; its ``baseline`` value
+    switches it off (gives exactly the base model). (Not ``off``: YAML reads that as false.)"""
+
+    baseline: float
+    low: float
+    high: float
+    units: str = "1"
+    description: str = ""
+    #: The effect alters only what the sensors read, not the machine (a sensor lag or gain):
+    #: it is left out when the twin judges the unit's safety.
+    measurement_only: bool = False
+
+    def _check(self):
+        if not self.low < self.high:
+            yield "high", f"must be greater than low ({self.low})", self.high
+        if not self.low <= self.baseline <= self.high:
+            yield "baseline", f"must lie in [{self.low}, {self.high}]", self.baseline
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Which FMU, which inputs are calibrated, what is observed."""
+
+    fmu: Path
+    inputs: dict[str, InputSpec]
+    output: OutputSpec
+    fmi_type: Literal["CoSimulation", "ModelExchange"] = "CoSimulation"
+    #: Further FMU variables recorded as extra channels, keyed by FMU variable name (a plain
+    #: YAML list of names is accepted too).
+    channels: dict[str, ChannelSpec] = field(default_factory=dict)
+    #: FMU output that is 1 when the twin left its physical domain; "" if the FMU has none.
+    nonphysical: str = ""
+    #: FMU parameters held at a value other than the FMU's default.
+    fixed: dict[str, float] = field(default_factory=dict)
+    #: Candidate unmodelled effects, screened by ``diagnose``.
+    effects: dict[str, EffectSpec] = field(default_factory=dict)
+
+    def _check(self):
+        if len(self.inputs) == 0:
+            yield "inputs", "at least one input is needed", {}
+        if self.output.name in self.channels:
+            yield "channels", f"{self.output.name!r} is the output's own channel name", \
+                self.output.name
+
+    @property
+    def channel_units(self) -> dict[str, str]:
+        """Units per observation channel name: the output's, then each further channel's."""
+        return {self.output.name: self.output.units,
+                **{k: c.units for k, c in self.channels.items()}}
+
+    def variable_words(self, variable: str) -> tuple[str, str]:
+        """``(label, units)`` of an FMU variable: the output's, a channel's, or the bare
+        name with no units for a variable the config does not describe."""
+        if variable == self.output.variable:
+            return self.output.label, self.output.units
+        ch = self.channels.get(variable)
+        return (ch.label if ch is not None and ch.label else variable,
+                ch.units if ch is not None else "")
+
+    @property
+    def input_names(self) -> list[str]:
+        return list(self.inputs)
+
+    @property
+    def components(self) -> dict[str, tuple[str, ...]]:
+        """Input names per component word (an input's ``component``, or its own name when
+        it has none), in config order: what a maintenance event may name."""
+        out: dict[str, tuple[str, ...]] = {}
+        for name, spec in self.inputs.items():
+            key = spec.component or name
+            out[key] = out.get(key, ()) + (name,)
+        return out
+
+    @property
+    def bounds(self) -> np.ndarray:
+        """Design box, shape [n_inputs, 2] (low, high), in each input's units."""
+        return np.array([[s.low, s.high] for s in self.inputs.values()])

@@ -1,0 +1,107 @@
+"""The whole configuration: :class:`Config` holds every section, checks what spans
+sections, and writes the provenance YAML that artifacts record.
+
+``EXECUTION_ONLY`` lists, per section, the keys that only spread the work over processes;
+they are left out of that YAML.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Optional
+
+import numpy as np
+import yaml
+
+from .calibrate import CalibrateConfig
+from .dask import DaskConfig
+from .diagnose import DiagnoseConfig, WindowSpec
+from .fabricate import FabricateConfig
+from .forecast import BacktestConfig, ForecastConfig
+from .model import ModelConfig
+from .reduce import ReduceConfig
+from .report import ReportConfig
+from .safety import SafetyConfig
+from .schema import to_plain
+from .simulate import SimulateConfig
+
+
+@dataclass(frozen=True)
+class Config:
+    """A whole resolved twinmon configuration."""
+
+    model: ModelConfig
+    #: The safety criterion (health indicator and its limit).
+    safety: SafetyConfig
+    seed: int = 0
+    simulate: SimulateConfig = SimulateConfig()
+    reduce: ReduceConfig = ReduceConfig()
+    calibrate: CalibrateConfig = CalibrateConfig()
+    forecast: ForecastConfig = ForecastConfig()
+    backtest: BacktestConfig = BacktestConfig()
+    diagnose: DiagnoseConfig = DiagnoseConfig()
+    fabricate: Optional[FabricateConfig] = None
+    #: The Dask cluster of ``executor: dask`` (never changes a result).
+    dask: DaskConfig = DaskConfig()
+    report: ReportConfig = ReportConfig()
+    #: Where this config came from (not a YAML key).
+    source: Path = field(default=Path("<memory>"), compare=False)
+    #: The merged mapping after overrides (not a YAML key): a base for derived configs.
+    raw: Mapping[str, Any] = field(default_factory=dict, compare=False, repr=False)
+
+    @property
+    def indicator_variable(self) -> str:
+        """The FMU variable the health indicator is computed from."""
+        return self.safety.indicator.variable or self.model.output.variable
+
+    def diagnose_windows(self) -> dict[str, "WindowSpec"]:
+        """The named windows of ``diagnose``: the config's, or the record in thirds."""
+        if self.diagnose.windows:
+            return dict(self.diagnose.windows)
+        t = self.model.output.times.times
+        # Cut half-way between samples so every sample falls in exactly one window.
+        edges = np.quantile(np.concatenate([[0.0], t]), [1 / 3, 2 / 3])
+        return {"early": WindowSpec(0.0, float(edges[0])),
+                "middle": WindowSpec(float(edges[0]), float(edges[1])),
+                "late": WindowSpec(float(edges[1]), float(t[-1]) + 1.0)}
+
+    def _check(self):
+        if not 0 <= self.seed < 2 ** 32:
+            yield "seed", "must lie in [0, 2**32 - 1] (OpenTURNS and numpy seeds)", self.seed
+        for section in ("reduce", "calibrate"):
+            for i, ch in enumerate(getattr(self, section).channels or ()):
+                if ch not in self.model.channels:
+                    yield f"{section}.channels.{i}", "not a key of model.channels (channels: " \
+                        f"{', '.join(self.model.channels) or 'none'})", ch
+        comps = self.model.components
+        for unit, spec in (self.fabricate.units if self.fabricate else {}).items():
+            for i, ev in enumerate(spec.events):
+                if ev.component not in comps:
+                    yield f"fabricate.units.{unit}.events.{i}.component", \
+                        f"not a component of model.inputs (components: {', '.join(comps)})", \
+                        ev.component
+
+    def section_yaml(self, *names: str) -> str:
+        """The resolved YAML of the named sections, recorded in artifacts as provenance.
+
+        Settings that decide how the work is spread over processes but cannot change a
+        result (``EXECUTION_ONLY``) are left out, so changing them does not make ``twinmon
+        run`` redo a stage."""
+        out = {n: to_plain(getattr(self, n)) for n in names}
+        if "calibrate" in out and self.calibrate.method == "auto":
+            # auto picks the method by forecast's pooling settings, so they decide calibrate's
+            # result: recorded with it (changing them re-runs calibrate, refuses --update).
+            out["calibrate"]["auto_by"] = {"forecast.pool_sigma": self.forecast.pool_sigma,
+                                           "forecast.pool_min_units":
+                                               self.forecast.pool_min_units}
+        for section, keys in EXECUTION_ONLY.items():
+            if isinstance(out.get(section), dict):
+                for k in keys:
+                    out[section].pop(k, None)
+        return yaml.safe_dump(out, sort_keys=True)
+
+
+#: Per section, the keys that spread the work over processes without changing any result.
+EXECUTION_ONLY = {"simulate": ("workers", "executor", "chunk_size"),
+                  "calibrate": ("workers", "executor"), "diagnose": ("workers", "executor"),
+                  "dask": ("address", "timeout")}

@@ -1,0 +1,94 @@
+"""In-place edits of an observations file: :func:`add_events` (``twinmon events add``),
+atomic, recorded in the file's ``edits`` attribute."""
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import h5py
+
+from .. import artifacts
+from ..errors import ArtifactError, InputDataError
+from .events import put_events
+from .file import read_observations, validate_observations
+from .records import EVENTS, Event, Observations
+
+
+def add_events(path: str | os.PathLike, events: Mapping[str, Sequence[Event]],
+               components: Sequence[str] | None = None) -> Observations:
+    """Add maintenance events to an existing observations file, in place and atomically.
+
+    The file is copied beside itself, the events written into the copy, the copy read back
+    and validated, and only then renamed over the original: on any error the original is
+    untouched. Everything else in the file (measurements, provenance) is kept byte for
+    byte; the root attribute ``edits`` records the addition.
+
+    Parameters
+    ----------
+    path : path-like
+        A ``twinmon.observations/1`` file.
+    events : mapping of unit to sequence of Event
+    components : sequence of str, optional
+        Components an event may name (the config's); None: any.
+
+    Returns
+    -------
+    Observations
+        The file as it now reads.
+
+    Raises
+    ------
+    InputDataError
+        An unknown unit or component, a year outside the unit's (first, last] recorded
+        years, an event already recorded.
+    """
+    import shutil
+    path = Path(path)
+    with artifacts.output_lock(path, "twinmon events add"):
+        obs = read_observations(path)
+        for unit, evs in events.items():
+            u = obs.units.get(unit)
+            if u is None:
+                raise InputDataError(f"{path}: no unit {unit!r} (units: {', '.join(obs.units)})")
+            for e in evs:
+                if components is not None and e.component not in components:
+                    raise InputDataError(
+                        f"{path}: /units/{unit}/{EVENTS}: year {e.year}: component "
+                        f"{e.component!r} is not a component of the config's model.inputs "
+                        f"(components: {', '.join(components)})")
+                if any((o.year, o.component) == (e.year, e.component) for o in u.events):
+                    raise InputDataError(f"{path}: /units/{unit}/{EVENTS}: year {e.year}: an "
+                                         f"event for {e.component!r} is already recorded")
+            u.events = sorted([*u.events, *evs], key=lambda e: e.year)
+        validate_observations(obs)
+        artifacts.remove_stale_temporaries(path)
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        try:
+            shutil.copyfile(path, tmp)
+            with h5py.File(tmp, "r+") as f:
+                for unit in events:
+                    g = f[f"units/{unit}"]
+                    if EVENTS in g:
+                        del g[EVENTS]
+                    put_events(g, obs.units[unit].events)
+                raw = f.attrs.get("edits", "[]")
+                edits = json.loads(raw.decode() if isinstance(raw, bytes) else raw)
+                added = {u: [dataclasses.asdict(e) for e in evs] for u, evs in events.items()}
+                edits.append({"time": artifacts.utc_now(), "command": "events add",
+                              "events": added})
+                f.attrs["edits"] = json.dumps(edits)
+            back = read_observations(tmp, obs.output or None)
+            if any(back.units[u].events != obs.units[u].events for u in events):
+                raise ArtifactError(f"{path}: the events read back differ from those written")
+            os.replace(tmp, path)
+        except OSError as exc:
+            reason = exc.strerror or str(exc).splitlines()[0]
+            raise OSError(exc.errno, f"cannot write: {reason}", str(path)) from None
+        finally:
+            if tmp.exists():
+                tmp.unlink()
+    obs.path = path
+    return obs
