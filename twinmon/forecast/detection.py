@@ -19,7 +19,8 @@ combines at ``forecast.alpha / 2`` each:
   distribution; the p-value is its tail beyond the observed slope, on the unsafe side.
 * **the inputs' slopes jointly** (:func:`box_test_uniform`): their Mahalanobis distance to
   the box of rates no worse than normal, against the same null. :func:`box_test` is the
-  least-favourable-rates version of that test, kept for comparison.
+  same statistic against the least favourable rates instead, which costs power (figures in
+  :func:`box_test_uniform`).
 """
 from __future__ import annotations
 
@@ -80,7 +81,7 @@ class IndicatorDrift:
     sense: int
     p_value: float
     abnormal: bool
-    #: p-value of the inputs' slopes against the normal-ageing box (:func:`box_test`).
+    #: p-value of the inputs' slopes against the normal-ageing box (:func:`box_test_uniform`).
     p_inputs: float = float("nan")
 
     @property

@@ -1,11 +1,12 @@
 """The fleet's prior of the joint method's year-to-year sd, and each unit's draws under it.
 
-A jointly calibrated unit samples its trend with a year-to-year sd per input; from ten years
-that sd is poorly known. With ``forecast.pool_sigma`` and at least
-``forecast.pool_min_units`` jointly calibrated units, :func:`fleet_sigma_prior` fits a
-log-normal prior of that sd over the fleet (:mod:`twinmon.calibrate.fleet`), and
-:func:`_pool_unit` resamples each unit's draws to its posterior under that prior. It is the
-one thing a unit's forecast takes from the rest of its fleet.
+A jointly calibrated unit samples its trend with a year-to-year sd per input, which ten
+years of one unit cannot tell from the years' estimation errors; the units of a fleet share
+it. With ``forecast.pool_sigma`` and at least ``forecast.pool_min_units`` jointly
+calibrated units, :func:`fleet_sigma_prior` fits a log-normal prior of that sd over the
+fleet (:mod:`twinmon.calibrate.fleet`), and :func:`_pool_unit` resamples each unit's draws
+to its posterior under that prior. It is the one thing a unit's forecast takes from the
+rest of its fleet.
 """
 from __future__ import annotations
 
