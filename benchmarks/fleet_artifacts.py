@@ -87,7 +87,8 @@ def main() -> None:
     args = ap.parse_args()
     cfg = load_config(args.config)
     from twinmon.calibrate import read_posterior, write_posterior
-    from twinmon.forecast import Direction, _write, read_forecast
+    from twinmon.forecast import Direction, read_forecast
+    from twinmon.forecast.artifact import _open_forecast, _write_unit
 
     run = Path(args.run)
     if not (run / "posterior.h5").exists() or not (run / "forecast.h5").exists():
@@ -113,8 +114,10 @@ def main() -> None:
         write_posterior(wd / "posterior.h5", {n: up for n in names}, post.input_names, cfg, [])
         t_post = time.perf_counter() - t
         t = time.perf_counter()
-        _write(wd / "forecast.h5", cfg, {n: uf for n in names}, list(fc.input_names),
-               directions, True, seed=0, inputs=[])
+        with _open_forecast(wd / "forecast.h5", cfg, list(fc.input_names), directions, True,
+                            seed=0, inputs=[]) as f:
+            for n in names:
+                _write_unit(f, cfg, n, uf, list(fc.input_names))
         t_fc = time.perf_counter() - t
         size_p = os.path.getsize(wd / "posterior.h5")
         size_f = os.path.getsize(wd / "forecast.h5")

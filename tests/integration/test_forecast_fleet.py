@@ -87,7 +87,7 @@ def test_truth_is_the_recorded_future(fleet):
         for n in cfg.model.input_names:
             assert np.array_equal(u.true_inputs[n], truth.future_inputs[unit][n][pos])
     assert read_forecast(tmp / "fc.h5").units["Colt"].truth_source == "recorded future"
-    from twinmon.forecast import _add_truth
+    from twinmon.forecast.chunk import _add_truth
     from twinmon.simulate import spec_for
     old = copy.copy(s.units["Colt"])        # the fixture's forecast stays as it is
     _add_truth(cfg, old, "Colt", (truth.years["Colt"], truth.inputs["Colt"], None, None),

@@ -282,14 +282,14 @@ def test_same_forecast_whatever_the_workers_and_chunks(setup, tmp_path, monkeypa
     """Units forecast on a pool of two processes (one chunk of units per task, the FMU in
     each worker) equal those forecast here in chunks of three (the FMU on this process):
     a unit's draws are keyed by its name, a point's prediction is its own."""
-    import twinmon.forecast as fmod
+    import twinmon.forecast.workers as fworkers
     from twinmon.calibrate import read_posterior
     from twinmon.reduce import read_surrogate
     cfg, _, tmp, s = setup
     pooled = dataclasses.replace(cfg, simulate=dataclasses.replace(cfg.simulate,
                                                                    executor="process"))
     forecast(pooled, tmp / "post.h5", tmp / "sur.h5", tmp_path / "pool.h5", workers=2)
-    monkeypatch.setattr(fmod, "_chunk_size", lambda n, w: 3)
+    monkeypatch.setattr(fworkers, "_chunk_size", lambda n, w: 3)
     here, _, _ = forecast_units(cfg, read_posterior(tmp / "post.h5"),
                                 read_surrogate(tmp / "sur.h5"), workers=1)
     assert list(here) == list(s.units)

@@ -1,14 +1,15 @@
-"""Detection on the health indicator, the joint box test and attribution (twinmon.prognosis),
-and the time-to-failure scores of the back-test."""
+"""Detection on the health indicator, the joint box test and attribution
+(twinmon.forecast.detection, .covariance, .attribution), and the time-to-failure scores of
+the back-test."""
 from __future__ import annotations
 
 import numpy as np
 
 from twinmon.backtest import ttf_scores
-from twinmon.forecast import fit_trend
-from twinmon.prognosis import (AMBIGUOUS, attribute, box_distance, box_test,
-                               box_test_uniform, filter_error_covariance, indicator_drift,
-                               slope_covariance)
+from twinmon.forecast.attribution import AMBIGUOUS, attribute
+from twinmon.forecast.covariance import filter_error_covariance, slope_covariance
+from twinmon.forecast.detection import box_distance, box_test, box_test_uniform, indicator_drift
+from twinmon.forecast.trend import fit_trend
 from twinmon.safety import median_failure_year
 
 RATE, TOL = np.array([0.0, -0.02]), np.array([0.25, 0.03])
@@ -206,7 +207,7 @@ def test_a_repair_restarts_the_component_trend():
     from types import SimpleNamespace
 
     from twinmon.config import load_config
-    from twinmon.forecast import repair_years, segment_trend
+    from twinmon.forecast.trend import repair_years, segment_trend
 
     from ..conftest import CONFIGS
     cfg = load_config(CONFIGS / "pump.yaml")

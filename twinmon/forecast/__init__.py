@@ -1,0 +1,213 @@
+"""Stage ``forecast``: trends of the calibrated inputs, failure probability, root cause, plan.
+
+For every unit the yearly posterior means of each degradation input are regressed on the year
+(OpenTURNS ``LinearModelAlgorithm``, ordinary least squares, as in the paper). The fitted lines
+are extended over ``forecast.horizon`` years past the last observation with prediction
+intervals (Student t with ``n - 2`` degrees of freedom, not normal quantiles).
+
+Monte Carlo samples of the inputs drawn from the predictive distribution of the unit's
+future state are propagated through the twin: points inside the surrogate's training box
+through the Gaussian process surrogate (vectorised), points outside it through the FMU
+itself, so a Gaussian process is never extrapolated. A sample is unsafe when its health
+indicator passes ``safety.unsafe_if``, when the FMU reports the non-physical mode, or when
+the FMU run fails. The failure year is the first future year whose probability of being
+unsafe exceeds ``safety.failure_probability``.
+
+Detection and root cause (:func:`~.judge.judge`): the trend of the unit's health indicator
+(its posterior draws per observed year through the twin) is tested against the drift
+normal ageing of every input produces, and the inputs' slopes jointly against the
+normal-ageing box, each at ``forecast.alpha`` / 2. A drifting unit's components get
+probabilities of ageing faster than normal; the verdict names those at or above
+``forecast.attribution_confidence``, or says ``ambiguous`` with the probabilities and the
+unrecorded channel that would tell them apart. Each input keeps its one-sided t test of the
+slope against ``normal_rate`` +- ``normal_rate_tolerance`` in its degrading direction (the
+paper's test, reported per trend).
+
+Units stream through in chunks over ``simulate.executor``'s workers
+(:func:`~.workers.iter_forecast`) and are written as they come back, so memory does not grow
+with the fleet.
+
+See ``docs/forecast.md`` for the choices (OLS on the estimates, correlated draws) and the
+artifact layout.
+
+Layout: one concern per file; each imports only those above it in this table.
+
+=================  ==========================================================================
+``streams.py``     :func:`~.streams.unit_rng`: each unit's random streams, keyed by its name
+``trend.py``       :class:`Trend`, :func:`fit_trend`, repairs, the per-input slope tests
+``covariance.py``  the yearly estimates' error covariance, the slopes' covariance, ``cover``
+``detection.py``   :class:`IndicatorDrift`: the indicator's drift and the inputs' box test
+``attribution.py`` :class:`Attribution`: probabilities of each abnormal component, the
+                   channel that would separate an ambiguous verdict
+``judge.py``       :func:`judge` (detection, then attribution), :func:`verdict`,
+                   :func:`prognosis_status` and the ``STATUS_*`` values
+``twin.py``        :func:`evaluate_twin` (surrogate in the box, FMU outside),
+                   :class:`TwinResult`, :func:`box_is_physical`, the ``SOURCE_*`` values
+``directions.py``  :class:`Direction`, :func:`degrading_directions`
+``predictive.py``  the future inputs' distribution and its draws (``forecast.predictive``)
+``plan.py``        :func:`maintenance_plan`
+``pooling.py``     :func:`fleet_sigma_prior`: the fleet's prior of the joint method's
+                   year-to-year sd, each unit's draws resampled to it
+``unit.py``        :class:`UnitForecast`, :class:`ForecastSummary`
+``artifact.py``    ``forecast.h5``: the writer, :func:`read_forecast`, :class:`Forecast`
+``chunk.py``       a chunk of units: plan each, one batch through the twin, finish each
+``workers.py``     :func:`iter_forecast`: the chunks here or on a process / Dask pool
+``__init__``       the stage :func:`forecast` (writes ``forecast.h5``) and
+                   :func:`forecast_units` (in memory, for ``backtest``)
+=================  ==========================================================================
+"""
+from __future__ import annotations
+
+import os
+import time as _time
+from pathlib import Path
+from typing import Callable, Optional
+
+from .. import artifacts
+from ..config import Config
+from ..errors import ArtifactError
+from .artifact import SECTIONS, Forecast, _open_forecast, _write_unit, read_forecast
+from .attribution import AMBIGUOUS, HEALTHY, SEVERAL, Attribution, attribute
+from .covariance import estimate_error_covariance, filter_error_covariance, slope_covariance
+from .detection import IndicatorDrift, box_test_uniform, indicator_drift
+from .directions import Direction, degrading_directions, indicator_noise
+from .judge import (STATUS_OK, STATUS_UNRELIABLE, STATUS_WITHHELD, judge, prognosis_status,
+                    verdict)
+from .plan import maintenance_plan
+from .pooling import POOL_MIN_ESS, _pooling_dict, fleet_sigma_prior
+from .predictive import (StatePredictive, residual_correlation, sample_predictive,
+                         sample_state, state_interval, state_predictive)
+from .streams import SEED_OFFSET
+from .trend import (POSTERIOR_DOF, SLOPE_CI, Trend, fit_trend, posterior_slope_test,
+                    repair_years, segment_trend, slope_test)
+from .twin import (SOURCE_FAILED, SOURCE_FMU, SOURCE_SURROGATE, TwinResult, box_is_physical,
+                   evaluate_twin)
+from .unit import ForecastSummary, UnitForecast
+from .workers import iter_forecast
+
+__all__ = ["forecast", "forecast_units", "iter_forecast", "read_forecast", "Forecast",
+           "ForecastSummary", "UnitForecast", "SECTIONS", "SEED_OFFSET", "POOL_MIN_ESS",
+           "STATUS_OK", "STATUS_WITHHELD", "STATUS_UNRELIABLE", "SOURCE_SURROGATE",
+           "SOURCE_FMU", "SOURCE_FAILED", "SLOPE_CI", "POSTERIOR_DOF", "Trend", "fit_trend",
+           "repair_years", "segment_trend", "slope_test", "posterior_slope_test", "verdict",
+           "judge", "prognosis_status", "Direction", "degrading_directions",
+           "indicator_noise", "TwinResult", "evaluate_twin", "box_is_physical",
+           "residual_correlation", "sample_predictive", "StatePredictive",
+           "state_predictive", "sample_state", "state_interval", "maintenance_plan",
+           "fleet_sigma_prior", "estimate_error_covariance", "filter_error_covariance",
+           "slope_covariance", "IndicatorDrift", "indicator_drift", "box_test_uniform",
+           "Attribution", "attribute", "AMBIGUOUS", "HEALTHY", "SEVERAL"]
+
+
+def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str | os.PathLike,
+             output: str | os.PathLike, truth_path: str | os.PathLike | None = None,
+             executor=None, workers: Optional[int] = None,
+             progress: Optional[Callable[[int, int], None]] = None) -> ForecastSummary:
+    """Forecast every unit of a posterior and write ``forecast.h5``.
+
+    Units stream through: read from the posterior one chunk at a time, forecast on the pool
+    of :func:`iter_forecast`, written and dropped (the summary keeps each unit's figures, not
+    its Monte Carlo arrays), so memory does not grow with the fleet.
+
+    Parameters
+    ----------
+    cfg : Config
+    posterior_path : path-like
+        Posterior artifact of ``calibrate`` (per unit and year: samples and mean).
+    surrogate_path : path-like
+        Surrogate artifact of ``reduce``.
+    output : path-like
+        The forecast artifact to write.
+    truth_path : path-like, optional
+        Truth file of ``fabricate``: adds each unit's true failure year.
+    executor : Executor, optional
+        For the FMU runs when the units are forecast in this process (one unit, or one
+        worker); defaults to ``cfg.simulate.executor`` with ``cfg.simulate.workers``.
+    workers : int, optional
+        Processes over units (default ``cfg.simulate.workers``; 0 = one per core).
+    progress : callable, optional
+        ``progress(done, total)`` over the units.
+
+    Raises
+    ------
+    ArtifactError
+        An input artifact is missing, of the wrong kind, or made for other inputs.
+    CalibrationError
+        A unit has fewer than 3 years (no prediction interval is possible).
+    """
+    from ..calibrate import read_posterior
+    from ..reduce import check_made_for, read_surrogate
+
+    from ..executors import check_workers
+    start = _time.perf_counter()
+    check_workers(cfg.simulate.workers if workers is None else workers)
+    posterior_path, surrogate_path = Path(posterior_path), Path(surrogate_path)
+    names = cfg.model.input_names
+    post = read_posterior(posterior_path)
+    if list(post.input_names) != names:
+        raise ArtifactError(f"{posterior_path}: posterior inputs {list(post.input_names)} "
+                            f"differ from the config's inputs {names}")
+    sur = read_surrogate(surrogate_path)
+    check_made_for(cfg, surrogate_path, sur.input_names, sur.time, sur.bounds,
+                   "simulate and reduce")
+    if not post.units:
+        raise ArtifactError(f"{posterior_path}: no units in the posterior")
+    made_with = artifacts.read_provenance(posterior_path).get("surrogate_id", "")
+    if made_with and made_with != sur.fingerprint():
+        raise ArtifactError(f"{posterior_path}: calibrated through another surrogate than "
+                            f"{surrogate_path} (their fingerprints differ); re-run calibrate, "
+                            "or pass the surrogate it was made with")
+    truth = None
+    if truth_path is not None:
+        from ..fabricate import read_truth
+        truth = read_truth(truth_path)
+    directions = degrading_directions(cfg, sur)
+    box_ok = box_is_physical(cfg)
+    fleet = fleet_sigma_prior(cfg, post)
+    units = {}
+    with _open_forecast(output, cfg, names, directions, box_ok, seed=cfg.seed + SEED_OFFSET,
+                        inputs=[posterior_path, surrogate_path] +
+                        ([truth_path] if truth_path else [])) as f:
+        f.attrs["sigma_pooling"] = artifacts.json_attr(_pooling_dict(fleet, names))
+        for unit, uf in iter_forecast(cfg, post, sur, posterior_path=posterior_path,
+                                      truth=truth, truth_path=truth_path, executor=executor,
+                                      workers=workers, progress=progress,
+                                      directions=directions, box_ok=box_ok, fleet=fleet):
+            _write_unit(f, cfg, unit, uf, names)
+            units[unit] = uf.slim()
+    warnings = [d.note for d in directions.values() if d.note]
+    few = {u: uf.pool_ess for u, uf in units.items() if uf.pool_ess < POOL_MIN_ESS}
+    if few:
+        worst = min(few, key=few.get)
+        warnings.append(
+            f"{len(few)} unit(s) keep fewer than {POOL_MIN_ESS} effective posterior draws "
+            f"once their year-to-year sd is pooled over the fleet (fewest: {worst}, "
+            f"{few[worst]:.0f}): their forecast rests on few trend draws; a larger "
+            "calibrate.keep_draws keeps more")
+    return ForecastSummary(units, str(output), _time.perf_counter() - start, box_ok,
+                           warnings, _pooling_dict(fleet, names))
+
+
+def forecast_units(cfg: Config, post, sur, *, posterior_path="<memory>", truth=None,
+                   truth_path=None, executor=None, workers: Optional[int] = None,
+                   progress=None, directions=None, box_ok=None) -> tuple[dict, dict, bool]:
+    """The forecast of every unit of a loaded posterior, in memory (no file written).
+
+    ``backtest`` (which calls it on truncated histories) and the benchmarks use it; the
+    arguments are those of :func:`iter_forecast`.
+
+    Returns
+    -------
+    units : dict unit -> UnitForecast
+    directions : dict input -> Direction
+    box_ok : bool
+    """
+    if directions is None:
+        directions = degrading_directions(cfg, sur)
+    if box_ok is None:
+        box_ok = box_is_physical(cfg)
+    units = dict(iter_forecast(cfg, post, sur, posterior_path=posterior_path, truth=truth,
+                               truth_path=truth_path, executor=executor, workers=workers,
+                               progress=progress, directions=directions, box_ok=box_ok,
+                               fleet=fleet_sigma_prior(cfg, post)))
+    return units, directions, box_ok

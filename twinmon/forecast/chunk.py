@@ -1,0 +1,287 @@
+"""Forecast a chunk of units: every unit's Monte Carlo points go through the twin in one batch.
+
+For each unit of the chunk, :func:`_plan_unit` fits the trends and their tests and draws the
+Monte Carlo points (future states, posterior draws of the observed years, the probes of the
+indicator's gradient); the chunk's points then run through the twin at once
+(:func:`~.twin.evaluate_twin`); :func:`_finish_unit` takes each unit's slice back:
+probabilities of being unsafe, failure year, judgement, maintenance plan and prognosis
+status. With a truth file, :func:`_add_truth` adds the true future and failure year.
+:func:`_check_unit` refuses, before any work is sent out, a posterior that cannot be
+forecast. The same code runs in this process or in a pool worker (:mod:`.workers`), on the
+:class:`_TwinState` it was given.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..config import Config
+from ..errors import ArtifactError, CalibrationError
+from .covariance import estimate_error_covariance
+from .detection import gradient_from, gradient_points, mid_state
+from .judge import STATUS_UNRELIABLE, STATUS_WITHHELD, judge, prognosis_status
+from .plan import maintenance_plan
+from .pooling import _pool_unit
+from .predictive import (residual_correlation, sample_predictive, sample_state,
+                         state_interval, state_predictive)
+from .streams import unit_rng
+from .trend import posterior_slope_test, repair_years, segment_trend, slope_test
+from .twin import SOURCE_FAILED, TwinResult, evaluate_twin
+from .unit import UnitForecast
+
+
+class _TwinState:
+    """What forecasting a chunk needs once per process: the config, the surrogate and its
+    numpy form (:class:`~twinmon.calibrate.vectorised.GPBatch`, checked against OpenTURNS
+    when built), the FMU spec and the executor of the FMU runs."""
+
+    def __init__(self, cfg: Config, sur, spec, executor):
+        from ..calibrate.vectorised import make_predictor
+        self.cfg, self.sur, self.spec, self.executor = cfg, sur, spec, executor
+        self.predict = make_predictor(sur)[0]
+
+
+def _check_unit(cfg: Config, posterior_path, unit: str, up) -> None:
+    """A unit's posterior must allow a forecast (raised before any work is sent out)."""
+    years = np.asarray(up.years, int)
+    mean = np.asarray(up.mean, float)
+    d = len(cfg.model.input_names)
+    if years.size < 3:
+        raise CalibrationError(f"{posterior_path}: unit {unit} has {years.size} year(s); a "
+                               "trend with prediction intervals needs at least 3")
+    if mean.shape != (years.size, d) or not np.all(np.isfinite(mean)):
+        raise ArtifactError(f"{posterior_path}: /units/{unit}/mean must be finite with "
+                            f"shape ({years.size}, {d}), got shape {mean.shape}")
+    _check_plausible(posterior_path, unit, np.asarray(up.samples, float), cfg)
+
+
+def _truth_of(truth, truth_path, unit: str):
+    """The unit's (years, inputs, future years, future inputs) of the truth file (the last
+    two None when it has no future), or None without one."""
+    if truth is None:
+        return None
+    if unit not in truth.inputs:
+        raise ArtifactError(f"{truth_path}: unit {unit} is missing from the truth file")
+    return (np.asarray(truth.years[unit], float), truth.inputs[unit],
+            truth.future_years.get(unit), truth.future_inputs.get(unit))
+
+
+def _forecast_chunk(state: _TwinState, units: list, *, directions: dict, box_ok: bool,
+                    fit_windows: list, truth_path, fleet=None) -> list:
+    """Forecast a chunk of units: their Monte Carlo points go through the twin in one batch.
+
+    Parameters
+    ----------
+    state : _TwinState
+    units : list of (unit, UnitPosterior, truth or None)
+
+    Returns
+    -------
+    list of (unit, UnitForecast)
+    """
+    cfg = state.cfg
+    plans, points = [], []
+    for unit, up, _ in units:
+        p, pts = _plan_unit(cfg, unit, up, directions, fleet)
+        plans.append(p)
+        points += pts
+    twin = evaluate_twin(cfg, state.sur, np.concatenate(points), state.executor,
+                         fmu_everywhere=not box_ok, predict=state.predict, spec=state.spec)
+    unsafe_all = twin.unsafe(cfg.safety)
+    out, offset = [], 0
+    for (unit, up, tr), p in zip(units, plans):
+        uf, offset = _finish_unit(cfg, unit, up, p, twin, unsafe_all, offset, directions,
+                                  fit_windows)
+        if tr is not None:
+            _add_truth(cfg, uf, unit, tr, truth_path, state.spec, state.executor)
+        out.append((unit, uf))
+    return out
+
+
+def _plan_unit(cfg: Config, unit: str, up, directions: dict,
+               fleet=None) -> tuple[dict, list]:
+    """A unit's trends, tests and Monte Carlo points (future states, posterior draws of the
+    observed years, the probes of the indicator's gradient) before the twin runs.
+
+    With ``fleet`` (:func:`~.pooling.fleet_sigma_prior`), a jointly calibrated unit's draws -- the
+    years' and the trend's, which are the same chain states -- are first resampled to its
+    posterior under the fleet's prior of the year-to-year sd; its yearly estimates are then
+    those draws' means."""
+    fc = cfg.forecast
+    names = cfg.model.input_names
+    d = len(names)
+    years = np.asarray(up.years, int)
+    mean = np.asarray(up.mean, float)
+    samples_post = np.asarray(up.samples, float)
+    trend_post = getattr(up, "trend", None) or {}
+    pool_ess = float("nan")
+    if fleet is not None and trend_post:
+        trend_post, pooled, pool_ess = _pool_unit(cfg, unit, trend_post, samples_post, fleet)
+        if pooled is not samples_post:
+            samples_post, mean = pooled, pooled.mean(axis=1)
+    since = repair_years(cfg, up, years)
+    trends = {}
+    slope_draws = None
+    if trend_post:
+        from ..calibrate.joint import last_segment
+        slope_draws = last_segment(trend_post, "slope")         # [n, d]
+    for i, name in enumerate(names):
+        spec = cfg.model.inputs[name]
+        t = segment_trend(years, mean[:, i], since[name], spec)
+        t.component = spec.component
+        args = (spec.normal_rate, spec.normal_rate_tolerance, directions[name].sign, fc.alpha)
+        trends[name] = (t if t.test else
+                        posterior_slope_test(t, slope_draws[:, i], *args) if trend_post
+                        else slope_test(t, *args))
+    # The inputs' residuals on the years every trend covers (after the latest repair).
+    common = years >= max(since.values())
+    resid = np.column_stack([mean[common, i] - (trends[n].intercept + trends[n].slope *
+                                                years[common]) for i, n in enumerate(names)])
+    corr = (residual_correlation(resid) if fc.correlate and common.sum() >= 3
+            else np.eye(d))
+    # Probe points of the indicator's gradient at the unit's mid-history state (the
+    # detection's normal-ageing band), evaluated with every other point.
+    probe, step = gradient_points(cfg, mid_state(trends, names))
+    fut = years[-1] + np.arange(1, fc.horizon + 1)
+    post_cov = np.array([np.cov(samples_post[k], rowvar=False).reshape(d, d)
+                         for k in range(years.size)])
+    state = None
+    err_cov = estimate_error_covariance(cfg, post_cov, sequential=not trend_post)
+    if trend_post:
+        # The joint method sampled the trend itself: draw the future from its posterior
+        # predictive (levels, slopes and year-to-year sd), not from lines refitted to
+        # the yearly means.
+        from ..calibrate.joint import trend_predictive
+        rng = unit_rng(cfg, unit, 0)
+        draws = trend_predictive(trend_post, fut, rng)          # [n, h, d]
+        X = draws[rng.integers(0, draws.shape[0], fc.samples)].transpose(1, 0, 2)
+        state = "trend"
+    elif fc.predictive == "state":
+        state = state_predictive([trends[n] for n in names], years[common], resid,
+                                 post_cov[common], fut)
+        X = sample_state(state, fc.samples, unit_rng(cfg, unit, 0))
+    else:
+        X = sample_predictive([trends[n] for n in names], fut, corr, fc.samples,
+                              unit_rng(cfg, unit, 0))
+    n_o = min(fc.observed_samples, samples_post.shape[1])
+    pick = np.sort(unit_rng(cfg, unit, 1).choice(samples_post.shape[1], n_o, replace=False))
+    Xo = samples_post[:, pick, :]
+    plan = dict(years=years, mean=mean, trends=trends, fut=fut, X=X, Xo=Xo, corr=corr,
+                resid=resid, step=step, since=max(since.values()), post_cov=post_cov,
+                err_cov=err_cov, state=state, slope_draws=slope_draws, pool_ess=pool_ess)
+    return plan, [X.reshape(-1, d), Xo.reshape(-1, d), probe]
+
+
+def _finish_unit(cfg: Config, unit: str, up, p: dict, twin: TwinResult,
+                 unsafe_all: np.ndarray, offset: int, directions: dict,
+                 fit_windows: list) -> tuple[UnitForecast, int]:
+    """A unit's forecast from its plan and its slice of the chunk's twin results (starting at
+    ``offset``): probabilities, failure year, verdict, plan, status. Returns it and the
+    offset of the next unit."""
+    from ..safety import failure_year as first_failure
+    fc = cfg.forecast
+    names = cfg.model.input_names
+    d = len(names)
+    h, n_s = p["X"].shape[:2]
+    n_y, n_o = p["Xo"].shape[:2]
+    sl = slice(offset, offset + h * n_s)
+    so = slice(sl.stop, sl.stop + n_y * n_o)
+    sg = slice(so.stop, so.stop + 2 * d)
+    value = twin.value[sl].reshape(h, n_s)
+    p_unsafe = unsafe_all[sl].reshape(h, n_s).mean(axis=1)
+    p_obs = unsafe_all[so].reshape(n_y, n_o).mean(axis=1)
+    fyear = first_failure(p["fut"], p_unsafe, cfg.safety)
+    trends = p["trends"]
+    ind_obs = twin.value[so].reshape(n_y, n_o)
+    drift, attribution = judge(cfg, unit, p, ind_obs, gradient_from(twin.value[sg], p["step"]),
+                               directions, set(getattr(up, "channels", None) or ()))
+    pm, plo, phi = {}, {}, {}
+    for i, (name, t) in enumerate(trends.items()):
+        if isinstance(p["state"], str):      # the joint method's trend draws
+            q = np.quantile(p["X"][:, :, i], [0.5, (1 - fc.confidence) / 2,
+                                              (1 + fc.confidence) / 2], axis=1)
+            pm[name], plo[name], phi[name] = q
+        elif p["state"] is not None:
+            pm[name], plo[name], phi[name] = state_interval(p["state"], i, fc.confidence)
+        else:
+            pm[name], plo[name], phi[name], _ = t.predict(p["fut"], fc.confidence)
+    uf = UnitForecast(
+        years_observed=p["years"], estimates={n: p["mean"][:, i] for i, n in enumerate(names)},
+        years_future=p["fut"], trends=trends, pred_mean=pm, pred_lo=plo, pred_hi=phi,
+        samples=p["X"], indicator=value, nonphysical=twin.nonphysical[sl].reshape(h, n_s),
+        source=twin.source[sl].reshape(h, n_s), p_unsafe=p_unsafe,
+        indicator_observed=ind_obs, p_unsafe_observed=p_obs,
+        failure_year=fyear, root_cause=attribution.verdict,
+        fmu_failures=int(np.sum(twin.source[sl] == SOURCE_FAILED)),
+        drift=drift, attribution=attribution, pool_ess=p["pool_ess"])
+    uf.plan = maintenance_plan(trends, p["fut"], p_unsafe, fyear,
+                               int(p["years"][-1]), float(p_obs[-1]), cfg.safety,
+                               drift=drift, attribution=attribution, cfg=cfg)
+    uf.status, uf.status_reason = prognosis_status(up, cfg, fit_windows)
+    if uf.status == STATUS_WITHHELD:
+        if fc.force_prognosis:
+            uf.forced = True
+            uf.plan = f"FORCED despite: {uf.status_reason}. {uf.plan}"
+        else:
+            # A twin that misses the data predicts nothing about the plant.
+            uf.failure_year, uf.root_cause, uf.plan = None, STATUS_WITHHELD, \
+                uf.status_reason[0].upper() + uf.status_reason[1:] + "."
+    elif uf.status == STATUS_UNRELIABLE:
+        uf.plan = f"{uf.plan} ({uf.status_reason}.)"
+    return uf, sg.stop
+
+
+def _check_plausible(path, unit: str, samples: np.ndarray, cfg: Config) -> None:
+    """Posterior draws must be finite and inside the design box widened by the fit margin
+    (calibration's prior never leaves the box): anything else is a damaged or foreign file,
+    and a forecast from it would be garbage with exit 0."""
+    box = cfg.model.bounds
+    pad = cfg.diagnose.fit_margin * (box[:, 1] - box[:, 0])
+    lo, hi = box[:, 0] - pad, box[:, 1] + pad
+    bad = ~np.isfinite(samples) | (samples < lo) | (samples > hi)
+    if bad.any():
+        k, j, i = np.argwhere(bad)[0]
+        name = cfg.model.input_names[i]
+        raise ArtifactError(f"{path}: /units/{unit}/samples[{k}, {j}, {i}] ({name}) is "
+                            f"{float(samples[k, j, i]):g}, outside the design box "
+                            f"[{box[i, 0]:g}, {box[i, 1]:g}] widened by the fit margin: "
+                            "a damaged or foreign posterior; re-run calibrate")
+
+
+def _add_truth(cfg: Config, uf: UnitForecast, unit: str, truth_unit, truth_path, spec,
+               executor) -> None:
+    """True future inputs, indicator and failure year, run through the FMU.
+
+    ``truth_unit``: the unit's years [n_y], inputs {name: [n_y]}, and the truth file's
+    future years [h] and inputs {name: [h]} or None. The future is the truth file's where it
+    covers the forecast's years (what the unit will really be, year-to-year jitter
+    included); otherwise (truth files written before it was recorded, a longer horizon) each
+    true trajectory's fitted line extended. ``uf.truth_source`` says which."""
+    from ..safety import Indicator, is_unsafe
+    from ..simulate import as_parameters, run_batch
+    ty, inputs, fy, finputs = truth_unit
+    names = cfg.model.input_names
+    realised = False
+    if fy is not None and all(n in finputs for n in names):
+        fy = np.asarray(fy)
+        pos = np.searchsorted(fy, uf.years_future)
+        realised = bool(np.all(pos < fy.size)) and np.array_equal(fy[pos], uf.years_future)
+    Xt = np.empty((uf.years_future.size, len(names)))
+    for i, name in enumerate(names):
+        if name not in inputs:
+            raise ArtifactError(f"{truth_path}: /units/{unit}/inputs/{name} is missing")
+        if realised:
+            Xt[:, i] = np.asarray(finputs[name], float)[pos]
+        else:
+            slope, icpt = np.polyfit(ty, np.asarray(inputs[name], float), 1)
+            Xt[:, i] = icpt + slope * uf.years_future
+    uf.truth_source = "recorded future" if realised else "trend line"
+    batch = run_batch(spec, as_parameters(cfg, Xt), executor)
+    ind = Indicator.from_config(cfg)
+    value = np.where(batch.ok, ind(spec.times, batch.outputs[ind.variable]), np.nan)
+    nph = (batch.outputs[cfg.model.nonphysical][:, -1] > 0.5) if cfg.model.nonphysical else None
+    bad = is_unsafe(value, cfg.safety, nph) | ~batch.ok
+    uf.has_truth = True
+    uf.true_indicator = value
+    uf.true_unsafe = bad
+    uf.true_inputs = {n: Xt[:, i] for i, n in enumerate(cfg.model.input_names)}
+    uf.true_failure_year = int(uf.years_future[np.argmax(bad)]) if bad.any() else None

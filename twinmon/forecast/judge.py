@@ -1,0 +1,148 @@
+"""The judgement of a unit: degrading or not, which component, and whether to trust it.
+
+A unit is judged in two steps (:func:`judge`):
+
+1. **Detection** (:mod:`.detection`): the trend of the unit's health indicator is tested
+   against the drift normal ageing of every input produces, and the inputs' slopes jointly
+   against the normal-ageing box; the unit is degrading when either p-value is below
+   ``forecast.alpha / 2`` (Bonferroni). The first sees a fault the inputs trade off
+   between, the second a fault another input's normal ageing hides from the indicator.
+2. **Attribution** (:mod:`.attribution`): a degrading unit's components get probabilities
+   of ageing faster than normal; the verdict names those at or above
+   ``forecast.attribution_confidence``, or says ``ambiguous`` with the probabilities and the
+   unrecorded channel that would tell them apart.
+
+A repaired component's inputs are fitted from the repair on (:func:`~.trend.segment_trend`):
+their pre-repair history does not make the unit degrading. :func:`verdict` is the paper's
+verdict from the per-input slope tests alone.
+
+:func:`prognosis_status` says whether the twin fits the unit's data well enough for a
+prognosis at all (``ok``, ``withheld``, ``unreliable``), from calibrate's goodness of fit.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..config import Config
+from .attribution import AMBIGUOUS, HEALTHY, Attribution, attribute, separating_channel
+from .covariance import slope_covariance
+from .detection import IndicatorDrift, box_test_uniform, indicator_drift
+from .streams import unit_rng
+from .trend import POSTERIOR_DOF, Trend
+
+#: Prognosis status of a unit.
+STATUS_OK, STATUS_WITHHELD, STATUS_UNRELIABLE = "ok", "withheld", "unreliable"
+
+
+def verdict(trends: dict[str, Trend]) -> str:
+    """``healthy``, one component name, or ``both`` (several components) from the tests."""
+    bad = sorted({t.component or name for name, t in trends.items() if t.rejects})
+    if not bad:
+        return "healthy"
+    return bad[0] if len(bad) == 1 else "both"
+
+
+def prognosis_status(up, cfg: Config, windows: list) -> tuple[str, str]:
+    """Whether a unit's twin fits its data well enough for a prognosis.
+
+    Withheld when at least ``forecast.withhold_years`` calibrated years (or the last one)
+    miss the plant or sit on the design box's edge (calibrate's goodness of fit); else
+    unreliable when a year did not converge; else ok.
+
+    Returns
+    -------
+    status : str
+        ``ok``, ``withheld`` or ``unreliable``.
+    reason : str
+        One sentence with the figures ("" when ok).
+    """
+    from ..calibrate import STATUS_EDGE, STATUS_MISFIT, STATUS_UNCONVERGED
+    st = np.asarray(up.status)
+    bad = np.flatnonzero((st == STATUS_MISFIT) | (st == STATUS_EDGE))
+    if bad.size and (bad.size >= cfg.forecast.withhold_years or bad[-1] == st.size - 1):
+        f, k0 = up.fit, int(bad[0])
+        first = int(up.years[k0])
+        misfit = np.flatnonzero(st == STATUS_MISFIT)
+        if misfit.size:
+            k = int(misfit[np.argmax(f["window_rms"][misfit])])
+            win = windows[int(f["window"][k])] if windows else "worst"
+            return STATUS_WITHHELD, (
+                f"prognosis withheld: the twin misses the plant by {f['window_rms'][k]:.1f} "
+                f"noise sd in the {win} window (residual RMS {f['rms'][k]:.1f} sd in year "
+                f"{int(up.years[k])}; {misfit.size} of {st.size} years miss) from year {first}; "
+                "run 'twinmon diagnose'")
+        k = int(bad[-1])
+        j = int(np.argmax(f["edge_share"][k]))
+        name = cfg.model.input_names[j]
+        return STATUS_WITHHELD, (
+            f"prognosis withheld: the estimates of {name} sit on the design box's edge "
+            f"({100 * f['edge_share'][k][j]:.0f} % of the posterior in year {int(up.years[k])}) "
+            f"from year {first}: the plant needs inputs outside the twin's box; widen "
+            f"model.inputs.{name} or run 'twinmon diagnose'")
+    unconv = np.flatnonzero(st == STATUS_UNCONVERGED)
+    if unconv.size:
+        yrs = ", ".join(str(int(up.years[k])) for k in unconv)
+        return STATUS_UNRELIABLE, (f"prognosis unreliable: the posterior of year(s) {yrs} did "
+                                   "not converge even with longer chains")
+    return STATUS_OK, ""
+
+
+def judge(cfg: Config, unit: str, plan: dict, ind_obs: np.ndarray, gradient: np.ndarray,
+          directions: dict, observed: set) -> tuple[IndicatorDrift, Attribution]:
+    """Detection on the health indicator (:mod:`.detection`), then attribution
+    (:mod:`.attribution`).
+
+    A unit is degrading when its indicator drifts beyond normal ageing or its inputs' slopes,
+    jointly, leave the normal-ageing box; a unit whose indicator trend cannot be tested
+    (fewer than 3 years with a finite indicator, e.g. a level no longer reached) is judged
+    on its inputs alone."""
+    from ..safety import Indicator
+    names = cfg.model.input_names
+    specs = [cfg.model.inputs[n] for n in names]
+    rate = np.array([s.normal_rate for s in specs])
+    tol = np.array([s.normal_rate_tolerance for s in specs])
+    ind = Indicator.from_config(cfg)
+    alpha = cfg.forecast.alpha
+    years = plan["years"]
+    after = years >= plan["since"]     # a repair restarts the trends
+    slope_draws = plan["slope_draws"]
+    # A joint unit's indicator slope is its posterior trend's (the slopes of the last
+    # segments, i.e. after any repair), through the gradient: the null is built on the same
+    # linearisation.
+    drift = indicator_drift(years[after], ind_obs[after], gradient, rate, tol,
+                            ind.sense, alpha, unit_rng(cfg, unit, 2),
+                            slope_draws=None if slope_draws is None
+                            else slope_draws @ np.asarray(gradient, float))
+    trends = plan["trends"]
+    tl = [trends[n] for n in names]
+    dirs = [directions[n].sign for n in names]
+    if slope_draws is not None:
+        # The joint method sampled the slopes with the years: test its posterior's own
+        # slopes (their spread includes the year-to-year variation and every year's
+        # uncertainty, with the correlations the yearly means' regression cannot see).
+        b, C, dof = slope_draws.mean(axis=0), np.cov(slope_draws, rowvar=False), POSTERIOR_DOF
+    else:
+        err = plan["err_cov"][after][:, after]
+        b = np.array([t.slope for t in tl])
+        C, dof = slope_covariance(tl, plan["resid"], years[after], err), max(tl[0].dof, 1)
+    C = np.atleast_2d(C)
+    drift.p_inputs = box_test_uniform(b, C, dof, rate, tol, dirs, unit_rng(cfg, unit, 4))
+    # Two views of one question, each at alpha / 2 (Bonferroni): the indicator's drift
+    # (sees a fault the inputs trade off between) and the inputs' slopes jointly (sees a
+    # fault another input's normal ageing hides from the indicator).
+    if np.isfinite(drift.p_value):
+        drift.abnormal = bool(min(drift.p_value, drift.p_inputs) < alpha / 2)
+    else:
+        drift.abnormal = bool(drift.p_inputs < alpha)
+    if not drift.abnormal:
+        return drift, Attribution(HEALTHY)
+    att = attribute(tl, names, [s.component or n for s, n in zip(specs, names)], C, rate, tol,
+                    dirs, cfg.forecast.attribution_confidence, unit_rng(cfg, unit, 3),
+                    draws=slope_draws)
+    if att.verdict == AMBIGUOUS and att.leading_slopes is not None:
+        years = plan["years"]
+        first = np.array([trends[n].intercept + trends[n].slope * years[0] for n in names])
+        observed = observed | {cfg.model.output.variable}
+        att.separating_channel, att.channel_scores = separating_channel(
+            cfg, observed, first, att.leading_slopes, float(years[-1] - years[0]))
+    return drift, att

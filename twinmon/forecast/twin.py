@@ -1,0 +1,110 @@
+"""The twin at Monte Carlo points: the surrogate inside its training box, the FMU outside.
+
+:func:`evaluate_twin` computes the health indicator of input points through the Gaussian
+process surrogate where it was trained (vectorised) and through the FMU itself elsewhere, so
+a Gaussian process is never extrapolated. A point is unsafe (:meth:`TwinResult.unsafe`) when
+its indicator passes ``safety.unsafe_if``, when the FMU reports the non-physical mode, or
+when the FMU run fails. The surrogate has no non-physical output: :func:`box_is_physical`
+checks the box's corners on the FMU, and the forecast sends every point to the FMU when one
+is not physical.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Optional
+
+import numpy as np
+
+from ..config import Config
+
+#: Where a Monte Carlo point was evaluated.
+SOURCE_SURROGATE, SOURCE_FMU, SOURCE_FAILED = 0, 1, 2
+
+
+@dataclass
+class TwinResult:
+    """The twin evaluated at Monte Carlo points.
+
+    Attributes
+    ----------
+    value : ndarray, shape [m]
+        The health indicator (its units); ``inf`` for a level never reached, NaN if the FMU
+        failed.
+    nonphysical : ndarray of bool, shape [m]
+    source : ndarray of int8, shape [m]
+        0 surrogate, 1 FMU, 2 FMU run failed.
+    messages : list of str
+        One message per failed FMU run.
+    """
+
+    value: np.ndarray
+    nonphysical: np.ndarray
+    source: np.ndarray
+    messages: list = field(default_factory=list)
+
+    def unsafe(self, safety) -> np.ndarray:
+        """Unsafe per point [m]: the indicator passes its limit, non-physical, or a failed
+        run."""
+        from ..safety import is_unsafe
+        failed = self.source == SOURCE_FAILED
+        return is_unsafe(self.value, safety, self.nonphysical) | failed
+
+
+def evaluate_twin(cfg: Config, surrogate, X: np.ndarray, executor=None,
+                  fmu_everywhere: bool = False,
+                  progress: Optional[Callable[[int, int], None]] = None,
+                  predict: Optional[Callable[[np.ndarray], np.ndarray]] = None,
+                  spec=None) -> TwinResult:
+    """Health indicator and non-physical flag of input points [m, d]: surrogate in its box,
+    FMU outside.
+
+    The surrogate has no non-physical output: inside its training box the flag is taken as 0
+    (the box is checked to be physical, see :func:`box_is_physical`). ``fmu_everywhere`` sends
+    every point to the FMU; so does an indicator computed from another variable than the
+    output the surrogate learnt. ``predict`` replaces ``surrogate.predict`` (its numpy form,
+    :func:`~twinmon.calibrate.vectorised.make_predictor`); ``spec`` the config's FMU spec (a
+    worker's copy of the FMU).
+    """
+    from ..safety import Indicator
+    from ..simulate import as_parameters, run_batch, spec_for
+    ind = Indicator.from_config(cfg)
+    X = np.asarray(X, float).reshape(-1, len(cfg.model.inputs))
+    m = len(X)
+    value = np.full(m, np.nan)
+    nph = np.zeros(m, bool)
+    source = np.full(m, SOURCE_SURROGATE, np.int8)
+    on_surrogate = not fmu_everywhere and ind.variable == cfg.model.output.variable
+    inside = surrogate.in_box(X) if on_surrogate else np.zeros(m, bool)
+    if inside.any():
+        # Chunks keep the [chunk, n_t] intermediate arrays small.
+        idx = np.flatnonzero(inside)
+        for lo in range(0, idx.size, 20000):
+            j = idx[lo:lo + 20000]
+            value[j] = ind(surrogate.time, (predict or surrogate.predict)(X[j]))
+    messages = []
+    out = np.flatnonzero(~inside)
+    if out.size:
+        spec = spec or spec_for(cfg)
+        batch = run_batch(spec, as_parameters(cfg, X[out]), executor,
+                          (lambda k: progress(k, out.size)) if progress else None)
+        value[out] = np.where(batch.ok, ind(spec.times, batch.outputs[ind.variable]), np.nan)
+        if cfg.model.nonphysical:
+            nph[out] = batch.ok & (batch.outputs[cfg.model.nonphysical][:, -1] > 0.5)
+        source[out] = np.where(batch.ok, SOURCE_FMU, SOURCE_FAILED)
+        messages = [batch.messages[k] for k in np.flatnonzero(~batch.ok)]
+    return TwinResult(value, nph, source, messages)
+
+
+def box_is_physical(cfg: Config) -> bool:
+    """True when the FMU is physical at every corner of the surrogate's box (2^d runs).
+
+    The surrogate cannot say when the twin leaves its physical domain; if a corner of the
+    box is non-physical, the forecast sends every point to the FMU instead."""
+    if not cfg.model.nonphysical or len(cfg.model.inputs) > 10:
+        return True
+    from itertools import product
+    from ..simulate import as_parameters, run_batch, spec_for
+    corners = np.array(list(product(*cfg.model.bounds)))
+    batch = run_batch(spec_for(cfg), as_parameters(cfg, corners))
+    flag = batch.outputs[cfg.model.nonphysical][:, -1]
+    return bool(np.all(batch.ok) and np.all(flag[batch.ok] < 0.5))
