@@ -195,9 +195,10 @@ def starter_config(fmu_path, base_dir=None) -> str:
     add("")
     add("  # Candidate unmodelled effects screened by `diagnose` (optional): a parameter whose")
     add("  # baseline value gives exactly the model you calibrate; measurement_only: true for a")
-    add("  # sensor effect (left out when the twin judges safety).")
+    add("  # sensor effect (left out when the twin judges safety). A state's start value (initial")
+    add("  # exact) is a candidate too: the machine not starting from rest.")
     add("  # effects:")
-    for v in params:
+    for v in params + info.start_values():
         desc = f", description: {_str(v.description)}" if v.description else ""
         add(f"  #   {_key(v.name)}: {{baseline: {_num(v.start)}, low: {FILL}, high: {FILL}, "
             f"units: {_str(v.unit or '1')}{desc}}}")

@@ -12,8 +12,8 @@ from __future__ import annotations
 
 from .build import build_fmu, resolve_fmu, source_hash
 from .common import FLOAT_TYPES, INTEGER_TYPES, NUMERIC_TYPES, closest_names  # noqa: F401
-from .description import FMUInfo, VariableInfo, describe_fmu
+from .description import FMUInfo, VariableInfo, describe_fmu, why_not_settable
 from .runner import FMUModel
 
 __all__ = ["source_hash", "build_fmu", "resolve_fmu", "FMUModel", "VariableInfo", "FMUInfo",
-           "describe_fmu", "closest_names"]
+           "describe_fmu", "closest_names", "why_not_settable"]

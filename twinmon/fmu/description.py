@@ -9,7 +9,7 @@ from pathlib import Path
 
 from ..errors import SimulationError
 from .build import resolve_fmu
-from .common import FLOAT_TYPES, NUMERIC_TYPES, _one_line
+from .common import FLOAT_TYPES, NUMERIC_TYPES, _a, _one_line
 
 
 def _read_model_description(path: Path):
@@ -70,11 +70,49 @@ def _unit(v) -> str:
 
 
 def _is_tunable(v) -> bool:
-    # Parameters of variability fixed or tunable, and inputs (held constant over a run):
-    # what FMUModel sets before initialisation.
+    # Parameters of variability fixed or tunable, and inputs (held constant over a run).
     return (v.type in FLOAT_TYPES and not v.dimensions
             and (v.causality == "input"
                  or (v.causality == "parameter" and v.variability in ("fixed", "tunable"))))
+
+
+def _is_start_value(v) -> bool:
+    # FMI 2.0 (section 3.2.3) and 3.0 let a tool set, before initialisation, the start value
+    # of a non-constant variable whose ``initial`` is ``exact`` or ``approx``: a state's
+    # initial value, say, or an output's first value.  A start attribute without an
+    # ``initial`` on a local or output declares one of these too.
+    return (v.type in FLOAT_TYPES and not v.dimensions and v.start is not None
+            and v.causality in ("local", "output") and v.variability in ("continuous",
+                                                                          "discrete")
+            and (v.initial or "exact") in ("exact", "approx"))
+
+
+def _is_settable(v) -> bool:
+    """What :class:`FMUModel` sets before ``EnterInitializationMode``: tunable parameters,
+    inputs and start values."""
+    return _is_tunable(v) or _is_start_value(v)
+
+
+def why_not_settable(v) -> str:
+    """Why FMI does not let a tool set ``v`` before initialisation (FMU model description
+    variable, fmpy's or :class:`VariableInfo`), in words; "" when it does."""
+    shape = getattr(v, "dimensions", None) or getattr(v, "shape", ())
+    causality = v.causality or "local"
+    if v.type not in FLOAT_TYPES or shape:
+        what = "an array" if shape else _a(v.type) + " variable"
+        return f"is {what}; twinmon sets scalar float parameters, inputs and start values only"
+    if v.variability == "constant":
+        return "is a constant: FMI lets no tool change it"
+    if causality == "calculatedParameter":
+        return "is a calculated parameter: the FMU computes it from other parameters"
+    if causality == "independent":
+        return "is the independent variable (time)"
+    initial = getattr(v, "initial", None)
+    if initial == "calculated" or v.start is None:
+        return (f"is {_a(causality)} {v.type} the FMU calculates (initial=\"calculated\", no "
+                "start value): FMI lets no tool set it before initialisation")
+    return (f"is {_a(causality)} {v.type} of variability {v.variability or 'continuous'}: "
+            "FMI lets no tool set it before initialisation")
 
 
 def _is_recordable(v) -> bool:
@@ -88,7 +126,8 @@ class VariableInfo:
     ``type`` is the FMI type name (``Real``, ``Integer``, ``Boolean``... in FMI 2.0;
     ``Float64``, ``Int32``... in FMI 3.0); ``start`` is its start value as a float
     (Boolean: 0/1), or None when it has none; ``unit`` is "" when undeclared.
-    ``shape`` is () for a scalar (FMI 3.0 arrays have their dimensions there).
+    ``shape`` is () for a scalar (FMI 3.0 arrays have their dimensions there);
+    ``initial`` is the declared ``initial`` attribute ("" when not given).
     """
 
     name: str
@@ -99,6 +138,23 @@ class VariableInfo:
     unit: str
     description: str
     shape: tuple[int, ...] = ()
+    initial: str = ""
+
+    @property
+    def dimensions(self) -> tuple[int, ...]:
+        return self.shape
+
+    @property
+    def is_settable(self) -> bool:
+        """A tunable parameter, an input or a start value: what :class:`FMUModel` sets
+        before initialisation (see :func:`why_not_settable` for the others)."""
+        return _is_settable(self)
+
+    @property
+    def is_start_value(self) -> bool:
+        """A local or output whose start value a tool may set (``initial`` exact or
+        approx, with a start): a state's initial value, for one."""
+        return _is_start_value(self)
 
     @property
     def is_float(self) -> bool:
@@ -137,6 +193,17 @@ class FMUInfo:
                                    or (v.causality == "parameter"
                                        and v.variability in ("fixed", "tunable")))]
 
+    def start_values(self) -> list[VariableInfo]:
+        """Float locals and outputs whose start value FMI lets a tool set before
+        initialisation (``initial`` exact or approx, with a start): states' initial values,
+        for one. :class:`FMUModel` sets them like parameters."""
+        return [v for v in self.variables.values() if v.is_start_value]
+
+    def settable(self) -> list[VariableInfo]:
+        """:meth:`tunable_parameters` then :meth:`start_values`: every variable a config may
+        name as an input, an effect or a fixed value."""
+        return self.tunable_parameters() + self.start_values()
+
     def recordable(self) -> list[VariableInfo]:
         """Numeric outputs and locals, outputs first: what :class:`FMUModel` can record."""
         vs = [v for v in self.variables.values()
@@ -174,7 +241,8 @@ def describe_fmu(path) -> FMUInfo:
             name=v.name, causality=v.causality or "local", variability=v.variability or "",
             type=v.type, start=_start_value(v) if not v.dimensions else None, unit=_unit(v),
             description=v.description or "",
-            shape=tuple(d.start if d.start is not None else -1 for d in v.dimensions))
+            shape=tuple(d.start if d.start is not None else -1 for d in v.dimensions),
+            initial=v.initial or "")
     de = md.defaultExperiment
 
     def number(text) -> float | None:

@@ -13,7 +13,8 @@ import numpy as np
 
 from ..errors import SimulationError
 from .common import NUMERIC_TYPES, _a, _closest_hint, _one_line
-from .description import _is_recordable, _is_tunable, _read_model_description
+from .description import (_is_recordable, _is_settable, _read_model_description,
+                          why_not_settable)
 
 _c_int, _c_void_p, _c_double, _c_size_t = ctypes.c_int, ctypes.c_void_p, ctypes.c_double, ctypes.c_size_t
 _c_bool, _c_float = ctypes.c_bool, ctypes.c_float
@@ -80,8 +81,9 @@ class FMUModel:
     Notes
     -----
     Use as a context manager or call :meth:`close`: the extracted FMU lives in a temporary
-    folder until then.  Parameters are the float parameters and inputs of
-    :meth:`FMUInfo.tunable_parameters`.
+    folder until then.  Parameters are the variables of :meth:`FMUInfo.settable`: float
+    parameters, inputs and start values (FMI lets a tool set a local's or an output's start
+    value when its ``initial`` is exact or approx), all set before initialisation.
     """
 
     def __init__(self, fmu_path, outputs: Sequence[str], times: np.ndarray,
@@ -111,8 +113,9 @@ class FMUModel:
         if kind is None:
             raise SimulationError(f"{self._fmu_path} does not support {fmi_type}")
         self._vars = {v.name: v for v in md.modelVariables}
-        self._params = {v.name: v.valueReference for v in md.modelVariables if _is_tunable(v)}
-        self._param_type = {v.name: v.type for v in md.modelVariables if _is_tunable(v)}
+        # Parameters, inputs and start values, all set before EnterInitializationMode.
+        self._params = {v.name: v.valueReference for v in md.modelVariables if _is_settable(v)}
+        self._param_type = {v.name: v.type for v in md.modelVariables if _is_settable(v)}
         self._outputs = tuple(outputs)
         for name in self._outputs:
             v = self._vars.get(name)
@@ -266,14 +269,14 @@ class FMUModel:
             hint = _closest_hint(name, self._params)
             if v is None:
                 raise SimulationError(f"{self._fmu_path} has no parameter {name!r}{hint}")
-            raise SimulationError(f"{self._fmu_path}: {name!r} is {_a(v.causality)} {v.type} "
-                                  f"variable, not a float parameter that can be set{hint}")
+            raise SimulationError(f"{self._fmu_path}: {name!r} {why_not_settable(v)}{hint}")
 
     # -- public -------------------------------------------------------------------------
 
     @property
     def parameter_names(self) -> tuple[str, ...]:
-        """Names of the FMU's float parameters (and inputs) that :meth:`run` accepts."""
+        """Names of the FMU's float parameters, inputs and start values that :meth:`run`
+        accepts."""
         return tuple(self._params)
 
     @property
