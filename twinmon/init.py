@@ -16,13 +16,14 @@ import re
 import tempfile
 from pathlib import Path
 
+from .config import PLACEHOLDER
 from .errors import ConfigError
 from .fmu import FMUInfo, VariableInfo, describe_fmu
 
 __all__ = ["starter_config", "write_starter_config", "FILL"]
 
-#: The placeholder for every value only the user can give.
-FILL = "<fill in>"
+#: The placeholder for every value only the user can give (the loader refuses it anywhere).
+FILL = PLACEHOLDER
 
 _PLAIN_KEY = re.compile(r"^[A-Za-z_][A-Za-z0-9_.()\-]*$")
 
