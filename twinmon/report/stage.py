@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
 import shutil
 from pathlib import Path
@@ -11,6 +10,7 @@ from typing import Sequence
 
 from .. import artifacts
 from ..config import Config
+from ..jsontext import to_json
 from .common import SKIP_HINTS, UNIT_COLOURS, Figures, plain
 from .fig_calibration import fig_estimates
 from .fig_backtest import fig_backtest
@@ -274,8 +274,7 @@ def _render(cfg: Config, inp: Inputs, tmp: Path, out: Path, provenance: dict,
         indicator=plain(indicator_words), fleet=fleet.as_dict() if fleet else None)
     if fleet is not None:
         extra["fleet"] = fleet_overview(cfg, summary, fleet, extra.pop("fleet_figure", []))
-    (tmp / "summary.json").write_text(json.dumps(plain(summary.as_dict()), indent=2,
-                                                 allow_nan=False))
+    (tmp / "summary.json").write_text(to_json(summary.as_dict()))
     (tmp / "index.html").write_text(page(cfg, w, summary, figs.items, extra, fleet),
                                     encoding="utf-8")
     return summary
