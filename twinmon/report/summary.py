@@ -300,6 +300,8 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
 
     if uf is not None:
         s.status, s.status_reason, s.forced = uf.status, uf.status_reason, uf.forced
+        # Known for fabricated data whether or not the twin may judge the unit.
+        s.true_failure_year = uf.true_failure_year if uf.has_truth else None
     if uf is not None and uf.status == "withheld" and not uf.forced:
         # No failure year and no root cause from a twin that misses the data: say so, and
         # what would settle it.
@@ -327,7 +329,6 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
         s.horizon_end = int(uf.years_future[-1])
         s.last_year = s.last_year or int(uf.years_observed[-1])
         s.plan = uf.plan
-        s.true_failure_year = uf.true_failure_year if uf.has_truth else None
         yf = np.asarray(uf.years_future)
         last = int(uf.years_observed[-1])
         what = " and the ".join(comps) if comps else None
