@@ -236,12 +236,16 @@ def _render(cfg: Config, inp: Inputs, tmp: Path, out: Path, provenance: dict,
                           f"_{k + 1}" if len(chunks) > 1 else "") for k, g in enumerate(chunks)]
             for i, u in enumerate(other):
                 colours.setdefault(u, UNIT_COLOURS[i % len(UNIT_COLOURS)])
-        overlay = False
+        overlay = ranked = False
         for group, sub, suffix in _drawing(figs, gap_views, fleet):
             if sub.gap.units:
                 fig_residual_map(figs, sub, colours)
-                fig_candidates(figs, sub, colours)
+                ranked = fig_candidates(figs, sub, colours) or ranked
                 overlay = fig_overlay(figs, sub, colours) or overlay
+        if not ranked and any(g.verdict != "none" for g in inp.gap.units.values()):
+            from ..diagnose import no_candidates_hint
+            notes.append("Diagnose located a gap but could not name it: "
+                         + no_candidates_hint(cfg) + ".")
         if not overlay:
             notes.append("Diagnose found no gap in any unit"
                          + (" drawn in detail" if fleet else "") + ": no before/after overlay.")
