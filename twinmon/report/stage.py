@@ -177,11 +177,20 @@ def _render(cfg: Config, inp: Inputs, tmp: Path, out: Path, provenance: dict,
         sections["surrogate"] = "rendered"
     elif inp.surrogate is not None:
         v = inp.validation or {}
-        surrogate_info = {"stored_validation": v, "modes": int(inp.surrogate.n_modes)}
+        surrogate_info = {"stored_validation": v, "modes": int(inp.surrogate.n_modes),
+                          "max_range_error": v.get("max_range_error"),
+                          "n_test": v.get("n_test")}
         sections["surrogate"] = ("skipped: the surrogate figure needs the simulations artifact "
                                  f"(its test runs); {stored_validation_text(v)}")
     else:
         sections["surrogate"] = f"skipped: {SKIP_HINTS['surrogate']}"
+    if inp.surrogate is not None:
+        from ..reduce import cap_warning
+        capped = cap_warning(inp.surrogate, cfg.reduce, surrogate_info.get("max_range_error"),
+                             w.out_label)
+        if capped:
+            surrogate_info["warning"] = capped
+            notes.append(capped[0].upper() + capped[1:] + ".")
 
     if inp.posterior is not None:
         errors = []

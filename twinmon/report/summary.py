@@ -219,6 +219,12 @@ class ReportSummary:
             lines = [f"{u:<{w}}  {s.short_health:<{h}}  {s.time_to_failure:<{t}}"
                      + (f"  -> {s.action}" if s.action else "")
                      for u, s in self.units.items()]
+        sur = self.surrogate or {}
+        if sur.get("max_range_error") is not None:
+            n = f" on {sur['n_test']} test runs" if sur.get("n_test") else ""
+            lines.append(f"surrogate: max error {100 * sur['max_range_error']:.3g} % of the "
+                         f"output's range{n}"
+                         + (f" (warning: {sur['warning']})" if sur.get("warning") else ""))
         skipped = [k for k, v in self.sections.items() if v != "rendered"]
         if skipped:
             lines.append(f"(skipped: {', '.join(skipped)})")
