@@ -438,3 +438,20 @@ def test_a_withheld_unit_keeps_its_true_failure_year(tmp_path):
     html = (tmp_path / "report" / "index.html").read_text()
     for year in true_years.values():
         assert f"true failure year (fabricated data): {year}" in html
+
+
+def test_a_narrow_figure_wraps_its_title_inside_the_figure(tmp_path):
+    """Figure 8 of a one-input model is 5.2 in wide; its title, written for several panels,
+    was clipped at both edges. Figures.save wraps it to the width."""
+    from twinmon.report.common import Figures
+    figs = Figures(tmp_path)
+    fig = figs.new(4.6 * 1 + 0.6, 3.6)
+    fig.subplots(1, 1)
+    fig.suptitle("Forecast distributions of the degradation inputs (units with a detected "
+                 "fault)\ngrey background: outside the surrogate's training box (the FMU is "
+                 "run there)")
+    figs.save(fig, "narrow", "forecast", "t", "c")
+    renderer = fig.canvas.get_renderer()
+    box = fig._suptitle.get_window_extent(renderer)
+    assert box.x0 >= 0 and box.x1 <= fig.bbox.width, (box, fig.bbox)
+    assert "units with a detected fault" in fig._suptitle.get_text().replace("\n", " ")
