@@ -15,15 +15,20 @@ from .common import config_options, emit_json, json_option, say, warn
 @click.option("--workdir", default=None, type=click.Path(),
               help="A `twinmon run` workdir whose artifacts are checked (schema, inputs, "
                    "time grid, fingerprints).")
+@click.option("--smoke", is_flag=True,
+              help="Check with run --smoke's sizes (a workdir a smoke run wrote then "
+                   "matches its settings).")
 @json_option
-def check(config_path, overrides, observations, workdir, as_json):
+def check(config_path, overrides, observations, workdir, smoke, as_json):
     """Check a config and its FMU in seconds, without running the pipeline (for CI).
 
     One line per problem on stderr; the exit code is the first problem's family (3 config,
     4 input data, 5 artifact, 6 simulation), 0 when everything passed.
     """
     from ..check import check as run
-    res = run(config_path, overrides, observations=observations, workdir=workdir)
+    from ..pipeline import SMOKE
+    res = run(config_path, (SMOKE if smoke else ()) + tuple(overrides),
+              observations=observations, workdir=workdir)
     if as_json:
         emit_json(res.as_dict())
     for line in res.checked:
