@@ -172,3 +172,12 @@ def test_a_placeholder_left_anywhere_stops_the_load(tmp_path):
                             (f"safety.indicator.label='{FILL}'", "safety.indicator.label")):
         with pytest.raises(ConfigError, match=re.escape(where)):
             load_config(tmp_path / "dc.yaml", [override])
+
+
+def test_start_values_are_listed_as_candidate_effects(tmp_path):
+    """The DC drive's states declare initial="exact" and a start: candidate effects (a
+    machine not starting from rest), listed after the parameters."""
+    text = write_starter_config(DCDRIVE, tmp_path / "dc.yaml").read_text()
+    for name in ("state.i", "state.w", "tacho.y"):
+        assert re.search(rf"(?m)^  #   {re.escape(name)}: \{{baseline: 0.0, ", text), name
+    assert not re.search(r"(?m)^  #   der\(state.w\): \{baseline", text)
