@@ -346,7 +346,8 @@ def test_fmumodel_rejects_bad_construction(fmu_path):
 # ----------------------------------------------------------------------------------------
 # FMI 3.0, introspection, broken files (the DC drive FMUs: fmus/DCDrive, fmus/DCDrive3)
 
-from twinmon.fmu import FMUInfo, VariableInfo, closest_names, describe_fmu  # noqa: E402
+from twinmon.fmu import (FMUInfo, VariableInfo, closest_names, describe_fmu,  # noqa: E402
+                         why_not_settable)
 
 DC2 = ROOT / "fmus" / "DCDrive"
 DC3 = ROOT / "fmus" / "DCDrive3"
@@ -544,6 +545,9 @@ def test_start_values_are_listed_with_their_fmi_attributes(dc2_fmu, dc3_fmu):
         assert [v.name for v in info.settable()][-3:] == starts
         assert not info.variables["tacho.w"].is_settable
         assert not info.variables["der(state.w)"].is_settable
+        assert why_not_settable(info.variables["state.w"]) == ""
+        assert why_not_settable(info.variables["bearing.b"]) == ""
+        assert "FMI lets no tool set it" in why_not_settable(info.variables["tacho.w"])
 
 
 @pytest.mark.parametrize("which", ["dc2", "dc3"])

@@ -96,6 +96,8 @@ def _is_settable(v) -> bool:
 def why_not_settable(v) -> str:
     """Why FMI does not let a tool set ``v`` before initialisation (FMU model description
     variable, fmpy's or :class:`VariableInfo`), in words; "" when it does."""
+    if _is_settable(v):
+        return ""
     shape = getattr(v, "dimensions", None) or getattr(v, "shape", ())
     causality = v.causality or "local"
     if v.type not in FLOAT_TYPES or shape:
@@ -107,6 +109,9 @@ def why_not_settable(v) -> str:
         return "is a calculated parameter: the FMU computes it from other parameters"
     if causality == "independent":
         return "is the independent variable (time)"
+    if causality == "structuralParameter":
+        return ("is a structural parameter: FMI 3 sets it in configuration mode, which "
+                "twinmon does not use")
     initial = getattr(v, "initial", None)
     if initial == "calculated" or v.start is None:
         return (f"is {_a(causality)} {v.type} the FMU calculates (initial=\"calculated\", no "
