@@ -284,7 +284,9 @@ def _write_truth(path, cfg, inputs, truth_rows, batch, spec, time, years, out_st
                               f"true {name} ({cfg.model.inputs[name].variable}) per year")
             for var, eff in spec_u.effects.items():
                 on = years[kept] >= eff.onset
-                artifacts.put(g, f"effects/{var}", np.where(on, eff.value, np.nan), "",
+                spec = cfg.model.effects.get(var)
+                artifacts.put(g, f"effects/{var}", np.where(on, eff.value, np.nan),
+                              spec.units if spec is not None else "",
                               f"injected value of {var} per year; NaN = off (FMU default)")
                 g[f"effects/{var}"].attrs["onset"] = eff.onset
             if spec_u.disturbance is not None:

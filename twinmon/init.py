@@ -16,13 +16,14 @@ import re
 import tempfile
 from pathlib import Path
 
+from .config import PLACEHOLDER
 from .errors import ConfigError
 from .fmu import FMUInfo, VariableInfo, describe_fmu
 
 __all__ = ["starter_config", "write_starter_config", "FILL"]
 
-#: The placeholder for every value only the user can give.
-FILL = "<fill in>"
+#: The placeholder for every value only the user can give (the loader refuses it anywhere).
+FILL = PLACEHOLDER
 
 _PLAIN_KEY = re.compile(r"^[A-Za-z_][A-Za-z0-9_.()\-]*$")
 
@@ -195,9 +196,10 @@ def starter_config(fmu_path, base_dir=None) -> str:
     add("")
     add("  # Candidate unmodelled effects screened by `diagnose` (optional): a parameter whose")
     add("  # baseline value gives exactly the model you calibrate; measurement_only: true for a")
-    add("  # sensor effect (left out when the twin judges safety).")
+    add("  # sensor effect (left out when the twin judges safety). A state's start value (initial")
+    add("  # exact) is a candidate too: the machine not starting from rest.")
     add("  # effects:")
-    for v in params:
+    for v in params + info.start_values():
         desc = f", description: {_str(v.description)}" if v.description else ""
         add(f"  #   {_key(v.name)}: {{baseline: {_num(v.start)}, low: {FILL}, high: {FILL}, "
             f"units: {_str(v.unit or '1')}{desc}}}")

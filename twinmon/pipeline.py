@@ -16,6 +16,19 @@ from . import artifacts
 from .config import Config
 
 
+#: ``twinmon run --smoke``: every stage with small sizes, to see the whole chain work on a
+#: config in about a minute (CI, a first try), not for results. Applied as ``--set``
+#: overrides before the user's own (which win); docs/ci.md lists them.
+SMOKE = (
+    "simulate.train_size=24", "simulate.test_size=6",
+    "calibrate.chains=2", "calibrate.samples=150", "calibrate.burn_in=100",
+    "calibrate.max_extensions=0", "calibrate.keep_draws=150", "calibrate.ess_warn=0",
+    "forecast.samples=200", "forecast.observed_samples=50", "forecast.horizon=3",
+    "diagnose.screen_points=4", "diagnose.confirm_first=1", "diagnose.confirm_further=1",
+    "diagnose.max_effects=1",
+)
+
+
 @dataclass
 class StageRun:
     name: str

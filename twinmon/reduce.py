@@ -397,6 +397,9 @@ def reduce(cfg: Config, simulations: str | os.PathLike, output: str | os.PathLik
     s, val = fit(sims.Y["train"][ok], sims.Y["test"][okt], cfg.reduce,
                  cfg.model.output.units, "")
     names, warnings = channels_to_reduce(cfg, sims)
+    capped = cap_warning(s, cfg.reduce, val.max_range_error,
+                         f"the output {cfg.model.output.name}")
+    warnings = [capped] * bool(capped) + warnings
     # Each channel its own transform: a speed or a current may cross zero where the output
     # (learnt in log scale) does not.
     rc = dataclasses.replace(cfg.reduce, transform="auto")
@@ -409,11 +412,49 @@ def reduce(cfg: Config, simulations: str | os.PathLike, output: str | os.PathLik
             continue
         fitted[ch] = fit(Y, sims.channels["test"][ch][okt], rc,
                          cfg.model.variable_words(ch)[1], f"channel {ch}: ")
+        capped = cap_warning(fitted[ch][0], rc, fitted[ch][1].max_range_error,
+                             f"channel {ch}")
+        if capped:
+            warnings.append(capped)
     write_surrogate(output, s, val, cfg, [simulations], channels=fitted)
     return ReduceSummary(s.n_modes, s.variance_ratio, val, int(ok.sum()), str(output),
                          {ch: {"modes": c.n_modes, "variance_ratio": c.variance_ratio,
                                "transform": c.transform, "test": v.as_dict()}
                           for ch, (c, v) in fitted.items()}, warnings)
+
+
+def cap_warning(s: "Surrogate", rc: ReduceConfig, max_range_error: float | None = None,
+                what: str = "the output") -> str:
+    """A warning when a cap, not ``reduce.variance_threshold``, decided the surrogate's modes
+    ("" when the threshold was reached).
+
+    The caps: ``reduce.max_modes``, and the number of training runs (Karhunen-Loeve gives
+    at most one mode per run, so ``simulate.train_size`` bounds the modes too).
+
+    Parameters
+    ----------
+    s : Surrogate
+    rc : ReduceConfig
+        The settings it was fitted with.
+    max_range_error : float, optional
+        Its largest test error, fraction of the output's range (said in the warning).
+    what : str
+        Which surrogate, for the message.
+    """
+    ratio = s.variance_ratio
+    if ratio >= rc.variance_threshold - 1e-15:
+        return ""
+    if s.n_modes >= rc.max_modes:
+        key, why = "reduce.max_modes", f"reduce.max_modes = {rc.max_modes}"
+    elif s.n_modes >= len(s.eigenvalues):
+        key, why = "simulate.train_size", f"the {len(s.eigenvalues)} training runs"
+    else:
+        return ""
+    err = (f"; its test error reaches {100 * max_range_error:.3g} % of the range"
+           if max_range_error is not None and np.isfinite(max_range_error) else "")
+    return (f"surrogate of {what}: capped by {why} at {s.n_modes} modes, "
+            f"{100 * ratio:.4g} % of the variance, short of reduce.variance_threshold "
+            f"{rc.variance_threshold:g}{err}; raise {key} for a closer surrogate")
 
 
 def channels_to_reduce(cfg: Config, sims) -> tuple[list[str], list[str]]:

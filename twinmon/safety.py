@@ -167,6 +167,11 @@ def median_failure_year(years: np.ndarray, p_unsafe: np.ndarray) -> int | None:
     return int(years[over[0]]) if over.size else None
 
 
+def with_units(number: str, units: str) -> str:
+    """``"14.5 s"``; a dimensionless quantity (units ``1`` or none) without units."""
+    return number if units in ("", "1") else f"{number} {units}"
+
+
 @dataclass(frozen=True)
 class Indicator:
     """The config's indicator with its resolved words, for computing and for reports.
@@ -219,7 +224,7 @@ class Indicator:
     def rule(self) -> str:
         """The criterion in words, e.g. ``t90 above 30 s``."""
         side = "above" if self.sense > 0 else "below"
-        return f"{self.name} {side} {self.limit:g} {self.units}".rstrip()
+        return f"{self.name} {side} {with_units(f'{self.limit:g}', self.units)}"
 
     def fmt(self, value: float) -> str:
         """One indicator value for people: ``14.5 s``, ``never`` for a level not reached."""
@@ -227,4 +232,4 @@ class Indicator:
             if value is not None and np.isinf(value) and self.spec.kind == "time_to_reach":
                 return "never reached"
             return "n/a"
-        return f"{value:.3g} {self.units}".rstrip()
+        return with_units(f"{value:.3g}", self.units)

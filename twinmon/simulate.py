@@ -93,7 +93,8 @@ def check_model(cfg: Config) -> None:
         variable (the message names the config path, the name and the closest names the
         FMU has).
     """
-    from .fmu import closest_names, describe_fmu
+    from .fmu import closest_names, describe_fmu, why_not_settable
+    from .fmu.common import _a
     src = cfg.source
     try:
         info = describe_fmu(cfg.model.fmu)
@@ -103,7 +104,7 @@ def check_model(cfg: Config) -> None:
     if not kind_ok:
         raise SimulationError(f"{src}: model.fmi_type: {info.path} does not support "
                               f"{cfg.model.fmi_type}")
-    params = {v.name for v in info.tunable_parameters()}
+    params = {v.name for v in info.settable()}
     values = {v.name for v in info.recordable()}
 
     def need(where: str, name: str, pool: set, what: str) -> None:
@@ -112,12 +113,16 @@ def check_model(cfg: Config) -> None:
         near = closest_names(name, sorted(pool))
         hint = f"; closest: {', '.join(near)}" if near else ""
         found = info.variables.get(name)
-        why = (f"is a {found.causality} {found.type}, not {what}" if found is not None
-               else f"is not a variable of {info.path.name}")
+        if found is None:
+            why = f"is not a variable of {info.path.name}"
+        elif pool is params:
+            why = why_not_settable(found)
+        else:
+            why = f"is {_a(found.causality)} {found.type}, not {what}"
         raise SimulationError(f"{src}: {where}: {name!r} {why}{hint}")
 
     for key, spec in cfg.model.inputs.items():
-        need(f"model.inputs.{key}.variable", spec.variable, params, "a tunable parameter")
+        need(f"model.inputs.{key}.variable", spec.variable, params, "a settable parameter")
     need("model.output.variable", cfg.model.output.variable, values, "a recordable output")
     for ch in cfg.model.channels:
         need(f"model.channels.{ch}", ch, values, "a recordable output")
@@ -127,9 +132,9 @@ def check_model(cfg: Config) -> None:
         need("safety.indicator.variable", cfg.safety.indicator.variable, values,
              "a recordable output")
     for name in cfg.model.fixed:
-        need(f"model.fixed.{name}", name, params, "a tunable parameter")
+        need(f"model.fixed.{name}", name, params, "a settable parameter")
     for name in cfg.model.effects:
-        need(f"model.effects.{name}", name, params, "a tunable parameter")
+        need(f"model.effects.{name}", name, params, "a settable parameter")
     fab = cfg.fabricate
     if fab is not None:
         for name in fab.truth_variables:

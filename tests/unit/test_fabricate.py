@@ -257,3 +257,18 @@ def test_changes_must_be_in_order(tmp_path):
             "winding_resistance": {"start": 1.0}}}}}})
     with pytest.raises(ConfigError, match=r"bearing_friction.changes.1.year"):
         load_config(p)
+
+
+def test_truth_effects_carry_the_configs_units(tmp_path):
+    """The DC drive gap fleet injects a tachometer lag (tacho.tau, given in s under
+    model.effects): the truth file records it in s, not without units."""
+    import h5py
+    cfg = load_config(write_yaml(tmp_path / "gap.yaml", {
+        "extends": str(CONFIGS / "dcdrive_gap.yaml"), "fabricate": {"years": 6}}))
+    assert cfg.model.effects["tacho.tau"].units == "s"
+    fabricate(cfg, tmp_path / "o.h5", tmp_path / "t.h5")
+    with h5py.File(tmp_path / "t.h5") as f:
+        injected = [(u, n) for u in f["units"] for n in f[f"units/{u}"].get("effects", {})]
+        assert injected
+        for u, n in injected:
+            assert f[f"units/{u}/effects/{n}"].attrs["units"] == cfg.model.effects[n].units

@@ -346,7 +346,8 @@ def test_fmumodel_rejects_bad_construction(fmu_path):
 # ----------------------------------------------------------------------------------------
 # FMI 3.0, introspection, broken files (the DC drive FMUs: fmus/DCDrive, fmus/DCDrive3)
 
-from twinmon.fmu import FMUInfo, VariableInfo, closest_names, describe_fmu  # noqa: E402
+from twinmon.fmu import (FMUInfo, VariableInfo, closest_names, describe_fmu,  # noqa: E402
+                         why_not_settable)
 
 DC2 = ROOT / "fmus" / "DCDrive"
 DC3 = ROOT / "fmus" / "DCDrive3"
@@ -395,7 +396,7 @@ def test_describe_fmu_fields(fmu_path, dc3_fmu):
     b = info.variables["bearing.b"]
     assert b == VariableInfo(name="bearing.b", causality="parameter", variability="fixed",
                              type="Float64", start=0.001, unit="N.m.s/rad",
-                             description=b.description)
+                             description=b.description, initial="exact")
     assert b.is_float and b.is_numeric and "bearing" in b.description
     stalled = info.variables["stalled"]
     assert (stalled.type, stalled.causality, stalled.is_float, stalled.is_numeric) == \
@@ -468,7 +469,8 @@ def test_unknown_names_suggest_closest(dc2_fmu):
     with FMUModel(dc2_fmu, ["tacho.w"], DC_TIMES) as m:
         with pytest.raises(SimulationError, match=r"'bearing_b'.*closest: bearing\.b"):
             m.run({"bearing_b": 2e-3})
-        with pytest.raises(SimulationError, match=r"'tacho.w' is an output.*not a float parameter"):
+        with pytest.raises(SimulationError, match=r"'tacho.w' is an output Real the FMU "
+                           r"calculates \(initial=\"calculated\".*FMI lets no tool set it"):
             m.run({"tacho.w": 1.0})
 
 
@@ -527,3 +529,64 @@ def test_fmi2_integer_output_is_read(tmp_path):
         assert r["stalled"][-1] == 1.0 and r["stalled"][0] == 0.0
         assert m.run({})["stalled"].max() == 0.0
     assert describe_fmu(fmu).variables["stalled"].type == "Integer"
+
+
+# ----------------------------------------------------------------------------------------
+# start values: a state's initial value set like a parameter, before initialisation
+
+def test_start_values_are_listed_with_their_fmi_attributes(dc2_fmu, dc3_fmu):
+    for fmu in (dc2_fmu, dc3_fmu):
+        info = describe_fmu(fmu)
+        starts = [v.name for v in info.start_values()]
+        # the three states (initial="exact", start="0"); not their derivatives (no start),
+        # not the outputs (initial="calculated")
+        assert starts == ["state.i", "state.w", "tacho.y"], fmu
+        assert info.variables["state.w"].initial == "exact"
+        assert [v.name for v in info.settable()][-3:] == starts
+        assert not info.variables["tacho.w"].is_settable
+        assert not info.variables["der(state.w)"].is_settable
+        assert why_not_settable(info.variables["state.w"]) == ""
+        assert why_not_settable(info.variables["bearing.b"]) == ""
+        assert "FMI lets no tool set it" in why_not_settable(info.variables["tacho.w"])
+
+
+@pytest.mark.parametrize("which", ["dc2", "dc3"])
+def test_a_start_value_sets_the_initial_state_and_does_not_leak(which, dc2_fmu, dc3_fmu):
+    """The shaft already turning at 150 rad/s when the supply switches on (state.w's start
+    value): faster at first than from rest, and the next run from rest is the same as the
+    first one (the reset restores the model description's start value)."""
+    fmu = dc2_fmu if which == "dc2" else dc3_fmu
+    with FMUModel(fmu, ["shaft.w"], DC_TIMES) as m:
+        assert "state.w" in m.parameter_names
+        rest = m.run({})["shaft.w"]
+        spun = m.run({"state.w": 150.0})["shaft.w"]
+        again = m.run({})["shaft.w"]
+    assert np.array_equal(rest, again)
+    assert spun[0] > rest[0] + 50.0                       # 0.1 s in: still well ahead
+    # the same settled speed (the start is forgotten after a few time constants)
+    assert abs(spun[-1] - rest[-1]) < 1e-3 * rest[-1]
+    # against the documented equations (test_dcdrive's reference) started from w = 150 rad/s
+    ref = _dc_reference_from(150.0)
+    np.testing.assert_allclose(spun, ref, rtol=1e-4)
+
+
+def _dc_reference_from(w0: float) -> np.ndarray:
+    """shaft.w of the documented DC drive (docs/dcdrive.md, default parameters, supply on at
+    t = 0) started from i = 0, w = w0, integrated by scipy (DOP853, rtol 1e-10)."""
+    V, KE, KT, L, J, R, B, C, TC, WC = 48.0, 0.1, 0.1, 5e-3, 5e-3, 1.0, 1e-3, 7e-6, 1.0, 0.5
+
+    def rhs(t, x):
+        i, w = x
+        load = B * w + C * w * abs(w) + TC * math.tanh(w / WC)
+        return [(V - R * i - KE * w) / L, (KT * i - load) / J]
+    sol = solve_ivp(rhs, (0.0, float(DC_TIMES[-1])), [0.0, w0], method="DOP853",
+                    t_eval=DC_TIMES, rtol=1e-10, atol=1e-9)
+    assert sol.success
+    return sol.y[1]
+
+
+def test_a_variable_fmi_forbids_to_set_is_refused_with_the_reason(dc2_fmu):
+    with FMUModel(dc2_fmu, ["shaft.w"], DC_TIMES) as m:
+        with pytest.raises(SimulationError, match=r"'der\(state.w\)' is a local Real the FMU "
+                           r"calculates.*FMI lets no tool set it before initialisation"):
+            m.run({"der(state.w)": 1.0})

@@ -146,3 +146,38 @@ def test_cli_init(tmp_path, monkeypatch):
     assert r.exit_code == 0 and (tmp_path / "DCDrive3.yaml").is_file()
     r = runner.invoke(main, ["init", "nowhere.fmu"])
     assert r.exit_code == 6 and "nowhere.fmu" in r.output
+
+
+def test_a_placeholder_left_anywhere_stops_the_load(tmp_path):
+    """The DC drive starter filled in except the output's units: `init` wrote them as
+    "<fill in>" (the FMU's first output declares none here), uncommented. Loading must fail
+    naming that key, not go on to a report that prints "(channel x, <fill in>)"."""
+    out = write_starter_config(DCDRIVE, tmp_path / "dc.yaml")
+    filled = _fill(out.read_text(),
+                   {"bearing_b": {"low": "0.0005", "high": "0.006",
+                                  "normal_rate_tolerance": "5.0e-5"}},
+                   "tacho.w", ["    kind: mean", "    window: [2.0, 3.0]"], "{below: 250.0}")
+    assert re.search(r"(?m)^    units: \"rad/s\"$", filled)
+    (tmp_path / "dc.yaml").write_text(filled.replace('    units: "rad/s"',
+                                                     f'    units: "{FILL}"'))
+    with pytest.raises(ConfigError, match=r"dc.yaml: model.output.units: still '<fill in>'"
+                                          r", the placeholder `twinmon init` wrote") as e:
+        load_config(tmp_path / "dc.yaml")
+    assert e.value.exit_code == 3 and "\n" not in str(e.value)
+    # any type of key, inside lists and as a mapping key too
+    (tmp_path / "dc.yaml").write_text(filled)
+    for override, where in ((f"safety.indicator.window=[2.0, '{FILL}']",
+                             "safety.indicator.window.1"),
+                            (f"model.channels={{'{FILL}': {{}}}}", f"model.channels.{FILL}"),
+                            (f"safety.indicator.label='{FILL}'", "safety.indicator.label")):
+        with pytest.raises(ConfigError, match=re.escape(where)):
+            load_config(tmp_path / "dc.yaml", [override])
+
+
+def test_start_values_are_listed_as_candidate_effects(tmp_path):
+    """The DC drive's states declare initial="exact" and a start: candidate effects (a
+    machine not starting from rest), listed after the parameters."""
+    text = write_starter_config(DCDRIVE, tmp_path / "dc.yaml").read_text()
+    for name in ("state.i", "state.w", "tacho.y"):
+        assert re.search(rf"(?m)^  #   {re.escape(name)}: \{{baseline: 0.0, ", text), name
+    assert not re.search(r"(?m)^  #   der\(state.w\): \{baseline", text)

@@ -89,3 +89,51 @@ def test_input_mismatch_is_an_artifact_error(fitted):
     with pytest.raises(ArtifactError, match=r"sims.h5: inputs are \['motor_damping', 'pump_coef'\]"):
         reduce(dataclasses.replace(other, model=model), tmp / "sims.h5", tmp / "bad.h5")
     assert not (tmp / "bad.h5").exists()
+
+
+# ----------------------------------------------------------------------------------------
+# a cap, not the variance threshold, decides the modes: said, with the key to raise
+
+def test_a_binding_mode_cap_is_warned_with_the_key_to_raise(tmp_path):
+    """The DC drive with reduce.max_modes 2: the threshold 0.99999 is out of reach, the
+    warning says so, gives the variance kept and the test error, and names the key; the
+    report and its terminal summary say it too."""
+    from twinmon.config import load_config
+    from twinmon.reduce import reduce
+    from twinmon.report import report
+    from twinmon.simulate import simulate
+    from ..conftest import CONFIGS, write_yaml
+    cfg = load_config(write_yaml(tmp_path / "dc.yaml", {
+        "extends": str(CONFIGS / "dcdrive.yaml"),
+        "simulate": {"train_size": 16, "test_size": 4, "executor": "serial"},
+        "reduce": {"max_modes": 2, "channels": []}}))
+    simulate(cfg, tmp_path / "sims.h5")
+    s = reduce(cfg, tmp_path / "sims.h5", tmp_path / "sur.h5")
+    assert s.modes == 2 and s.variance_ratio < 0.99999
+    capped = [w for w in s.warnings if "capped" in w]
+    assert len(capped) == 1, s.warnings
+    w = capped[0]
+    assert "reduce.max_modes = 2 at 2 modes" in w and "raise reduce.max_modes" in w
+    assert f"{100 * s.variance_ratio:.4g} % of the variance" in w
+    assert f"{100 * s.validation.max_range_error:.3g} % of the range" in w
+    rep = report(cfg, tmp_path / "report", simulations=tmp_path / "sims.h5",
+                 surrogate=tmp_path / "sur.h5")
+    assert any("raise reduce.max_modes" in n for n in rep.notes)
+    assert "raise reduce.max_modes" in (tmp_path / "report" / "index.html").read_text()
+    line = next(ln for ln in rep.terminal().splitlines() if ln.startswith("surrogate:"))
+    assert f"max error {100 * rep.surrogate['max_range_error']:.3g} % of the output's range " \
+           "on 4 test runs" in line and "raise reduce.max_modes" in line
+
+
+def test_no_cap_warning_when_the_threshold_is_reached(tmp_path):
+    from twinmon.config import load_config
+    from twinmon.reduce import reduce
+    from twinmon.simulate import simulate
+    from ..conftest import CONFIGS, write_yaml
+    cfg = load_config(write_yaml(tmp_path / "dc.yaml", {
+        "extends": str(CONFIGS / "dcdrive.yaml"),
+        "simulate": {"train_size": 16, "test_size": 4, "executor": "serial"},
+        "reduce": {"variance_threshold": 0.99, "max_modes": 8, "channels": []}}))
+    simulate(cfg, tmp_path / "sims.h5")
+    s = reduce(cfg, tmp_path / "sims.h5", tmp_path / "sur.h5")
+    assert s.variance_ratio >= 0.99 and not [w for w in s.warnings if "capped" in w]

@@ -396,3 +396,62 @@ def test_a_figure_that_does_not_pickle_is_written_in_the_process(tmp_path):
         figs.finish()
     for name in ("local", "plain"):
         assert (tmp_path / f"{name}.png").read_bytes().startswith(PNG_MAGIC)
+
+
+@pytest.mark.skipif(_dcdrive_config() is None, reason="configs/dcdrive_fleet.yaml not available")
+def test_a_withheld_unit_keeps_its_true_failure_year(tmp_path):
+    """A prognosis withheld by the fit gate still has a true failure year in forecast.h5
+    (fabricated data): the report shows it, as it does for a unit with a prognosis. The gate
+    is made to withhold every unit here: a year "sits on the box edge" when 1 % of its draws
+    lie within 49 % of the range from a bound, which they all do."""
+    from twinmon.calibrate import calibrate
+    from twinmon.fabricate import fabricate
+    from twinmon.forecast import forecast, read_forecast
+    from twinmon.reduce import reduce
+    from twinmon.simulate import simulate
+    cfg = load_config(write_yaml(tmp_path / "dc.yaml", {
+        "extends": str(DCDRIVE),
+        "simulate": {"train_size": 24, "test_size": 4, "executor": "serial"},
+        "calibrate": {"chains": 2, "samples": 150, "burn_in": 50, "workers": 1,
+                      "ess_warn": 50.0, "max_extensions": 0,
+                      "edge_margin": 0.49, "edge_share": 0.01},
+        "forecast": {"samples": 150}}))
+    art = {"observations": tmp_path / "obs.h5", "truth": tmp_path / "truth.h5",
+           "simulations": tmp_path / "sims.h5", "surrogate": tmp_path / "sur.h5",
+           "posterior": tmp_path / "post.h5", "forecast": tmp_path / "fc.h5"}
+    simulate(cfg, art["simulations"])
+    reduce(cfg, art["simulations"], art["surrogate"])
+    fabricate(cfg, art["observations"], art["truth"])
+    calibrate(cfg, art["surrogate"], art["observations"], art["posterior"])
+    forecast(cfg, art["posterior"], art["surrogate"], art["forecast"], art["truth"])
+    fc = read_forecast(art["forecast"])
+    withheld = {u: f for u, f in fc.units.items() if f.status == "withheld" and not f.forced}
+    true_years = {u: f.true_failure_year for u, f in withheld.items()
+                  if f.has_truth and f.true_failure_year is not None}
+    assert true_years, {u: (f.status, f.true_failure_year) for u, f in fc.units.items()}
+    s = report(cfg, tmp_path / "report", **art)
+    data = json.loads((tmp_path / "report" / "summary.json").read_text())
+    for unit, year in true_years.items():
+        assert s.units[unit].status == "withheld"
+        assert s.units[unit].true_failure_year == year
+        assert data["units"][unit]["true_failure_year"] == year
+    html = (tmp_path / "report" / "index.html").read_text()
+    for year in true_years.values():
+        assert f"true failure year (fabricated data): {year}" in html
+
+
+def test_a_narrow_figure_wraps_its_title_inside_the_figure(tmp_path):
+    """Figure 8 of a one-input model is 5.2 in wide; its title, written for several panels,
+    was clipped at both edges. Figures.save wraps it to the width."""
+    from twinmon.report.common import Figures
+    figs = Figures(tmp_path)
+    fig = figs.new(4.6 * 1 + 0.6, 3.6)
+    fig.subplots(1, 1)
+    fig.suptitle("Forecast distributions of the degradation inputs (units with a detected "
+                 "fault)\ngrey background: outside the surrogate's training box (the FMU is "
+                 "run there)")
+    figs.save(fig, "narrow", "forecast", "t", "c")
+    renderer = fig.canvas.get_renderer()
+    box = fig._suptitle.get_window_extent(renderer)
+    assert box.x0 >= 0 and box.x1 <= fig.bbox.width, (box, fig.bbox)
+    assert "units with a detected fault" in fig._suptitle.get_text().replace("\n", " ")

@@ -51,3 +51,17 @@ def test_unsafe_above_or_below_and_the_failure_year():
     assert list(is_unsafe(v, above, nonphysical=[1, 0, 0, 0])) == [True, False, True, False]
     assert failure_year(np.array([11, 12, 13]), np.array([0.01, 0.06, 0.5]), above) == 12
     assert failure_year(np.array([11, 12]), np.array([0.01, 0.05]), above) is None
+
+
+def test_a_dimensionless_indicator_prints_no_unit(tmp_path):
+    """Units "1" (a ratio, a per-unit value): "2.2", not "2.2 1"; the DC drive's speed as a
+    fraction of its nominal, say."""
+    from twinmon.config import load_config
+    from twinmon.safety import Indicator, with_units
+    from ..conftest import CONFIGS, write_yaml
+    cfg = load_config(write_yaml(tmp_path / "dc.yaml", {
+        "extends": str(CONFIGS / "dcdrive.yaml"),
+        "safety": {"indicator": {"units": "1"}, "unsafe_if": {"below": 2.2}}}))
+    ind = Indicator.from_config(cfg)
+    assert ind.fmt(4.1) == "4.1" and ind.rule == "settled speed below 2.2"
+    assert with_units("3", "rad/s") == "3 rad/s" and with_units("3", "") == "3"

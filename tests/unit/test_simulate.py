@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import h5py
 import numpy as np
@@ -139,3 +140,35 @@ def test_a_criterion_no_run_or_every_run_meets_is_a_warning(small_config, tmp_pa
     assert len(s.warnings) == 1 and words in s.warnings[0]
     assert "t90" in s.warnings[0] and "safety.unsafe_if" in s.warnings[0]
     assert not simulate(load_config(small_config), tmp_path / "ok.h5").warnings
+
+
+# ----------------------------------------------------------------------------------------
+# start values as effects (the DC drive's states declare initial="exact" and a start)
+
+def test_a_state_start_value_is_accepted_as_an_effect(tmp_path):
+    """A state's start value is something FMI lets a tool set before initialisation: a
+    config may screen it as an effect (the shaft already turning at switch-on)."""
+    from twinmon.simulate import check_model
+    from ..conftest import CONFIGS
+    cfg = load_config(write_yaml(tmp_path / "dc.yaml", {
+        "extends": str(CONFIGS / "dcdrive.yaml"),
+        "model": {"effects": {"state.w": {"baseline": 0.0, "low": 0.0, "high": 100.0,
+                                          "units": "rad/s"}}}}))
+    check_model(cfg)                       # before: "'state.w' is a local Real, not ..."
+
+
+@pytest.mark.parametrize("name, reason", [
+    ("tacho.w", r"'tacho.w' is an output Real the FMU calculates \(initial=\"calculated\""),
+    ("der(state.w)", r"'der\(state.w\)' is a local Real the FMU calculates"),
+])
+def test_a_variable_fmi_does_not_let_a_tool_set_is_refused_with_the_reason(tmp_path, name,
+                                                                           reason):
+    from twinmon.errors import SimulationError
+    from twinmon.simulate import check_model
+    from ..conftest import CONFIGS
+    cfg = load_config(write_yaml(tmp_path / "dc.yaml", {
+        "extends": str(CONFIGS / "dcdrive.yaml"),
+        "model": {"effects": {name: {"baseline": 0.0, "low": 0.0, "high": 1.0}}}}))
+    with pytest.raises(SimulationError, match=rf"model.effects.{re.escape(name)}: {reason}.*FMI lets no tool") as e:
+        check_model(cfg)
+    assert e.value.exit_code == 6 and "\n" not in str(e.value)

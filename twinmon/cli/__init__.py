@@ -101,7 +101,7 @@ def main(ctx, verbose, quiet):
 
 
 def _register() -> None:
-    from . import backtest_cmd, calibrate_cmd, data, diagnose_cmd, forecast_cmd, init_cmd, pipeline, report_cmd  # noqa: F401  (modules attach their commands to main)
+    from . import backtest_cmd, calibrate_cmd, check_cmd, data, diagnose_cmd, forecast_cmd, init_cmd, pipeline, report_cmd  # noqa: F401  (modules attach their commands to main)
 
 
 _register()

@@ -1,7 +1,6 @@
 """Options and helpers shared by the commands."""
 from __future__ import annotations
 
-import json
 import sys
 from contextlib import contextmanager
 
@@ -46,16 +45,10 @@ def warn(text: str) -> None:
 
 
 def emit_json(obj) -> None:
-    click.echo(json.dumps(obj, indent=2, default=_plain))
-
-
-def _plain(o):
-    import numpy as np
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, np.generic):
-        return o.item()
-    return str(o)
+    """``--json`` output: strict JSON (``null`` for NaN and infinities, see
+    :mod:`twinmon.jsontext`), whatever the command."""
+    from ..jsontext import to_json
+    click.echo(to_json(obj))
 
 
 @contextmanager

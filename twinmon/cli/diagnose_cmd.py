@@ -5,7 +5,7 @@ from __future__ import annotations
 import click
 
 from . import main
-from .common import config_options, emit_json, json_option, load, progress_bar, say
+from .common import config_options, emit_json, json_option, load, progress_bar, say, warn
 
 
 @main.command()
@@ -26,12 +26,15 @@ from .common import config_options, emit_json, json_option, load, progress_bar, 
 def diagnose(config_path, overrides, observations, posterior, output, workers, update,
              as_json):
     """Locate the sim-to-real gap, name the unmodelled effect, show how far it shrinks."""
-    from ..diagnose import diagnose as run
+    from ..diagnose import candidate_names, diagnose as run, no_candidates_hint
     from ..errors import TwinmonError
     from ..observations import read_observations
     from ..executors import check_workers
     cfg = load(config_path, overrides)
     check_workers(workers if workers is not None else cfg.diagnose.workers)
+    hint = "" if candidate_names(cfg) else no_candidates_hint(cfg)
+    if hint:
+        warn(hint)
 
     def n_units() -> int:
         # For the bar only; an unreadable file is reported by the stage itself.
@@ -51,7 +54,7 @@ def diagnose(config_path, overrides, observations, posterior, output, workers, u
     if s.update is not None:
         say(update_line(s.update))
     for u, g in s.units.items():
-        say(summary_line(u, g))
+        say(summary_line(u, g, hint))
     say(f"diagnose: {len(s.units)} units in {s.wall_time:.1f} s on {s.workers} workers "
         f"-> {output}")
 
@@ -66,16 +69,21 @@ def update_line(u: dict) -> str:
                        ("dropped_units", "no longer observed")) if u[key]))
 
 
-def summary_line(unit: str, g) -> str:
-    """One human line per unit: verdict, effect (group) with its estimate, where, shrink."""
+def summary_line(unit: str, g, no_candidates: str = "") -> str:
+    """One human line per unit: verdict, effect (group) with its estimate, where, shrink;
+    ``no_candidates``: what to do when the config lists no candidate effect."""
     if g.verdict == "none":
         return (f"{unit}: no significant gap (p = {g.p_gap:.2g}, residual RMS "
                 f"{g.rms_before:.2f} x noise)")
     where = (f"years {g.where_years[0]}-{g.where_years[-1]}" if g.where_years else "")
     if g.where_windows:
         where += f", {', '.join(g.where_windows)}"
+    if g.verdict == "unexplained" and not g.candidates:
+        return (f"{unit}: UNEXPLAINED gap from year {g.onset} ({where}); residual RMS "
+                f"{g.rms_before:.2f} x noise; "
+                + (no_candidates or "no candidate effects to test (model.effects)"))
     if g.verdict == "unexplained":
-        best = g.candidates[0] if g.candidates else "-"
+        best = g.candidates[0]
         return (f"{unit}: UNEXPLAINED gap from year {g.onset} ({where}); residual RMS "
                 f"{g.rms_before:.2f} x noise; best candidate {best} would close only "
                 f"{g.closed_percent:.0f} %")

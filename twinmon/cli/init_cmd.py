@@ -29,6 +29,7 @@ def init_cmd(model, output, force, as_json):
     summary = {"output": str(path), "fmu": str(info.path), "fmi_version": info.fmi_version,
                "model_name": info.model_name,
                "parameters": [v.name for v in info.tunable_parameters()],
+               "start_values": [v.name for v in info.start_values()],
                "recordable": [v.name for v in info.recordable()]}
     if as_json:
         emit_json(summary)

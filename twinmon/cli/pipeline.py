@@ -52,16 +52,23 @@ def reduce(config_path, overrides, simulations, output, as_json):
 @click.option("--workdir", default="out", show_default=True, type=click.Path(file_okay=False),
               help="Folder of the artifacts and of report/.")
 @click.option("--force", is_flag=True, help="Re-run every stage, even those up to date.")
+@click.option("--smoke", is_flag=True,
+              help="Every stage with small sizes (design, chains, draws, horizon, diagnose "
+                   "screening; twinmon.pipeline.SMOKE, docs/ci.md), to see the chain work in "
+                   "about a minute; not for results. --set still overrides.")
 @click.option("--update", is_flag=True,
               help="calibrate and diagnose keep the years already in the workdir's "
                    "posterior and gap.h5 and work only on those added since (calibrate "
                    "--update, diagnose --update); forecast and report re-run.")
 @json_option
 def run(config_path, overrides, observations, gap_observations, truth, workdir, force, update,
-        as_json):
+        smoke, as_json):
     """Every stage in order, skipping those whose output is up to date."""
-    from ..pipeline import run_pipeline
-    cfg = load(config_path, overrides)
+    from ..pipeline import SMOKE, run_pipeline
+    if smoke:
+        say(f"run --smoke: small sizes ({', '.join(SMOKE)}); for a check of the chain, "
+            "not for results")
+    cfg = load(config_path, (SMOKE if smoke else ()) + tuple(overrides))
     summary = run_pipeline(cfg, observations, workdir, gap_observations=gap_observations,
                            truth=truth, force=force, update=update, log=say)
     if as_json:

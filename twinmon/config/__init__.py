@@ -24,7 +24,8 @@ from .diagnose import DiagnoseConfig, WindowSpec
 from .fabricate import (Disturbance, FabricateConfig, FabricateEvent, InjectedEffect,
                         TrajectoryChange, TrajectorySpec, UnitSpec)
 from .forecast import BacktestConfig, ForecastConfig
-from .load import DuplicateKeyError, StrictLoader, config_from_mapping, load_config
+from .load import (PLACEHOLDER, DuplicateKeyError, StrictLoader, config_from_mapping,
+                   load_config)
 from .model import ChannelSpec, EffectSpec, InputSpec, ModelConfig, OutputSpec, TimeGrid
 from .reduce import ReduceConfig
 from .report import ReportConfig
@@ -37,7 +38,7 @@ __all__ = [
     "BacktestConfig", "CalibrateConfig", "ChannelSpec", "Config", "DaskConfig", "DiagnoseConfig",
     "Disturbance", "DuplicateKeyError", "EXECUTION_ONLY", "EffectSpec", "FabricateConfig",
     "FabricateEvent", "ForecastConfig", "INDICATOR_KINDS", "IndicatorSpec", "InjectedEffect",
-    "InputSpec", "ModelConfig", "OutputSpec", "ReduceConfig", "ReportConfig", "SafetyConfig",
+    "InputSpec", "ModelConfig", "OutputSpec", "PLACEHOLDER", "ReduceConfig", "ReportConfig", "SafetyConfig",
     "SimulateConfig", "StrictLoader", "TimeGrid", "TrajectoryChange", "TrajectorySpec", "UnitSpec", "UnsafeIf",
     "WindowSpec", "config_from_mapping", "load_config", "to_plain",
 ]

@@ -14,7 +14,7 @@ from typing import Any, Mapping
 import yaml
 
 from ..errors import ConfigError, ReadError
-from .schema import _build
+from .schema import _build, _where
 from .top import Config
 
 
@@ -56,8 +56,30 @@ def config_from_mapping(raw: Mapping[str, Any], source: Path = Path("<memory>"))
             bad = next(c for c in chans if not isinstance(c, str))
             raise ConfigError(f"{source}: model.channels: expected FMU variable names, got {bad!r}")
         model["channels"] = {c: {} for c in chans}
+    _refuse_placeholders(raw, (), source)
     cfg = _build(Config, raw, (), source)
     return dataclasses.replace(cfg, source=source, raw=raw)
+
+
+#: What ``twinmon init`` writes for each value only the user can give.
+PLACEHOLDER = "<fill in>"
+
+
+def _refuse_placeholders(value: Any, path: tuple, source: Path) -> None:
+    # A starter config must not load until every placeholder is replaced, whatever the
+    # type of the key (a units string would otherwise load and reach the report).
+    if isinstance(value, str) and PLACEHOLDER in value:
+        raise ConfigError(f"{_where(source, path)}: still {value!r}, the placeholder "
+                          "`twinmon init` wrote; fill in the value")
+    if isinstance(value, dict):
+        for k, v in value.items():
+            if isinstance(k, str) and PLACEHOLDER in k:
+                raise ConfigError(f"{_where(source, path + (k,))}: the key is still the "
+                                  "placeholder `twinmon init` wrote; fill it in")
+            _refuse_placeholders(v, path + (k,), source)
+    elif isinstance(value, (list, tuple)):
+        for i, v in enumerate(value):
+            _refuse_placeholders(v, path + (i,), source)
 
 
 def _load_yaml_tree(path: Path, seen: tuple) -> dict:

@@ -106,6 +106,15 @@ def candidate_names(cfg: Config) -> list:
     return names
 
 
+def no_candidates_hint(cfg: Config) -> str:
+    """What to do when the config lists no candidate effect: diagnose can locate a gap but
+    not name it."""
+    return (f"no candidate effects to test (model.effects in {cfg.source.name} is empty): "
+            "list the FMU parameters that could explain a gap under model.effects, one a line, "
+            "e.g. `NAME: {baseline: B, low: L, high: H, units: U}` where B gives exactly the "
+            "calibrated model (`twinmon init MODEL.fmu` lists the candidates)")
+
+
 def _unit_sigma(cfg: Config, uo, time: np.ndarray) -> dict:
     # Noise not recorded: estimated where the transient is calmest, the last window.
     plateau = list(cfg.diagnose_windows().values())[-1].start

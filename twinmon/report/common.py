@@ -204,6 +204,7 @@ class Figures:
 
     def save(self, fig, name: str, section: str, title: str, caption: str) -> None:
         name += self.suffix
+        wrap_suptitle(fig)
         if self.units:
             title += f" ({', '.join(self.units)})"
         path = self.folder / f"{name}.png"
@@ -226,6 +227,24 @@ class Figures:
         pending, self._pending = self._pending, []
         for future in pending:
             future.result()
+
+
+#: Characters of a figure title per inch of figure width (matplotlib's "large" title font,
+#: 12 pt, averages about 6.5 pt a character): beyond, the title is cut at the edges.
+TITLE_CHARS_PER_INCH = 10.5
+
+
+def wrap_suptitle(fig) -> None:
+    """Wrap the figure's title to its width, line by line (a one-input figure is narrow and
+    its title, written for several panels, would be clipped on both sides)."""
+    import textwrap
+    title = getattr(fig, "_suptitle", None)
+    if title is None or not title.get_text():
+        return
+    width = max(int(fig.get_figwidth() * TITLE_CHARS_PER_INCH), 20)
+    lines = [ln for line in title.get_text().split("\n")
+             for ln in (textwrap.wrap(line, width) or [""])]
+    title.set_text("\n".join(lines))
 
 
 def freeze_inherited() -> None:

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..safety import with_units
 from .common import Figures, indicator_limit_line
 from .load import Inputs
 
@@ -68,5 +69,6 @@ def fig_backtest(figs: Figures, inp: Inputs, colours: dict) -> None:
               f"year; black is the {ind.name} later observed (calibrated twin, posterior "
               f"median). {cover} of the later observations fell inside the "
               f"{100 * bt.confidence:.0f} % intervals (median absolute error "
-              f"{bt.indicator_mae:.3g} {ind.units}){al}. Units shown: up to {MAX_UNITS}, "
+              f"{with_units(f'{bt.indicator_mae:.3g}', ind.units)}){al}. Units shown: up to "
+              f"{MAX_UNITS}, "
               "those that reached unsafe first, then the largest misses.")

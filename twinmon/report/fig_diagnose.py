@@ -70,12 +70,15 @@ def fig_residual_map(figs: Figures, inp: Inputs, colours: dict) -> None:
               "points at an unmodelled effect.")
 
 
-def fig_candidates(figs: Figures, inp: Inputs, colours: dict) -> None:
-    """Candidate effects ranked by BIC gain, one panel per unit, group highlighted."""
+def fig_candidates(figs: Figures, inp: Inputs, colours: dict) -> bool:
+    """Candidate effects ranked by BIC gain, one panel per unit, group highlighted; False
+    (nothing drawn) when no unit had a candidate to rank."""
     from matplotlib.ticker import StrMethodFormatter
     gap, cfg, w = inp.gap, inp.cfg, inp.words
     units = list(gap.units)
     n_c = max(len(g.candidates) for g in gap.units.values())
+    if n_c == 0:
+        return False
     fig = figs.new(max(4.0 * len(units) + 1.0, 8.0), 0.38 * n_c + 2.0)
     axes = fig.subplots(1, len(units), squeeze=False)[0]
     thr = cfg.diagnose.bic_gain
@@ -123,6 +126,7 @@ def fig_candidates(figs: Figures, inp: Inputs, colours: dict) -> None:
               f"A gain above {thr:g} is accepted; candidates within "
               f"{cfg.diagnose.group_bic:g} of the best cannot be told apart from the "
               f"{w.out_label} alone.")
+    return True
 
 
 def fig_overlay(figs: Figures, inp: Inputs, colours: dict) -> bool:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
 import shutil
 from pathlib import Path
@@ -11,6 +10,7 @@ from typing import Sequence
 
 from .. import artifacts
 from ..config import Config
+from ..jsontext import to_json
 from .common import SKIP_HINTS, UNIT_COLOURS, Figures, plain
 from .fig_calibration import fig_estimates
 from .fig_backtest import fig_backtest
@@ -177,11 +177,20 @@ def _render(cfg: Config, inp: Inputs, tmp: Path, out: Path, provenance: dict,
         sections["surrogate"] = "rendered"
     elif inp.surrogate is not None:
         v = inp.validation or {}
-        surrogate_info = {"stored_validation": v, "modes": int(inp.surrogate.n_modes)}
+        surrogate_info = {"stored_validation": v, "modes": int(inp.surrogate.n_modes),
+                          "max_range_error": v.get("max_range_error"),
+                          "n_test": v.get("n_test")}
         sections["surrogate"] = ("skipped: the surrogate figure needs the simulations artifact "
                                  f"(its test runs); {stored_validation_text(v)}")
     else:
         sections["surrogate"] = f"skipped: {SKIP_HINTS['surrogate']}"
+    if inp.surrogate is not None:
+        from ..reduce import cap_warning
+        capped = cap_warning(inp.surrogate, cfg.reduce, surrogate_info.get("max_range_error"),
+                             w.out_label)
+        if capped:
+            surrogate_info["warning"] = capped
+            notes.append(capped[0].upper() + capped[1:] + ".")
 
     if inp.posterior is not None:
         errors = []
@@ -236,12 +245,16 @@ def _render(cfg: Config, inp: Inputs, tmp: Path, out: Path, provenance: dict,
                           f"_{k + 1}" if len(chunks) > 1 else "") for k, g in enumerate(chunks)]
             for i, u in enumerate(other):
                 colours.setdefault(u, UNIT_COLOURS[i % len(UNIT_COLOURS)])
-        overlay = False
+        overlay = ranked = False
         for group, sub, suffix in _drawing(figs, gap_views, fleet):
             if sub.gap.units:
                 fig_residual_map(figs, sub, colours)
-                fig_candidates(figs, sub, colours)
+                ranked = fig_candidates(figs, sub, colours) or ranked
                 overlay = fig_overlay(figs, sub, colours) or overlay
+        if not ranked and any(g.verdict != "none" for g in inp.gap.units.values()):
+            from ..diagnose import no_candidates_hint
+            notes.append("Diagnose located a gap but could not name it: "
+                         + no_candidates_hint(cfg) + ".")
         if not overlay:
             notes.append("Diagnose found no gap in any unit"
                          + (" drawn in detail" if fleet else "") + ": no before/after overlay.")
@@ -274,8 +287,7 @@ def _render(cfg: Config, inp: Inputs, tmp: Path, out: Path, provenance: dict,
         indicator=plain(indicator_words), fleet=fleet.as_dict() if fleet else None)
     if fleet is not None:
         extra["fleet"] = fleet_overview(cfg, summary, fleet, extra.pop("fleet_figure", []))
-    (tmp / "summary.json").write_text(json.dumps(plain(summary.as_dict()), indent=2,
-                                                 allow_nan=False))
+    (tmp / "summary.json").write_text(to_json(summary.as_dict()))
     (tmp / "index.html").write_text(page(cfg, w, summary, figs.items, extra, fleet),
                                     encoding="utf-8")
     return summary

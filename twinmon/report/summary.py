@@ -219,6 +219,12 @@ class ReportSummary:
             lines = [f"{u:<{w}}  {s.short_health:<{h}}  {s.time_to_failure:<{t}}"
                      + (f"  -> {s.action}" if s.action else "")
                      for u, s in self.units.items()]
+        sur = self.surrogate or {}
+        if sur.get("max_range_error") is not None:
+            n = f" on {sur['n_test']} test runs" if sur.get("n_test") else ""
+            lines.append(f"surrogate: max error {100 * sur['max_range_error']:.3g} % of the "
+                         f"output's range{n}"
+                         + (f" (warning: {sur['warning']})" if sur.get("warning") else ""))
         skipped = [k for k, v in self.sections.items() if v != "rendered"]
         if skipped:
             lines.append(f"(skipped: {', '.join(skipped)})")
@@ -300,6 +306,8 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
 
     if uf is not None:
         s.status, s.status_reason, s.forced = uf.status, uf.status_reason, uf.forced
+        # Known for fabricated data whether or not the twin may judge the unit.
+        s.true_failure_year = uf.true_failure_year if uf.has_truth else None
     if uf is not None and uf.status == "withheld" and not uf.forced:
         # No failure year and no root cause from a twin that misses the data: say so, and
         # what would settle it.
@@ -327,7 +335,6 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
         s.horizon_end = int(uf.years_future[-1])
         s.last_year = s.last_year or int(uf.years_observed[-1])
         s.plan = uf.plan
-        s.true_failure_year = uf.true_failure_year if uf.has_truth else None
         yf = np.asarray(uf.years_future)
         last = int(uf.years_observed[-1])
         what = " and the ".join(comps) if comps else None

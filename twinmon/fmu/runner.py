@@ -1,430 +1,20 @@
-"""Building FMUs from C sources, describing them, and running them fast, many times.
-
-An FMU source folder holds ``modelDescription.xml`` and ``sources/*.c|*.h`` (FMI 2.0 or 3.0);
-:func:`build_fmu` compiles it with the system C compiler into a ``.fmu`` cached under
-``<src_dir>/.build/<hash>/`` (the hash covers the model description, the sources and the
-build recipe), so an unchanged model is compiled once.  :func:`describe_fmu` reads what an
-FMU offers (its parameters, outputs, types and units) for config checks and ``twinmon init``.
-:class:`FMUModel` extracts an FMU once, keeps one instance and resets it between runs: an
-FMI 2.0 or 3.0 Co-Simulation run costs a few dozen direct C calls.
-"""
+"""Running an FMU fast, many times: one instance, reset between runs, driven through
+direct C calls (FMI 2.0 or 3.0 Co-Simulation), or fmpy's CVode for Model Exchange."""
 from __future__ import annotations
 
 import ctypes
-import difflib
-import hashlib
-import os
 import shutil
-import subprocess
 import tempfile
 import weakref
-import xml.etree.ElementTree as ET
-import zipfile
-import zlib
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 
-from .errors import SimulationError
-
-__all__ = ["source_hash", "build_fmu", "resolve_fmu", "FMUModel", "VariableInfo", "FMUInfo",
-           "describe_fmu", "closest_names"]
-
-# Part of the hash: changing how the binary is built must invalidate the cache.
-_BUILD_RECIPE = b"twinmon-build/1: cc -O2 -shared -fPIC <sources/*.c> -lm"
-_ZIP_DATE = (2020, 1, 1, 0, 0, 0)   # fixed, so that the same build gives the same bytes
-_FMU_MODE = 0o644                   # a built .fmu is a shareable file, not a private one
-
-FLOAT_TYPES = frozenset({"Real", "Float64", "Float32"})
-INTEGER_TYPES = frozenset({"Integer", "Enumeration", "Int8", "UInt8", "Int16", "UInt16",
-                           "Int32", "UInt32", "Int64", "UInt64"})
-NUMERIC_TYPES = FLOAT_TYPES | INTEGER_TYPES | {"Boolean"}
-
-
-def _one_line(exc: BaseException, limit: int = 300) -> str:
-    """An exception's message on one line (fmpy's span several: a heading, then one
-    ``- problem`` line each), cut to ``limit`` characters."""
-    lines = [ln.strip().lstrip("- ").strip() for ln in str(exc).splitlines()]
-    lines = [ln for ln in lines if ln]
-    if not lines:
-        return type(exc).__name__
-    text = lines[0]
-    for ln in lines[1:]:
-        text += (" " if text.endswith(":") else "; ") + ln
-    return text if len(text) <= limit else text[:limit - 3] + "..."
-
-
-# --------------------------------------------------------------------------------------
-# building
-
-def _source_files(src_dir: Path) -> list[Path]:
-    sources = src_dir / "sources"
-    files = [src_dir / "modelDescription.xml"]
-    if sources.is_dir():
-        # is_file() and read_bytes() follow symbolic links: a source shared with another
-        # FMU folder through a link is hashed and packed by its content.
-        files += sorted(p for p in sources.rglob("*") if p.is_file())
-    return files
-
-
-def source_hash(src_dir: Path) -> str:
-    """SHA-256 over ``modelDescription.xml`` and every file under ``sources/``.
-
-    Parameters
-    ----------
-    src_dir : Path
-        FMU source folder.
-
-    Returns
-    -------
-    str
-        Hex digest; covers each file's relative path and content (sorted; symbolic links
-        are followed) and the build recipe.
-    """
-    src_dir = Path(src_dir)
-    h = hashlib.sha256(_BUILD_RECIPE)
-    for f in _source_files(src_dir):
-        h.update(f.relative_to(src_dir).as_posix().encode() + b"\0")
-        h.update(f.read_bytes())
-        h.update(b"\0")
-    return h.hexdigest()
-
-
-def _model_head(md_path: Path) -> tuple[str, str]:
-    """``(fmiVersion, modelIdentifier)`` of a source folder's model description."""
-    try:
-        root = ET.parse(md_path).getroot()
-    except (OSError, ET.ParseError) as e:
-        raise SimulationError(f"cannot read {md_path}: {_one_line(e)}") from None
-    version = root.get("fmiVersion", "")
-    if not (version == "2.0" or version.startswith("3.")):
-        raise SimulationError(f"{md_path}: fmiVersion {version!r} is not supported "
-                              "(FMI 2.0 or 3.0)")
-    for kind in ("CoSimulation", "ModelExchange"):
-        el = root.find(kind)
-        if el is not None and el.get("modelIdentifier"):
-            return version, el.get("modelIdentifier")
-    raise SimulationError(f"{md_path} declares no modelIdentifier")
-
-
-def _fmi_headers() -> Path:
-    import fmpy
-    return Path(os.path.dirname(fmpy.__file__)) / "c-code"
-
-
-def _binary_dir(fmi_version: str) -> str:
-    """Folder of the shared library inside the FMU: FMI 3 names platforms by a tuple."""
-    import fmpy
-    return f"binaries/{fmpy.platform_tuple if fmi_version.startswith('3') else fmpy.platform}"
-
-
-def build_fmu(src_dir: Path | str, force: bool = False) -> Path:
-    """Compile an FMU source folder (FMI 2.0 or 3.0) into a ``.fmu`` (cached by :func:`source_hash`).
-
-    Parameters
-    ----------
-    src_dir : Path or str
-        Folder with ``modelDescription.xml`` and ``sources/``.  The FMI version is read from
-        the model description: FMI 2.0 binaries go to ``binaries/linux64/``, FMI 3.0 ones to
-        ``binaries/x86_64-linux/`` (fmpy's platform names).
-    force : bool
-        Rebuild even when the cached ``.fmu`` exists.
-
-    Returns
-    -------
-    Path
-        ``<src_dir>/.build/<hash[:16]>/<modelIdentifier>.fmu``, mode 0644.
-
-    Raises
-    ------
-    SimulationError
-        The sources are missing or do not compile (names the folder and the first error line).
-    """
-    import fmpy
-
-    src_dir = Path(src_dir).resolve()
-    md = src_dir / "modelDescription.xml"
-    if not md.is_file():
-        raise SimulationError(f"{src_dir} has no modelDescription.xml")
-    fmi_version, identifier = _model_head(md)
-    c_files = sorted((src_dir / "sources").glob("*.c"))
-    if not c_files:
-        raise SimulationError(f"{src_dir / 'sources'} holds no C sources")
-    digest = source_hash(src_dir)
-    out_dir = src_dir / ".build" / digest[:16]
-    out = out_dir / f"{identifier}.fmu"
-    if out.is_file() and not force:
-        if out.stat().st_mode & 0o777 != _FMU_MODE:
-            try:    # cached by an older twinmon that left it private (0600)
-                os.chmod(out, _FMU_MODE)
-            except OSError:
-                pass
-        return out
-
-    out_dir.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(prefix="twinmon-build-") as tmp:
-        lib_rel = f"{_binary_dir(fmi_version)}/{identifier}{fmpy.sharedLibraryExtension}"
-        lib = Path(tmp) / lib_rel
-        lib.parent.mkdir(parents=True)
-        cmd = ["cc", "-O2", "-shared", "-fPIC", "-I", str(_fmi_headers()),
-               "-I", str(src_dir / "sources"), *map(str, c_files), "-o", str(lib), "-lm"]
-        try:
-            proc = subprocess.run(cmd, capture_output=True, text=True)
-        except OSError as e:
-            raise SimulationError(f"cannot compile FMU sources in {src_dir}: {e}") from None
-        if proc.returncode != 0:
-            lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
-            first = next((ln for ln in lines if "error" in ln.lower()),
-                         lines[0] if lines else f"cc exited with code {proc.returncode}")
-            raise SimulationError(f"cannot compile FMU sources in {src_dir}: {first.strip()}")
-
-        entries = [("modelDescription.xml", md), (lib_rel, lib)]
-        entries += [(p.relative_to(src_dir).as_posix(), p)
-                    for p in _source_files(src_dir)[1:]]
-        fd, tmp_fmu = tempfile.mkstemp(suffix=".fmu.tmp", dir=out_dir)
-        try:
-            with os.fdopen(fd, "wb") as fh, zipfile.ZipFile(fh, "w", zipfile.ZIP_DEFLATED) as zf:
-                for name, path in entries:
-                    info = zipfile.ZipInfo(name, date_time=_ZIP_DATE)
-                    info.compress_type = zipfile.ZIP_DEFLATED
-                    info.external_attr = 0o644 << 16
-                    zf.writestr(info, path.read_bytes())
-            os.chmod(tmp_fmu, _FMU_MODE)      # mkstemp creates 0600
-            os.replace(tmp_fmu, out)
-        except BaseException:
-            if os.path.exists(tmp_fmu):
-                os.unlink(tmp_fmu)
-            raise
-    return out
-
-
-def resolve_fmu(path) -> Path:
-    """The ``.fmu`` to run for ``path``: a source folder is built (cached), a ``.fmu`` is used as is.
-
-    Raises
-    ------
-    SimulationError
-        ``path`` is neither an FMU source folder nor a ``.fmu`` file.
-    """
-    p = Path(path)
-    if p.is_dir() and (p / "modelDescription.xml").is_file() and (p / "sources").is_dir():
-        return build_fmu(p)
-    if p.is_file() and p.suffix.lower() == ".fmu":
-        return p
-    raise SimulationError(f"{p} is neither a .fmu file nor an FMU source folder "
-                          "(modelDescription.xml + sources/)")
-
-
-# --------------------------------------------------------------------------------------
-# describing
-
-def _read_model_description(path: Path):
-    """fmpy's model description of a ``.fmu`` file, checked for the usual ways a file is
-    broken; every failure is one :class:`SimulationError` line naming the file."""
-    import fmpy
-
-    path = Path(path)
-    if path.is_dir():
-        if not (path / "modelDescription.xml").is_file():
-            raise SimulationError(f"{path}: no modelDescription.xml in this folder")
-    else:
-        try:
-            size = path.stat().st_size
-        except OSError as e:
-            raise SimulationError(f"{path}: cannot read the FMU: {e.strerror or e}") from None
-        if size == 0:
-            raise SimulationError(f"{path}: the file is empty, not an FMU")
-        if not zipfile.is_zipfile(path):
-            raise SimulationError(f"{path}: not a zip archive, so not an FMU "
-                                  "(truncated or corrupt file?)")
-        try:
-            with zipfile.ZipFile(path) as zf:
-                if "modelDescription.xml" not in zf.namelist():
-                    raise SimulationError(f"{path}: the archive holds no modelDescription.xml, "
-                                          "so it is not an FMU")
-                bad = zf.testzip()      # CRC of every member: catches a damaged archive now
-        except SimulationError:
-            raise
-        except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError) as e:
-            raise SimulationError(f"{path}: corrupt FMU archive: {_one_line(e)}") from None
-        if bad is not None:
-            raise SimulationError(f"{path}: corrupt FMU archive: member {bad} fails its "
-                                  "checksum")
-    try:
-        return fmpy.read_model_description(str(path))
-    except Exception as e:  # fmpy raises plain exceptions, often several lines long
-        raise SimulationError(f"{path}: invalid modelDescription.xml: {_one_line(e)}") from None
-
-
-def _start_value(v) -> float | None:
-    s = v.start
-    if s is None:
-        return None
-    if v.type == "Boolean":
-        return 1.0 if str(s).strip().lower() in ("true", "1") else 0.0
-    try:
-        return float(s)
-    except (TypeError, ValueError):
-        return None
-
-
-def _unit(v) -> str:
-    if v.unit:
-        return v.unit
-    dt = getattr(v, "declaredType", None)
-    return (getattr(dt, "unit", None) or "") if dt is not None else ""
-
-
-def _is_tunable(v) -> bool:
-    # Parameters of variability fixed or tunable, and inputs (held constant over a run):
-    # what FMUModel sets before initialisation.
-    return (v.type in FLOAT_TYPES and not v.dimensions
-            and (v.causality == "input"
-                 or (v.causality == "parameter" and v.variability in ("fixed", "tunable"))))
-
-
-def _is_recordable(v) -> bool:
-    return v.type in NUMERIC_TYPES and not v.dimensions and v.causality in ("output", "local")
-
-
-@dataclass(frozen=True)
-class VariableInfo:
-    """One scalar FMU variable as the model description declares it.
-
-    ``type`` is the FMI type name (``Real``, ``Integer``, ``Boolean``... in FMI 2.0;
-    ``Float64``, ``Int32``... in FMI 3.0); ``start`` is its start value as a float
-    (Boolean: 0/1), or None when it has none; ``unit`` is "" when undeclared.
-    ``shape`` is () for a scalar (FMI 3.0 arrays have their dimensions there).
-    """
-
-    name: str
-    causality: str
-    variability: str
-    type: str
-    start: float | None
-    unit: str
-    description: str
-    shape: tuple[int, ...] = ()
-
-    @property
-    def is_float(self) -> bool:
-        """A scalar floating-point variable (Real, Float64, Float32)."""
-        return self.type in FLOAT_TYPES and not self.shape
-
-    @property
-    def is_numeric(self) -> bool:
-        """A scalar whose value reads as a number (float, integer, enumeration, Boolean)."""
-        return self.type in NUMERIC_TYPES and not self.shape
-
-
-@dataclass(frozen=True)
-class FMUInfo:
-    """What an FMU offers, read from its model description (see :func:`describe_fmu`).
-
-    ``variables`` keeps the model description's order; ``stop_time`` and ``step_size`` are
-    the model description's DefaultExperiment (None when it gives none)."""
-
-    path: Path
-    fmi_version: str
-    model_name: str
-    description: str
-    co_simulation: bool
-    model_exchange: bool
-    variables: dict[str, VariableInfo]
-    stop_time: float | None = None
-    step_size: float | None = None
-
-    def tunable_parameters(self) -> list[VariableInfo]:
-        """Float parameters (variability fixed or tunable) and float inputs: the variables
-        :class:`FMUModel` can set for a run, i.e. candidate degradation inputs, effects and
-        fixed values."""
-        return [v for v in self.variables.values()
-                if v.is_float and (v.causality == "input"
-                                   or (v.causality == "parameter"
-                                       and v.variability in ("fixed", "tunable")))]
-
-    def recordable(self) -> list[VariableInfo]:
-        """Numeric outputs and locals, outputs first: what :class:`FMUModel` can record."""
-        vs = [v for v in self.variables.values()
-              if v.is_numeric and v.causality in ("output", "local")]
-        return [v for v in vs if v.causality == "output"] + \
-               [v for v in vs if v.causality == "local"]
-
-
-def describe_fmu(path) -> FMUInfo:
-    """Read an FMU's model description: its version, interfaces and variables.
-
-    Parameters
-    ----------
-    path : Path or str
-        A ``.fmu`` file, or an FMU source folder (built and cached first, see
-        :func:`resolve_fmu`).
-
-    Returns
-    -------
-    FMUInfo
-        ``path`` is the ``.fmu`` file described.
-
-    Raises
-    ------
-    SimulationError
-        One line naming the file and what is wrong: missing, empty, not a zip archive,
-        truncated or corrupt, without ``modelDescription.xml``, or an invalid one.
-    """
-    p = Path(path)
-    fmu = resolve_fmu(p) if p.is_dir() else p
-    md = _read_model_description(fmu)
-    variables = {}
-    for v in md.modelVariables:
-        variables[v.name] = VariableInfo(
-            name=v.name, causality=v.causality or "local", variability=v.variability or "",
-            type=v.type, start=_start_value(v) if not v.dimensions else None, unit=_unit(v),
-            description=v.description or "",
-            shape=tuple(d.start if d.start is not None else -1 for d in v.dimensions))
-    de = md.defaultExperiment
-
-    def number(text) -> float | None:
-        try:
-            return float(text) if text is not None else None
-        except (TypeError, ValueError):
-            return None
-
-    return FMUInfo(path=fmu, fmi_version=md.fmiVersion, model_name=md.modelName or "",
-                   description=md.description or "",
-                   co_simulation=md.coSimulation is not None,
-                   model_exchange=md.modelExchange is not None, variables=variables,
-                   stop_time=number(de.stopTime) if de is not None else None,
-                   step_size=number(de.stepSize) if de is not None else None)
-
-
-def closest_names(name: str, candidates: Iterable[str], n: int = 3) -> list[str]:
-    """The ``n`` candidates most like ``name`` (difflib ratio, case-insensitive), best first.
-
-    Every candidate that shares something with ``name`` may be returned, so that an error
-    message can always point at what exists; an empty list only when there are none.
-    """
-    key = name.lower()
-    scored = []
-    for c in dict.fromkeys(candidates):
-        r = difflib.SequenceMatcher(None, key, c.lower()).ratio()
-        if r > 0:
-            scored.append((-r, c))
-    return [c for _, c in sorted(scored)[:max(n, 0)]]
-
-
-def _a(word: str) -> str:
-    return ("an " if word[:1].lower() in "aeiou" else "a ") + word
-
-
-def _closest_hint(name: str, candidates: Iterable[str]) -> str:
-    near = closest_names(name, candidates)
-    return f"; closest: {', '.join(near)}" if near else ""
-
-
-# --------------------------------------------------------------------------------------
-# running
+from ..errors import SimulationError
+from .common import NUMERIC_TYPES, _a, _closest_hint, _one_line
+from .description import (_is_recordable, _is_settable, _read_model_description,
+                          why_not_settable)
 
 _c_int, _c_void_p, _c_double, _c_size_t = ctypes.c_int, ctypes.c_void_p, ctypes.c_double, ctypes.c_size_t
 _c_bool, _c_float = ctypes.c_bool, ctypes.c_float
@@ -491,8 +81,9 @@ class FMUModel:
     Notes
     -----
     Use as a context manager or call :meth:`close`: the extracted FMU lives in a temporary
-    folder until then.  Parameters are the float parameters and inputs of
-    :meth:`FMUInfo.tunable_parameters`.
+    folder until then.  Parameters are the variables of :meth:`FMUInfo.settable`: float
+    parameters, inputs and start values (FMI lets a tool set a local's or an output's start
+    value when its ``initial`` is exact or approx), all set before initialisation.
     """
 
     def __init__(self, fmu_path, outputs: Sequence[str], times: np.ndarray,
@@ -522,8 +113,9 @@ class FMUModel:
         if kind is None:
             raise SimulationError(f"{self._fmu_path} does not support {fmi_type}")
         self._vars = {v.name: v for v in md.modelVariables}
-        self._params = {v.name: v.valueReference for v in md.modelVariables if _is_tunable(v)}
-        self._param_type = {v.name: v.type for v in md.modelVariables if _is_tunable(v)}
+        # Parameters, inputs and start values, all set before EnterInitializationMode.
+        self._params = {v.name: v.valueReference for v in md.modelVariables if _is_settable(v)}
+        self._param_type = {v.name: v.type for v in md.modelVariables if _is_settable(v)}
         self._outputs = tuple(outputs)
         for name in self._outputs:
             v = self._vars.get(name)
@@ -677,14 +269,14 @@ class FMUModel:
             hint = _closest_hint(name, self._params)
             if v is None:
                 raise SimulationError(f"{self._fmu_path} has no parameter {name!r}{hint}")
-            raise SimulationError(f"{self._fmu_path}: {name!r} is {_a(v.causality)} {v.type} "
-                                  f"variable, not a float parameter that can be set{hint}")
+            raise SimulationError(f"{self._fmu_path}: {name!r} {why_not_settable(v)}{hint}")
 
     # -- public -------------------------------------------------------------------------
 
     @property
     def parameter_names(self) -> tuple[str, ...]:
-        """Names of the FMU's float parameters (and inputs) that :meth:`run` accepts."""
+        """Names of the FMU's float parameters, inputs and start values that :meth:`run`
+        accepts."""
         return tuple(self._params)
 
     @property
