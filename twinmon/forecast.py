@@ -1127,7 +1127,7 @@ def fleet_sigma_prior(cfg: Config, post):
     ``calibrate.prior_width``.
     """
     from .calibrate.fleet import fit_fleet_prior
-    from .calibrate.joint import sigma_prior_scale
+    from .calibrate.trend import sigma_prior_scale
     if not cfg.forecast.pool_sigma:
         return None
     default = sigma_prior_scale(cfg)
@@ -1351,7 +1351,7 @@ class _TwinState:
     when built), the FMU spec and the executor of the FMU runs."""
 
     def __init__(self, cfg: Config, sur, spec, executor):
-        from .calibrate.vectorised import make_predictor
+        from .calibrate.samplers.gpbatch import make_predictor
         self.cfg, self.sur, self.spec, self.executor = cfg, sur, spec, executor
         self.predict = make_predictor(sur)[0]
 
@@ -1457,7 +1457,7 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict,
     trends = {}
     slope_draws = None
     if trend_post:
-        from .calibrate.joint import last_segment
+        from .calibrate.trend import last_segment
         slope_draws = last_segment(trend_post, "slope")         # [n, d]
     for i, name in enumerate(names):
         spec = cfg.model.inputs[name]
@@ -1485,7 +1485,7 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict,
         # The joint method sampled the trend itself: draw the future from its posterior
         # predictive (levels, slopes and year-to-year sd), not from lines refitted to
         # the yearly means.
-        from .calibrate.joint import trend_predictive
+        from .calibrate.trend import trend_predictive
         rng = _unit_rng(cfg, unit, 0)
         draws = trend_predictive(trend_post, fut, rng)          # [n, h, d]
         X = draws[rng.integers(0, draws.shape[0], fc.samples)].transpose(1, 0, 2)
@@ -1511,7 +1511,7 @@ def _pool_unit(cfg: Config, unit: str, trend: dict, samples: np.ndarray,
     """A jointly calibrated unit's trend draws and years' draws [n_y, n, d] resampled to the
     fleet's prior of the year-to-year sd; returns them and the weights' effective number of
     draws."""
-    from .calibrate.joint import TREND_DRAWS
+    from .calibrate.trend import TREND_DRAWS
     idx, ess_frac = fleet.resample(np.asarray(trend["sigma"], float), _unit_rng(cfg, unit, 5))
     pooled = {k: (np.asarray(v)[idx] if k in TREND_DRAWS else v) for k, v in trend.items()}
     # The artifact thins the years' and the trend's draws alike, so draw j is one chain

@@ -8,7 +8,7 @@ from typing import Optional
 import numpy as np
 
 from ..config import Config
-from .common import pct, plain, state_words
+from .common import plain
 from .fleet import FleetView, overview_lines
 from .load import Inputs
 from .unit_summary import UnitSummary
