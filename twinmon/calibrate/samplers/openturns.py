@@ -44,7 +44,7 @@ class OpenTurnsSampler(Sampler):
             return
         # Years of one unit are sequential (each prior is centred on the previous estimate),
         # so the parallel grain is the chain: every unit's chains of the same year at once.
-        from ..executors import InterruptGuard, open_pool
+        from ...executors import InterruptGuard, open_pool
         # A forked worker has the surrogate already; a Dask worker gets it sent, once.
         pool = open_pool(cfg, "calibrate", workers, *work.pool_args)   # process or Dask pool
         with sampling_pool(pool, work.output), InterruptGuard() as guard:
