@@ -94,7 +94,8 @@ from .update import Kept, plan_update, year_digests
 __all__ = [
     "ACCEPTANCE_RANGE", "FIT_FIELDS", "SECTIONS", "SEED_OFFSET", "STATUS_EDGE", "STATUS_MISFIT",
     "STATUS_OK", "STATUS_UNCONVERGED", "CalibrateSummary", "LogDensity", "Method", "Posterior",
-    "Prior", "Sampler", "UnitPosterior", "Work", "calibrate", "calibrate_unit", "diagnostics_warnings", "ess",
+    "Prior", "Sampler", "UnitPosterior", "Work", "calibrate", "calibrate_unit",
+    "diagnostics_warnings", "ess",
     "estimate_noise", "find_map", "fit_warnings", "make_log_density", "plan_chains",
     "read_posterior", "resolve_method", "run_chain", "sample_posterior", "split_rhat",
     "truth_check", "write_posterior", "year_fit", "year_prior",

@@ -40,8 +40,8 @@ log-density, the joint's (:class:`_JointLogDensity`): OpenTURNS' Gibbs hands the
 log-posterior from one block to the next, recomputing it only where neighbouring blocks'
 log-densities differ at the first state, which is exact only when they are the same function.
 That is the reference (``calibrate.sampler: openturns``); the default runs the same blocks
-and proposals for the chains of many units at once in numpy (:mod:`~twinmon.calibrate.samplers.joint_vectorised`),
-about 6x faster per chain.
+and proposals for the chains of many units at once in numpy
+(:mod:`~twinmon.calibrate.samplers.joint_vectorised`), about 6x faster per chain.
 
 Why not the centred Gibbs (``theta_k`` by MH, levels and slopes from their Gaussian
 conditional, ``sigma^2`` inverse-gamma): with the per-year posteriors much wider than sigma
@@ -319,9 +319,9 @@ class JointRun:
 
     def _starts(self, s: dict, chains: int, seed: int) -> np.ndarray:
         """Dispersed starting states [chains, D]: each year's theta drawn around its
-        maximum-likelihood point (:func:`~twinmon.calibrate.shared.initial_states`), the trend fitted to
-        them by least squares, ``s`` spread over a factor e^2 around its first guess, and
-        ``eps`` what makes up each theta."""
+        maximum-likelihood point (:func:`~twinmon.calibrate.shared.initial_states`), the
+        trend fitted to them by least squares, ``s`` spread over a factor e^2 around its first
+        guess, and ``eps`` what makes up each theta."""
         lay = self.lay
         rng = np.random.default_rng(seed)
         prior = Prior.uniform(self.cfg.model.bounds)
@@ -397,8 +397,8 @@ class JointRun:
         self.k = K
 
     def _trend(self, z: np.ndarray, acceptance: list) -> dict:
-        """The trend's draws and diagnostics (:data:`~twinmon.calibrate.trend.TREND_FIELDS`) from the chains' states
-        ``z`` [chains, samples, D]."""
+        """The trend's draws and diagnostics (:data:`~twinmon.calibrate.trend.TREND_FIELDS`)
+        from the chains' states ``z`` [chains, samples, D]."""
         lay = self.lay
         n_c, n_s = z.shape[:2]
         d = lay.d
@@ -442,7 +442,8 @@ def calibrate_unit_joint(surrogate, cfg: Config, years, flows, noise_std, rng_se
     cfg : Config
         Uses ``model`` (box, components, normal rates) and ``calibrate`` (chains, samples,
         burn-in, prior width, trend moves, R-hat/ESS marks, extensions; ``sampler``:
-        ``vectorised`` runs the chains batched in numpy (:mod:`~twinmon.calibrate.samplers.joint_vectorised`),
+        ``vectorised`` runs the chains batched in numpy
+        (:mod:`~twinmon.calibrate.samplers.joint_vectorised`),
         ``openturns`` with OpenTURNS' Gibbs, one after the other).
     years : array of int, shape [n_y]
     flows : ndarray, shape [n_y, n_t]

@@ -194,8 +194,8 @@ def make_predictor(surrogate) -> tuple[Callable[[np.ndarray], np.ndarray], bool]
 
 
 def worker_predict() -> Callable[[np.ndarray], np.ndarray]:
-    """The batch predictor of a worker process's surrogate (:func:`~twinmon.calibrate.shared.init_worker`),
-    made on the worker's first batch and kept."""
+    """The batch predictor of a worker process's surrogate
+    (:func:`~twinmon.calibrate.shared.init_worker`), made on its first batch and kept."""
     if "predict" not in worker:
         worker["predict"] = make_predictor(worker["surrogate"])[0]
     return worker["predict"]

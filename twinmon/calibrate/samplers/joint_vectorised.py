@@ -1,8 +1,9 @@
 """The joint method's fast path: its Gibbs sampler over every chain of many units at once, in
 numpy.
 
-The model, the blocks and their proposals are :mod:`~twinmon.calibrate.methods.joint`'s (which samples them with
-OpenTURNS' ``Gibbs``, one chain per task: the reference); what changes is how they are run:
+The model, the blocks and their proposals are the joint method's
+(:mod:`~twinmon.calibrate.methods.joint`, which samples them with OpenTURNS' ``Gibbs``, one
+chain per task: the reference); what changes is how they are run:
 
 * **All years' blocks in one step.** Given the trend (levels, slopes, ``s``) the years'
   ``eps_k`` are independent, so the K per-year random-walk blocks of a sweep are proposed
@@ -13,9 +14,9 @@ OpenTURNS' ``Gibbs``, one chain per task: the reference); what changes is how th
   prediction as array arithmetic) in one call, instead of one OpenTURNS call per chain and
   block through a Python callback. A trend move evaluates the K years of every chain at once.
 * **Adaptation as OpenTURNS'.** During the burn-in each block's proposal scale is adapted
-  every :data:`~twinmon.calibrate.shared.ADAPT_PERIOD` of its moves on its acceptance rate (range and
-  factors of OpenTURNS' random walk); the ``joint_trend_moves`` trend moves of a sweep share
-  one scale (OpenTURNS keeps one per block).
+  every :data:`~twinmon.calibrate.shared.ADAPT_PERIOD` of its moves on its acceptance rate
+  (range and factors of OpenTURNS' random walk); the ``joint_trend_moves`` trend moves of a
+  sweep share one scale (OpenTURNS keeps one per block).
 
 Determinism: each chain (row) draws its random numbers from its own generator, seeded by the
 task (``JointTask.seed``), a fixed number of sweeps at a time, and every row is computed
@@ -249,9 +250,9 @@ class JointVectorisedSampler(Sampler):
 
     Each round plans every unfinished unit's chains (first runs, or longer runs of units
     whose R-hat/ESS missed the marks), splits the units into groups (whole units, see
-    :func:`~twinmon.calibrate.shared.unit_groups`), runs each group's chains in one batch in a worker
-    (``calibrate.workers``: 0 = one per core, 1 = in this process) and hands each unit its
-    chains. Results do not depend on the split.
+    :func:`~twinmon.calibrate.shared.unit_groups`), runs each group's chains in one batch in
+    a worker (``calibrate.workers``: 0 = one per core, 1 = in this process) and hands each
+    unit its chains. Results do not depend on the split.
     """
 
     name = "vectorised"

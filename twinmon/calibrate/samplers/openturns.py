@@ -71,5 +71,6 @@ class OpenTurnsSampler(Sampler):
 
 
 def run_in_worker(run_task: Callable, task):
-    """``run_task`` on a worker process's surrogate (:func:`~twinmon.calibrate.shared.init_worker`)."""
+    """``run_task`` on a worker process's surrogate
+    (:func:`~twinmon.calibrate.shared.init_worker`)."""
     return run_task(worker["surrogate"], task)

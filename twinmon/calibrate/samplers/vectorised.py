@@ -386,11 +386,12 @@ def _work(cfg: Config, units: list[UnitData]) -> dict[str, UnitPosterior]:
 class VectorisedSampler(Sampler):
     """The sequential method's numpy sampler (``calibrate.sampler: vectorised``, the
     default): every pending unit of the work is calibrated through its remaining years by
-    :func:`calibrate_units`, its run replaced by its result (a :class:`~twinmon.calibrate.update.Kept`).
+    :func:`calibrate_units`, its run replaced by its result (a
+    :class:`~twinmon.calibrate.update.Kept`).
 
-    The units are split into groups (:func:`~twinmon.calibrate.shared.unit_groups`), each run by one worker
-    of calibrate's pool through all its years (``calibrate.workers``: 0 = one per core, 1 =
-    in this process). Results do not depend on the split.
+    The units are split into groups (:func:`~twinmon.calibrate.shared.unit_groups`), each run
+    by one worker of calibrate's pool through all its years (``calibrate.workers``: 0 = one
+    per core, 1 = in this process). Results do not depend on the split.
     """
 
     name = "vectorised"
