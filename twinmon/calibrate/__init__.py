@@ -89,18 +89,18 @@ from .posterior import (SECTIONS, SEED_OFFSET, Posterior, UnitPosterior, read_po
 from .shared import init_worker, year_prior
 from .update import Kept, plan_update, year_digests
 
-#: Acceptance rates outside this range make a warning (random-walk MH is efficient near
-#: 0.2-0.4 in low dimension; far outside, the proposal scale was badly adapted).
 __all__ = [
     "ACCEPTANCE_RANGE", "FIT_FIELDS", "SECTIONS", "SEED_OFFSET", "STATUS_EDGE", "STATUS_MISFIT",
     "STATUS_OK", "STATUS_UNCONVERGED", "CalibrateSummary", "LogDensity", "Method", "Posterior",
     "Prior", "Sampler", "UnitPosterior", "Work", "calibrate", "calibrate_unit",
-    "diagnostics_warnings", "ess",
-    "estimate_noise", "find_map", "fit_warnings", "make_log_density", "plan_chains",
-    "read_posterior", "resolve_method", "run_chain", "sample_posterior", "split_rhat",
-    "truth_check", "write_posterior", "year_fit", "year_prior",
+    "diagnostics_warnings", "ess", "estimate_noise", "find_map", "fit_warnings",
+    "make_log_density", "plan_chains", "read_posterior", "resolve_method", "run_chain",
+    "sample_posterior", "split_rhat", "truth_check", "write_posterior", "year_fit",
+    "year_prior",
 ]
 
+#: Acceptance rates outside this range make a warning (random-walk MH is efficient near
+#: 0.2-0.4 in low dimension; far outside, the proposal scale was badly adapted).
 ACCEPTANCE_RANGE = (0.1, 0.7)
 
 
