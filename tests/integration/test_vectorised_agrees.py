@@ -17,7 +17,8 @@ import numpy as np
 import pytest
 
 from twinmon.calibrate import UnitPosterior, _unit_seed, calibrate
-from twinmon.calibrate import vectorised as V
+from twinmon.calibrate.samplers.convergence import first_look
+from twinmon.calibrate.samplers.vectorised import UnitData, calibrate_units
 from twinmon.config import load_config
 from twinmon.observations import read_observations, write_observations
 from twinmon.reduce import read_surrogate, reduce
@@ -58,14 +59,14 @@ def both(tmp_path_factory, fmu_path):
 
     sur = read_surrogate(tmp / "sur.h5")
     out = {u: [] for u in ref}
-    n_keep = min(cfg_v.calibrate.samples, V.first_look(cfg_v))
+    n_keep = min(cfg_v.calibrate.samples, first_look(cfg_v))
     for k in range(YEARS):
-        units = [V.UnitData(u, obs.units[u].years[:k + 1],
+        units = [UnitData(u, obs.units[u].years[:k + 1],
                             obs.units[u].channels["m_flow"][:k + 1], p.noise_std[:k + 1],
                             _unit_seed(cfg_v, u), "file",
                             _prefix(p, k, n_keep) if k else None)
                  for u, p in ref.items()]
-        for u, p in V.calibrate_units(sur, cfg_v, units).items():
+        for u, p in calibrate_units(sur, cfg_v, units).items():
             out[u].append(p)
     return cfg_v, ref, out
 

@@ -141,9 +141,9 @@ def test_parallel_workers_give_the_serial_result(built, tmp_path):
     assert par.channels == ["m_flow", SPEED]
     assert np.array_equal(serial.posterior["Monk"].samples, par.posterior["Monk"].samples)
     # A spawned worker rebuilds the stack from the file.
-    from twinmon.calibrate import _init_worker, _worker
-    _init_worker(None, str(tmp / "sur.h5"), "m_flow", (SPEED,))
-    assert _worker["surrogate"].names == ["m_flow", SPEED]
+    from twinmon.calibrate.shared import init_worker, worker
+    init_worker(None, str(tmp / "sur.h5"), "m_flow", (SPEED,))
+    assert worker["surrogate"].names == ["m_flow", SPEED]
 
 
 def test_channel_noise_is_estimated_when_the_file_has_none(built):

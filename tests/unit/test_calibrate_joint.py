@@ -8,10 +8,10 @@ import pytest
 
 from twinmon import artifacts
 from twinmon.calibrate import calibrate, read_posterior, write_posterior
-from twinmon.calibrate.joint import (TREND_FIELDS, _JointRun, calibrate_unit_joint,
-                                     design_matrix, segment_starts, trend_predictive)
-from twinmon.calibrate.joint_vectorised import run_joint_tasks
-from twinmon.calibrate.vectorised import make_predictor
+from twinmon.calibrate.methods.joint import JointRun, calibrate_unit_joint
+from twinmon.calibrate.samplers.gpbatch import make_predictor
+from twinmon.calibrate.samplers.joint_vectorised import run_joint_tasks
+from twinmon.calibrate.trend import TREND_FIELDS, design_matrix, segment_starts, trend_predictive
 from twinmon.config import load_config
 from twinmon.errors import ConfigError
 from twinmon.observations import (Observations, UnitObservations, read_observations,
@@ -120,9 +120,9 @@ def test_a_chain_does_not_depend_on_its_batch(setup):
     cfg, cfg_path, _, sur = setup
     quick = load_config(cfg_path, ["calibrate.samples=100", "calibrate.burn_in=30",
                                    "calibrate.chains=2"])
-    a = _JointRun(sur, quick, YEARS[:4], _observe(sur, _trend_unit()[:4], seed=3), NOISE, 5,
+    a = JointRun(sur, quick, YEARS[:4], _observe(sur, _trend_unit()[:4], seed=3), NOISE, 5,
                   "file").plan()
-    b = _JointRun(sur, quick, YEARS[:4], _observe(sur, _trend_unit(seed=7)[:4], seed=8),
+    b = JointRun(sur, quick, YEARS[:4], _observe(sur, _trend_unit(seed=7)[:4], seed=8),
                   NOISE, 9, "file").plan()
     predict = make_predictor(sur)[0]
     alone = run_joint_tasks(predict, a)

@@ -12,7 +12,8 @@ from click.testing import CliRunner
 
 from twinmon.calibrate import (_unit_seed, calibrate, ess, make_log_density, read_posterior,
                                split_rhat, year_prior)
-from twinmon.calibrate import vectorised as V
+from twinmon.calibrate.samplers import convergence, gpbatch
+from twinmon.calibrate.samplers.vectorised import UnitData, calibrate_units
 from twinmon.config import load_config
 from twinmon.errors import ArtifactError
 from twinmon.observations import read_observations, write_observations
@@ -52,7 +53,7 @@ def _cut(path, years: int, drop=()):
 
 def _units(cfg, names=("Park", "Colt", "Monk"), years=2):
     obs = read_observations(FLEET, cfg.model.output.name)
-    return [V.UnitData(n, obs.units[n].years[:years], obs.output_of(n)[:years],
+    return [UnitData(n, obs.units[n].years[:years], obs.output_of(n)[:years],
                        np.full(years, 4.0), _unit_seed(cfg, n), "file") for n in names]
 
 
@@ -71,7 +72,7 @@ def _assert_same_unit(a, b, where=""):
 
 def test_batched_surrogate_is_openturns_prediction(setup):
     _, _, _, sur = setup
-    gp = V.GPBatch(sur)
+    gp = gpbatch.GPBatch(sur)
     rng = np.random.default_rng(5)
     X = sur.bounds[:, 0] + rng.random((300, 2)) * np.diff(sur.bounds, axis=1).ravel()
     ref = sur.predict(X)
@@ -80,7 +81,7 @@ def test_batched_surrogate_is_openturns_prediction(setup):
     perm = rng.permutation(len(X))
     assert np.array_equal(gp(X[perm])[np.argsort(perm)], gp(X))
     assert np.array_equal(np.vstack([gp(X[i:i + 7]) for i in range(0, 300, 7)]), gp(X))
-    assert V.make_predictor(sur)[1]
+    assert gpbatch.make_predictor(sur)[1]
 
 
 def test_batched_diagnostics_equal_the_reference():
@@ -94,7 +95,7 @@ def test_batched_diagnostics_equal_the_reference():
             x[:, i] = np.where(moved, a * x[:, i - 1] + rng.standard_normal((C, 2)), x[:, i - 1])
         if trial % 5 == 0:
             x[0] += 2.0           # a chain stuck elsewhere
-        rhat, n_eff = V._diagnostics(x)
+        rhat, n_eff = convergence.diagnostics(x)
         assert np.array_equal(rhat, [split_rhat(x[:, :, j]) for j in range(2)], equal_nan=True)
         assert np.array_equal(n_eff, [ess(x[:, :, j], rank_normalize=True) for j in range(2)],
                               equal_nan=True)
@@ -119,7 +120,7 @@ def test_posterior_mean_matches_quadrature_both_years(setup):
     cfg = dataclasses.replace(cfg, calibrate=dataclasses.replace(cfg.calibrate, ess_warn=800,
                                                                  samples=1500))
     (unit,) = _units(cfg, ("Monk",), years=2)
-    p = V.calibrate_units(sur, cfg, [unit])["Monk"]
+    p = calibrate_units(sur, cfg, [unit])["Monk"]
     for k in range(2):
         prior = year_prior(cfg, None if k == 0 else p.mean[0], None if k == 0 else p.var[0])
         total = 4.0 ** 2 + sur.predict_var(prior.location[None])[0]
@@ -134,8 +135,8 @@ def test_posterior_mean_matches_quadrature_both_years(setup):
 def test_results_do_not_depend_on_the_batch(setup):
     cfg, _, _, sur = setup
     units = _units(cfg)
-    together = V.calibrate_units(sur, cfg, units)
-    alone = V.calibrate_units(sur, cfg, [units[1]])
+    together = calibrate_units(sur, cfg, units)
+    alone = calibrate_units(sur, cfg, [units[1]])
     _assert_same_unit(together["Colt"], alone["Colt"], "Colt")
     assert not np.array_equal(together["Colt"].mean, together["Park"].mean)
 

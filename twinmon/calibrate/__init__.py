@@ -13,7 +13,7 @@ inference, as in the paper (section V):
   maximum a posteriori (MAP) point with a proposal shaped on the Laplace (Gauss-Newton)
   covariance there; OpenTURNS returns the burn-in with the chain, so it is cut here; the
   chains of all units' same year run in parallel processes (``calibrate.sampler:
-  openturns``, the reference). The default ``vectorised`` sampler (:mod:`.vectorised`)
+  openturns``, the reference). The default ``vectorised`` sampler (:mod:`.samplers.vectorised`)
   moves every chain of every unit's same year in one numpy step and runs them until the
   ESS is met; ``--update`` (:mod:`.update`) samples only the years added since;
 * diagnostics: rank-normalised split R-hat and bulk effective sample size (Vehtari et al.
@@ -54,10 +54,16 @@ poor, it is "unconverged". ``forecast`` withholds or flags a prognosis on these 
 Further recorded channels (``model.channels``) that ``reduce`` learnt enter the likelihood
 with their own noise (``calibrate.channels`` restricts them; see ``channels``).
 
-Modules: ``density`` (prior, log-posterior, MAP), ``diagnostics`` (R-hat, ESS), ``channels``
-(several channels in one likelihood), ``sequential`` (the paper's year-by-year method),
-``posterior`` (per-unit results, goodness of fit, the artifact); this module is the stage's
-entry point.
+Modules: ``base`` (the method and sampler interfaces), ``methods`` (one module per method:
+``sequential``, the paper's year by year; ``joint``, a unit's history with its trend),
+``samplers`` (``openturns``, the reference; ``vectorised`` and ``joint_vectorised``, numpy,
+through ``gpbatch``), ``shared`` (what methods and samplers share: priors, starting points,
+tasks, worker state), ``density`` (prior, log-posterior, MAP, noise estimate),
+``diagnostics`` (R-hat, ESS), ``channels`` (several channels in one likelihood), ``trend``
+(the joint method's trend model), ``fit`` (goodness of fit), ``posterior`` (per-unit results,
+the artifact), ``update`` (``--update``), ``fleet`` (the fleet's prior of the trend's sd);
+this module is the stage's entry point: it picks the method (``calibrate.method``,
+:func:`resolve_method`) and the sampler (``calibrate.sampler``) through those interfaces.
 """
 from __future__ import annotations
 
@@ -69,28 +75,32 @@ from typing import Callable, Optional
 import numpy as np
 
 from ..config import Config
-from ..errors import ArtifactError, CalibrationError, InputDataError, Interrupted
+from ..errors import ArtifactError, InputDataError
 from ..observations import check_events, read_observations
+from .base import Method, Sampler, Work
 from .channels import StackedSurrogate, channel_noise, select_channels, stacked_rows
-from .density import LogDensity, Prior, find_map, make_log_density
+from .density import LogDensity, Prior, estimate_noise, find_map, make_log_density
 from .diagnostics import ess, split_rhat
-from .posterior import (FIT_FIELDS, SECTIONS, SEED_OFFSET, STATUS_EDGE, STATUS_MISFIT,
-                        STATUS_OK, STATUS_UNCONVERGED, Posterior, UnitPosterior, read_posterior,
-                        write_posterior, year_fit)
-from .sequential import (_ChainTask, _run_task, _UnitRun, calibrate_unit, estimate_noise,
-                         plan_chains, run_chain, sample_posterior, year_prior)
+from .fit import FIT_FIELDS, STATUS_EDGE, STATUS_MISFIT, STATUS_OK, STATUS_UNCONVERGED, year_fit
+from .methods import method_named
+from .methods.sequential import calibrate_unit, plan_chains, run_chain, sample_posterior
+from .posterior import (SECTIONS, SEED_OFFSET, Posterior, UnitPosterior, read_posterior,
+                        write_posterior)
+from .shared import init_worker, year_prior
+from .update import Kept, plan_update, year_digests
+
+__all__ = [
+    "ACCEPTANCE_RANGE", "FIT_FIELDS", "SECTIONS", "SEED_OFFSET", "STATUS_EDGE", "STATUS_MISFIT",
+    "STATUS_OK", "STATUS_UNCONVERGED", "CalibrateSummary", "LogDensity", "Method", "Posterior",
+    "Prior", "Sampler", "UnitPosterior", "Work", "calibrate", "calibrate_unit",
+    "diagnostics_warnings", "ess", "estimate_noise", "find_map", "fit_warnings",
+    "make_log_density", "plan_chains", "read_posterior", "resolve_method", "run_chain",
+    "sample_posterior", "split_rhat", "truth_check", "write_posterior", "year_fit",
+    "year_prior",
+]
 
 #: Acceptance rates outside this range make a warning (random-walk MH is efficient near
 #: 0.2-0.4 in low dimension; far outside, the proposal scale was badly adapted).
-__all__ = [
-    "ACCEPTANCE_RANGE", "FIT_FIELDS", "SECTIONS", "SEED_OFFSET", "STATUS_EDGE", "STATUS_MISFIT",
-    "STATUS_OK", "STATUS_UNCONVERGED", "CalibrateSummary", "LogDensity", "Posterior", "Prior",
-    "UnitPosterior", "calibrate", "calibrate_unit", "diagnostics_warnings", "ess",
-    "estimate_noise", "find_map", "fit_warnings", "make_log_density", "plan_chains",
-    "read_posterior", "resolve_method", "run_chain", "sample_posterior", "split_rhat",
-    "truth_check", "write_posterior", "year_fit", "year_prior",
-]
-
 ACCEPTANCE_RANGE = (0.1, 0.7)
 
 
@@ -196,28 +206,6 @@ def _noise_for(cfg: Config, u) -> tuple[Optional[float], str]:
     if cfg.calibrate.noise_std is not None:
         return float(cfg.calibrate.noise_std), "config"
     return None, "estimated"
-
-
-_worker = {}
-
-
-def _init_worker(surrogate, surrogate_path, output: str = "", channels=()) -> None:
-    if surrogate is None:  # spawned, not forked: rebuild from the file
-        from .channels import load_surrogate
-        surrogate = load_surrogate(surrogate_path, output, list(channels))
-    _worker["surrogate"] = surrogate
-
-
-def _work(task: _ChainTask):
-    return _run_any(_worker["surrogate"], task)
-
-
-def _run_any(surrogate, task):
-    """One task of either method: a year's chain (sequential) or a unit's (joint)."""
-    from .joint import _JointTask, run_joint_task
-    if isinstance(task, _JointTask):
-        return run_joint_task(surrogate, task)
-    return _run_task(surrogate, task)
 
 
 def _check_inputs(cfg: Config, surrogate, surrogate_path, obs) -> None:
@@ -333,7 +321,9 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
             raise ArtifactError(f"{truth_path}: no truth for unit {missing[0]!r}")
 
     model, channels, channel_warnings = _likelihood_model(cfg, surrogate, surrogate_path, obs)
-    method, method_reason = resolve_method(cfg, len(obs.units))
+    name, method_reason = resolve_method(cfg, len(obs.units))
+    method = method_named(name)
+    sampler = method.sampler(cfg.calibrate.sampler)
     runs, channel_info = {}, {}
     for unit, u in obs.units.items():
         noise, source = _noise_for(cfg, u)
@@ -343,54 +333,21 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
         if channels:  # one noise per channel, records side by side
             noise, channel_info[unit] = channel_noise(cfg, u, model, noise, source)
             y = stacked_rows(u, model, cfg.model.output.name)
-        if method == "joint":   # the parallel grain: the unit's chains
-            from .joint import _JointRun
-            runs[unit] = _JointRun(model, cfg, u.years, y, noise, _unit_seed(cfg, unit),
-                                   source, getattr(u, "events", []))
-        else:
-            runs[unit] = _UnitRun(model, cfg, u.years, y, noise, _unit_seed(cfg, unit),
-                                  source)
-    from .update import Kept, plan_update, year_digests
+        runs[unit] = method.start(model, cfg, u.years, y, noise, _unit_seed(cfg, unit), source,
+                                  getattr(u, "events", []))
     digests = {unit: year_digests(r.flows, r.noise) for unit, r in runs.items()}
     resume, update_info = plan_update(cfg, surrogate.fingerprint(), output, runs, method) \
         if update else ({}, None)
-    total = sum(len(r.years) for r in runs.values())
-    n_tasks = len(runs) * cfg.calibrate.chains
-    workers = min(cfg.calibrate.workers or len(os.sched_getaffinity(0)), n_tasks)
     for unit, p in resume.items():
         if len(p.years) == len(runs[unit].years):
             runs[unit] = Kept(p)          # nothing new: kept as it is (either method)
         else:
-            runs[unit].resume(p)          # sequential: continue after the stored years
+            runs[unit].resume(p)          # continue after the stored years
     # A forked worker has the surrogate already; a spawned one rebuilds it from the file.
     fork = hasattr(os, "fork") or cfg.calibrate.executor == "dask"
-    pool_args = (_init_worker, (model if fork else None, str(surrogate_path),
-                                cfg.model.output.name, tuple(channels)))
-    if cfg.calibrate.sampler == "vectorised" and method == "sequential":
-        # every run finished by the vectorised sampler
-        from .vectorised import run_vectorised
-        run_vectorised(cfg, model, runs, resume, output, progress, pool_args)
-    elif cfg.calibrate.sampler == "vectorised":
-        # the joint method's chains, batched across units (joint_vectorised.py)
-        from .joint_vectorised import run_joint_vectorised
-        run_joint_vectorised(cfg, model, runs, output, progress, pool_args)
-    if all(r.done for r in runs.values()):      # vectorised, or nothing new (--update)
-        pass
-    # On a Dask cluster (an address) the cluster's workers do the work, whatever the count.
-    elif workers <= 1 and not (cfg.calibrate.executor == "dask" and cfg.dask.address):
-        for run in runs.values():
-            while not run.done:
-                run.finish([_run_any(model, t) for t in run.plan()])
-                if progress:
-                    progress(sum(r.k for r in runs.values()), total)
-    else:
-        # Years of one unit are sequential (each prior is centred on the previous estimate),
-        # so the parallel grain is the chain: every unit's chains of the same year at once.
-        from ..executors import InterruptGuard, open_pool
-        # A forked worker has the surrogate already; a Dask worker gets it sent, once.
-        pool = open_pool(cfg, "calibrate", workers, *pool_args)   # process or Dask pool
-        with sampling_pool(pool, output), InterruptGuard() as guard:
-            _run_parallel(pool, runs, total, progress, guard)
+    pool_args = (init_worker, (model if fork else None, str(surrogate_path),
+                               cfg.model.output.name, tuple(channels)))
+    sampler.finish(Work(cfg, model, runs, resume, output, progress, pool_args))
     posterior = {unit: run.result() for unit, run in runs.items()}
     for unit, p in posterior.items():
         p.digest = np.array(digests[unit])
@@ -411,42 +368,11 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
     # neither read nor compressed again.
     base = output if any(p.samples_from for p in posterior.values()) else None
     write_posterior(output, posterior, names, cfg, inputs, surrogate_id=surrogate.fingerprint(),
-                    base=base, method=method)
+                    base=base, method=method.name)
     check = truth_check(posterior, truth, names) if truth is not None else None
     return CalibrateSummary(names, posterior, warnings, str(output), check, windows,
                             channels=[cfg.model.output.name] + channels, update=update_info,
-                            method=method, method_reason=method_reason)
-
-
-def sampling_pool(pool, output):
-    """``pool`` for calibrate's sampling (:func:`~twinmon.executors.closing_pool`): a dead
-    worker or a Ctrl-C ends the stage with one line, nothing written."""
-    from ..executors import closing_pool
-    return closing_pool(
-        pool, CalibrationError(f"{output}: a worker process died while sampling; nothing was "
-                               "written; re-run with calibrate.workers=1 to see why"),
-        Interrupted(f"{output}: interrupted; nothing was written"))
-
-
-def _run_parallel(pool, runs: dict[str, "_UnitRun"], total: int, progress, guard) -> None:
-    from concurrent.futures import wait
-    while True:
-        active = [r for r in runs.values() if not r.done]
-        if not active:
-            return
-        plans = [r.plan() for r in active]
-        futures = [pool.submit(_work, t) for p in plans for t in p]
-        # Poll, so that a Ctrl-C stops long chains within a fraction of a second.
-        while wait(futures, timeout=0.2).not_done:
-            guard.check()
-        guard.check()
-        results = [f.result() for f in futures]
-        i = 0
-        for run, plan in zip(active, plans):
-            run.finish(results[i:i + len(plan)])
-            i += len(plan)
-        if progress:
-            progress(sum(r.k for r in runs.values()), total)
+                            method=method.name, method_reason=method_reason)
 
 
 def fit_warnings(posterior: dict[str, UnitPosterior], names: list[str], windows: list,

@@ -15,7 +15,7 @@ output-only results are those of a single-channel run, bit for bit.
 
 Noise per channel: the observations file's ``noise_std[channel]``; else, for the output only,
 ``calibrate.noise_std``; else estimated from the unit's own records through the channel's
-surrogate (:func:`~twinmon.calibrate.sequential.estimate_noise`).
+surrogate (:func:`~twinmon.calibrate.density.estimate_noise`).
 """
 from __future__ import annotations
 
@@ -26,6 +26,7 @@ import numpy as np
 
 from ..config import Config
 from ..errors import ArtifactError, InputDataError
+from .density import estimate_noise
 
 
 class StackedSurrogate:
@@ -187,7 +188,6 @@ def channel_noise(cfg: Config, unit_obs, stack: StackedSurrogate, output_noise: 
     info : dict
         Channel -> ``{"std": float, "source": "file" | "config" | "estimated"}``.
     """
-    from .sequential import estimate_noise
     std, info = [output_noise], {stack.names[0]: {"std": float(output_noise),
                                                   "source": output_source}}
     for ch in stack.names[1:]:

@@ -1,4 +1,5 @@
-"""The unnormalised posterior of one unit-year, its maximum and Laplace covariance."""
+"""The unnormalised posterior of one unit-year, its maximum and Laplace covariance, and the
+output noise level estimated from a unit's own data."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -6,6 +7,7 @@ from typing import Optional
 
 import numpy as np
 
+from ..config import Config
 from ..errors import CalibrationError
 
 
@@ -189,3 +191,24 @@ def find_map(ld: LogDensity) -> tuple[np.ndarray, np.ndarray]:
     return x, np.linalg.inv(H)
 
 
+def estimate_noise(surrogate, cfg: Config, flows: np.ndarray) -> float:
+    """Output noise standard deviation (output units) of one unit from its own data.
+
+    Each year is fitted by least squares (no prior) over the box; the residuals of all the
+    unit's years are pooled, with ``d`` degrees of freedom taken per year:
+    ``s^2 = sum RSS / (n_obs - d * n_y)``.
+    """
+    flows = np.atleast_2d(flows)
+    bounds = cfg.model.bounds
+    d = len(bounds)
+    rss, dof = 0.0, 0
+    for row in flows:
+        # Unit variance: find_map is then the plain (bounded) least-squares fit.
+        ld = make_log_density(surrogate, row, 1.0, Prior.uniform(bounds))
+        x, _ = find_map(ld)
+        rss += float(np.sum(ld.residuals(x) ** 2))
+        dof += int(ld.mask.sum()) - d
+    if dof <= 0:
+        raise CalibrationError(f"too few samples ({dof + d * len(flows)}) to estimate the noise "
+                               "level; set calibrate.noise_std")
+    return float(np.sqrt(rss / dof))

@@ -1,6 +1,6 @@
 """The fleet's year-to-year variation: partial pooling of the joint method's ``sigma``.
 
-Each unit's joint calibration (:mod:`.joint`) estimates its own ``sigma_i``, the standard
+Each unit's joint calibration (:mod:`.methods.joint`) estimates its own ``sigma_i``, the standard
 deviation of input ``i``'s year-to-year variation around its trend, under a weak
 half-Cauchy prior of scale ``A_i = calibrate.prior_width * range_i``. Ten years cannot tell a
 small ``sigma`` from the years' estimation errors, least of all along the ridge of inputs

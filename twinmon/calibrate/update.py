@@ -32,6 +32,7 @@ import yaml
 from .. import artifacts
 from ..config import Config
 from ..errors import ArtifactError
+from .base import Method
 from .posterior import SECTIONS, UnitPosterior, read_posterior
 
 
@@ -79,8 +80,7 @@ class Kept:
 
 
 def plan_update(cfg: Config, surrogate_id: str, output: str | os.PathLike,
-                runs: dict, method: str = "sequential"
-                ) -> tuple[dict[str, UnitPosterior], dict]:
+                runs: dict, method: Method) -> tuple[dict[str, UnitPosterior], dict]:
     """Which units continue an earlier ``posterior.h5`` and from where.
 
     Parameters
@@ -92,8 +92,10 @@ def plan_update(cfg: Config, surrogate_id: str, output: str | os.PathLike,
         The posterior to update (also the one to write).
     runs : dict unit -> object with ``years``, ``flows``, ``noise``
         This run's units and their data.
-    method : {"sequential", "joint"}
-        The method this run samples with (:func:`~twinmon.calibrate.resolve_method`).
+    method : Method
+        The method this run samples with (:func:`~twinmon.calibrate.resolve_method`): a unit
+        with new years continues after its stored ones when it ``continues_years``, else it
+        is sampled again in full.
 
     Returns
     -------
@@ -135,9 +137,9 @@ def plan_update(cfg: Config, surrogate_id: str, output: str | os.PathLike,
     # another method once units are added: the stored years cannot be continued then.
     was = prov.get("method") or ("joint" if any(p.trend for p in stored.values())
                                  else "sequential")
-    if was != method:
+    if was != method.name:
         raise ArtifactError(f"{path}: sampled with the {was} method, this run uses the "
-                            f"{method} method (calibrate.method {cfg.calibrate.method}, "
+                            f"{method.name} method (calibrate.method {cfg.calibrate.method}, "
                             f"{len(runs)} units); re-run calibrate without --update")
     resume, new, redone = {}, [], []
     for unit, run in runs.items():
@@ -155,7 +157,7 @@ def plan_update(cfg: Config, surrogate_id: str, output: str | os.PathLike,
             list(p.digest) == year_digests(run.flows, run.noise)[:n]
         if not same:
             redone.append(unit)
-        elif n == len(years) or method == "sequential":
+        elif n == len(years) or method.continues_years:
             resume[unit] = p      # a joint history is one posterior: new years redo it all
     kept = sum(len(p.years) for p in resume.values())
     return resume, {"from": str(path), "kept_years": kept, "new_years": total - kept,

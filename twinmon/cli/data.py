@@ -5,7 +5,7 @@ import dataclasses
 
 import click
 
-from . import main
+from .app import main
 from .common import config_options, emit_json, json_option, load, progress_bar, say, warn
 
 

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import click
 
-from . import main
+from .app import main
 from ..errors import TwinmonError
 from .common import (config_options, emit_json, json_option, load, progress_bar, say,
                      warn)

@@ -5,7 +5,7 @@ from pathlib import Path
 
 import click
 
-from . import main
+from .app import main
 from .common import emit_json, json_option, say
 
 

@@ -5,7 +5,7 @@ from pathlib import Path
 
 import click
 
-from . import main
+from .app import main
 from .common import config_options, emit_json, json_option, load, say
 
 #: Artifacts looked up in ``--workdir`` when not given explicitly.

@@ -31,11 +31,11 @@ from .unit import UnitForecast
 
 class _TwinState:
     """What forecasting a chunk needs once per process: the config, the surrogate and its
-    numpy form (:class:`~twinmon.calibrate.vectorised.GPBatch`, checked against OpenTURNS
+    numpy form (:class:`~twinmon.calibrate.samplers.gpbatch.GPBatch`, checked against OpenTURNS
     when built), the FMU spec and the executor of the FMU runs."""
 
     def __init__(self, cfg: Config, sur, spec, executor):
-        from ..calibrate.vectorised import make_predictor
+        from ..calibrate.samplers.gpbatch import make_predictor
         self.cfg, self.sur, self.spec, self.executor = cfg, sur, spec, executor
         self.predict = make_predictor(sur)[0]
 
@@ -122,7 +122,7 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict,
     trends = {}
     slope_draws = None
     if trend_post:
-        from ..calibrate.joint import last_segment
+        from ..calibrate.trend import last_segment
         slope_draws = last_segment(trend_post, "slope")         # [n, d]
     for i, name in enumerate(names):
         spec = cfg.model.inputs[name]
@@ -150,7 +150,7 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict,
         # The joint method sampled the trend itself: draw the future from its posterior
         # predictive (levels, slopes and year-to-year sd), not from lines refitted to
         # the yearly means.
-        from ..calibrate.joint import trend_predictive
+        from ..calibrate.trend import trend_predictive
         rng = unit_rng(cfg, unit, 0)
         draws = trend_predictive(trend_post, fut, rng)          # [n, h, d]
         X = draws[rng.integers(0, draws.shape[0], fc.samples)].transpose(1, 0, 2)

@@ -38,7 +38,7 @@ def fleet_sigma_prior(cfg: Config, post):
     ``calibrate.prior_width``.
     """
     from ..calibrate.fleet import fit_fleet_prior
-    from ..calibrate.joint import sigma_prior_scale
+    from ..calibrate.trend import sigma_prior_scale
     if not cfg.forecast.pool_sigma:
         return None
     default = sigma_prior_scale(cfg)
@@ -106,7 +106,7 @@ def _pool_unit(cfg: Config, unit: str, trend: dict, samples: np.ndarray,
     """A jointly calibrated unit's trend draws and years' draws [n_y, n, d] resampled to the
     fleet's prior of the year-to-year sd; returns them and the weights' effective number of
     draws."""
-    from ..calibrate.joint import TREND_DRAWS
+    from ..calibrate.trend import TREND_DRAWS
     idx, ess_frac = fleet.resample(np.asarray(trend["sigma"], float), unit_rng(cfg, unit, 5))
     pooled = {k: (np.asarray(v)[idx] if k in TREND_DRAWS else v) for k, v in trend.items()}
     # The artifact thins the years' and the trend's draws alike, so draw j is one chain

@@ -11,7 +11,7 @@ Two forms for a sequentially calibrated unit (``forecast.predictive``):
   (:func:`residual_correlation`, :func:`sample_predictive`).
 
 A jointly calibrated unit draws its future from its own posterior trend instead
-(:func:`twinmon.calibrate.joint.trend_predictive`).
+(:func:`twinmon.calibrate.trend.trend_predictive`).
 """
 from __future__ import annotations
 

@@ -62,7 +62,7 @@ def evaluate_twin(cfg: Config, surrogate, X: np.ndarray, executor=None,
     (the box is checked to be physical, see :func:`box_is_physical`). ``fmu_everywhere`` sends
     every point to the FMU; so does an indicator computed from another variable than the
     output the surrogate learnt. ``predict`` replaces ``surrogate.predict`` (its numpy form,
-    :func:`~twinmon.calibrate.vectorised.make_predictor`); ``spec`` the config's FMU spec (a
+    :func:`~twinmon.calibrate.samplers.gpbatch.make_predictor`); ``spec`` the config's FMU spec (a
     worker's copy of the FMU).
     """
     from ..safety import Indicator

@@ -54,7 +54,8 @@ from .fig_forecast import fig_indicator_forecast, fig_marginals, fig_trends
 from .fig_observations import fig_indicator_history, fig_last_transients
 from .fig_surrogate import fig_surrogate
 from .stage import report
-from .summary import ReportSummary, UnitSummary
+from .summary import ReportSummary
+from .unit_summary import UnitSummary
 
 __all__ = ["report", "ReportSummary", "UnitSummary", "Words", "indicator_rows", "DPI",
            "SECTIONS", "UNIT_COLOURS", "LIMIT_COLOUR", "Figures", "fig_last_transients",

@@ -15,7 +15,7 @@ from typing import Optional, Sequence
 from ..config import Config
 from ..errors import ConfigError
 from .common import pct
-from .summary import UnitSummary
+from .unit_summary import UnitSummary
 
 
 @dataclass

@@ -8,139 +8,10 @@ from typing import Optional
 import numpy as np
 
 from ..config import Config
-from .common import pct, plain, state_words
+from .common import plain
+from .fleet import FleetView, overview_lines
 from .load import Inputs
-
-
-@dataclass
-class UnitSummary:
-    """Plain-language state of one unit, derived from the artifacts given.
-
-    Attributes
-    ----------
-    name : str
-    health : str
-        ``"healthy"``, ``"degrading: <component>"`` (components from the config's inputs), ...
-        or ``"unknown"`` when no forecast was given.
-    root_cause : str or None
-        The forecast's verdict (``healthy``, a component name, ``both``), None without one.
-    failure_year : int or None
-        First future year with P(unsafe) above the limit (year of service): the year to act by.
-    median_failure_year : int or None
-        First future year with P(unsafe) >= 0.5: the point forecast of the failure.
-    p_unsafe : float or None
-        P(unsafe) in the failure year, or the largest over the horizon when none fails.
-    last_year : int or None
-        Last observed (or calibrated) year.
-    horizon_end : int or None
-        Last forecast year.
-    last_indicator : float or None
-        Health indicator of the last recorded transient (its units); inf for a level never
-        reached.
-    indicator : str
-        The health indicator's name (from the config).
-    last_indicator_text : str
-        ``last_indicator`` for people, with its units.
-    action : str
-        Short recommendation, e.g. ``"inspect the <component> before year 13 ends"``.
-    plan : str
-        The forecast's full maintenance plan with its evidence ("" without a forecast).
-    estimates : dict
-        Latest year's estimate per input: ``{name: {year, mean, q05, q95, units}}``.
-    confidence : str
-        What the statements rest on (tests, diagnostics), in one or two sentences.
-    diagnose : dict or None
-        The sim-to-real gap verdict of this unit, if a gap artifact was given.
-    true_failure_year : int or None
-        From the forecast's truth check, when the data were fabricated.
-    """
-
-    name: str
-    health: str = "unknown"
-    root_cause: Optional[str] = None
-    failure_year: Optional[int] = None
-    median_failure_year: Optional[int] = None
-    p_unsafe: Optional[float] = None
-    last_year: Optional[int] = None
-    horizon_end: Optional[int] = None
-    last_indicator: Optional[float] = None
-    indicator: str = "indicator"
-    last_indicator_text: str = ""
-    action: str = ""
-    plan: str = ""
-    estimates: dict = field(default_factory=dict)
-    confidence: str = ""
-    diagnose: Optional[dict] = None
-    true_failure_year: Optional[int] = None
-    #: The prognosis status (``ok``, ``withheld``, ``unreliable``; ``none`` without a
-    #: forecast), why, and whether a withheld prognosis was forced.
-    status: str = "none"
-    status_reason: str = ""
-    forced: bool = False
-    #: Largest P(unsafe) over the horizon, and P(unsafe) 1, 2, ... years after the last
-    #: observation (the fleet overview ranks and sums them); None / () without a prognosis.
-    p_unsafe_max: Optional[float] = None
-    p_unsafe_ahead: tuple = ()
-
-    @property
-    def status_words(self) -> str:
-        """The status as a maintenance engineer reads it at a glance."""
-        return {"ok": "prognosis given: the twin fits the data",
-                "withheld": ("FORCED prognosis: the twin misses the plant" if self.forced
-                             else "prognosis withheld: the twin misses the plant"),
-                "unreliable": "prognosis unreliable: calibration did not converge",
-                "none": "no forecast"}.get(self.status, self.status)
-
-    @property
-    def short_health(self) -> str:
-        if self.status == "withheld" and not self.forced:
-            return "prognosis withheld"
-        words = state_words(self.root_cause)
-        return f"{words} (forced)" if self.forced else \
-            f"{words} (unreliable)" if self.status == "unreliable" else words
-
-    @property
-    def median_note(self) -> str:
-        """``"; median year 15"`` where the median failure year (the point forecast) differs
-        from the year to act by, ``"; median after year 17"`` past the horizon, else ""."""
-        med = self.median_failure_year
-        if self.failure_year is None or med == self.failure_year:
-            return ""
-        return f"; median year {med}" if med is not None else \
-            f"; median after year {self.horizon_end}"
-
-    @property
-    def time_to_failure(self) -> str:
-        """e.g. ``"fails in year 14 (P(unsafe) 12 % in 14; median year 15)"`` (the median
-        year where it differs from the year to act by)."""
-        if self.status == "withheld" and not self.forced:
-            return "withheld: the twin misses the plant"
-        if self.root_cause is None:
-            if self.last_indicator is None:
-                return "no forecast"
-            return f"last {self.indicator} {self.last_indicator_text} (no forecast)"
-        if self.failure_year is not None:
-            return (f"fails in year {self.failure_year} "
-                    f"(P(unsafe) {pct(self.p_unsafe)} in {self.failure_year}{self.median_note})")
-        return f"no failure by year {self.horizon_end} (max P(unsafe) {pct(self.p_unsafe)})"
-
-    def as_dict(self) -> dict:
-        return {
-            "health": self.health, "root_cause": self.root_cause,
-            "failure_year": self.failure_year,
-            "median_failure_year": self.median_failure_year, "p_unsafe": self.p_unsafe,
-            "last_year": self.last_year, "horizon_end": self.horizon_end,
-            "last_indicator": (None if self.last_indicator is None
-                               or not np.isfinite(self.last_indicator)
-                               else round(float(self.last_indicator), 3)),
-            "last_indicator_text": self.last_indicator_text or None,
-            "time_to_failure": self.time_to_failure, "action": self.action, "plan": self.plan,
-            "estimates": self.estimates, "confidence": self.confidence,
-            "diagnose": self.diagnose, "true_failure_year": self.true_failure_year,
-            "status": self.status, "status_reason": self.status_reason or None,
-            "status_words": self.status_words, "forced": self.forced,
-            "p_unsafe_max": self.p_unsafe_max,
-        }
+from .unit_summary import UnitSummary
 
 
 @dataclass
@@ -207,7 +78,6 @@ class ReportSummary:
         if not self.units:
             lines = ["report: no units"]
         elif self.fleet is not None:
-            from .fleet import FleetView, overview_lines
             ends = [s.horizon_end - s.last_year for s in self.units.values()
                     if s.horizon_end is not None and s.last_year is not None]
             lines = overview_lines(FleetView(**self.fleet), self.units,

@@ -40,8 +40,8 @@ log-density, the joint's (:class:`_JointLogDensity`): OpenTURNS' Gibbs hands the
 log-posterior from one block to the next, recomputing it only where neighbouring blocks'
 log-densities differ at the first state, which is exact only when they are the same function.
 That is the reference (``calibrate.sampler: openturns``); the default runs the same blocks
-and proposals for the chains of many units at once in numpy (:mod:`.joint_vectorised`),
-about 6x faster per chain.
+and proposals for the chains of many units at once in numpy
+(:mod:`~twinmon.calibrate.samplers.joint_vectorised`), about 6x faster per chain.
 
 Why not the centred Gibbs (``theta_k`` by MH, levels and slopes from their Gaussian
 conditional, ``sigma^2`` inverse-gamma): with the per-year posteriors much wider than sigma
@@ -52,203 +52,35 @@ form mixes well in that regime; when the years' data are precise against sigma i
 down, which R-hat/ESS report (and longer chains follow, ``calibrate.max_extensions``).
 
 Output: the sequential method's :class:`UnitPosterior` (per year draws, statistics,
-diagnostics, fit) plus ``trend`` (:data:`TREND_FIELDS`).
+diagnostics, fit) plus ``trend`` (:data:`~twinmon.calibrate.trend.TREND_FIELDS`).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Optional, Sequence
 
 import numpy as np
 
-from ..config import Config
-from ..errors import CalibrationError
-from .density import Prior, find_map, make_log_density
-from .diagnostics import ess, split_rhat
-from .posterior import FIT_FIELDS, STATUS_OK, STATUS_UNCONVERGED, UnitPosterior, year_fit
-from .sequential import _initial_states
-
-#: The trend posterior of a jointly calibrated unit (``UnitPosterior.trend``; the posterior
-#: artifact's ``/units/<U>/trend/<field>``): (units, description). ``S`` is the largest
-#: number of segments of any input; an input with fewer has NaN (``start``: -1) in the rest.
-#: Segment ``s`` of input ``i`` is the line ``intercept + slope * (year - start)``.
-TREND_FIELDS = {
-    "start": ("year", "first year of each segment of the trend [segment, input]; -1 = none"),
-    "intercept": ("input units", "trend value at the segment's start year "
-                  "[draw, segment, input]"),
-    "slope": ("input units per year", "trend slope [draw, segment, input]"),
-    "sigma": ("input units", "standard deviation of the year-to-year variation around the "
-              "trend [draw, input]"),
-    "sigma_scale": ("input units", "scale of sigma's half-Cauchy prior, calibrate.prior_width "
-                    "x the input's range [input] (forecast pools sigma over the fleet from it)"),
-    "rhat": ("1", "split R-hat of the last segment's intercept, slope, and of sigma "
-             "[3, input]"),
-    "ess": ("1", "bulk effective sample size of the last segment's intercept, slope, and of "
-            "sigma [3, input]"),
-    "acceptance": ("1", "acceptance rate of the trend's moves after burn-in [chain]"),
-}
-
-#: The fields of :data:`TREND_FIELDS` that hold draws (first axis): the artifact thins them
-#: like the years' draws (``calibrate.keep_draws``).
-TREND_DRAWS = ("intercept", "slope", "sigma")
+from ...config import Config
+from ...errors import CalibrationError
+from ..base import Method
+from ..density import Prior, find_map, make_log_density
+from ..diagnostics import ess, split_rhat
+from ..fit import FIT_FIELDS, STATUS_OK, STATUS_UNCONVERGED, year_fit
+from ..posterior import UnitPosterior
+from ..samplers.gpbatch import make_predictor
+from ..samplers.joint_vectorised import JointVectorisedSampler, run_joint_tasks
+from ..samplers.openturns import OpenTurnsSampler
+from ..shared import JointTask, initial_states
+from ..trend import Layout, design_matrix, segment_starts, sigma_prior_scale, slope_prior
+from ..trend import theta as trend_theta
 
 #: Random-walk MH on a Gaussian target in dimension p: 2.38^2/p times its covariance.
 _RW_SCALE = 2.38 ** 2
 
 
 # ---------------------------------------------------------------------------------------
-# The trend's design
-# ---------------------------------------------------------------------------------------
-def segment_starts(cfg: Config, years: np.ndarray, events: Sequence) -> list[np.ndarray]:
-    """First year of each trend segment, per input.
-
-    Parameters
-    ----------
-    years : array of int, shape [K]
-        The unit's recorded years, increasing.
-    events : sequence of ``(year, component, ...)`` tuples or objects with ``year`` and
-        ``component`` (``observations.Event``)
-        Maintenance events. An event concerns the inputs whose ``component`` (or, without
-        one, whose own name) it names; their new segment starts at the first recorded year
-        on or after it. Events no input's component matches, or after the last recorded
-        year, change no segment.
-
-    Returns
-    -------
-    list of ndarray of int, one per input (config order)
-        Segment start years, increasing; the first is ``years[0]``.
-    """
-    years = np.asarray(years, dtype=np.int64)
-    out = []
-    for name, spec in cfg.model.inputs.items():
-        comp = spec.component or name
-        starts = {int(years[0])}
-        for e in events:
-            year, component = (e.year, e.component) if hasattr(e, "year") else tuple(e)[:2]
-            later = years[years >= int(year)]
-            if component == comp and later.size:
-                starts.add(int(later[0]))
-        out.append(np.array(sorted(starts), dtype=np.int64))
-    return out
-
-
-def design_matrix(years: np.ndarray, starts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Piecewise-linear design of one input.
-
-    Each segment's time is centred on the mean of its recorded years: its level and slope
-    are then nearly uncorrelated, which the trend's random-walk block likes.
-
-    Returns
-    -------
-    X : ndarray, shape [K, 2 S]
-        Columns ``(1, t - centre)`` of each segment, zero outside it (columns ``2s`` levels,
-        ``2s + 1`` slopes).
-    centres : ndarray, shape [S]
-        Mean recorded year of each segment.
-    """
-    years = np.asarray(years, float)
-    seg = np.searchsorted(starts, years, side="right") - 1
-    centres = np.array([years[seg == s].mean() for s in range(len(starts))])
-    X = np.zeros((len(years), 2 * len(starts)))
-    rows = np.arange(len(years))
-    X[rows, 2 * seg] = 1.0
-    X[rows, 2 * seg + 1] = years - centres[seg]
-    return X, centres
-
-
-@dataclass
-class _Layout:
-    """Where each block sits in the Gibbs state vector
-    ``[eps (K*d, year-major) | beta_1 | ... | beta_d | s (d)]``; ``beta_i`` holds
-    ``(level, slope)`` of each of input ``i``'s segments."""
-
-    K: int
-    d: int
-    n_coef: list
-
-    @property
-    def n_eps(self) -> int:
-        return self.K * self.d
-
-    def eps(self, k: int) -> list[int]:
-        return list(range(k * self.d, (k + 1) * self.d))
-
-    def beta(self, i: int) -> list[int]:
-        first = self.n_eps + sum(self.n_coef[:i])
-        return list(range(first, first + self.n_coef[i]))
-
-    @property
-    def trend(self) -> list[int]:
-        """Every trend component: the betas, then ``s``."""
-        return list(range(self.n_eps, self.size))
-
-    @property
-    def s(self) -> list[int]:
-        return list(range(self.size - self.d, self.size))
-
-    @property
-    def size(self) -> int:
-        return self.n_eps + sum(self.n_coef) + self.d
-
-    def mean_map(self, X: list) -> np.ndarray:
-        """``M`` [K*d, n_beta] with ``m = M @ beta`` the trend of every (year, input)."""
-        M = np.zeros((self.K, self.d, sum(self.n_coef)))
-        col = 0
-        for i, Xi in enumerate(X):
-            M[:, i, col:col + Xi.shape[1]] = Xi
-            col += Xi.shape[1]
-        return M.reshape(self.K * self.d, -1)
-
-
-def _theta(z: np.ndarray, lay: _Layout, M: np.ndarray) -> np.ndarray:
-    """The years' inputs ``theta`` [..., K, d] from states ``z`` [..., D]."""
-    z = np.asarray(z, float)
-    beta = z[..., lay.n_eps:lay.size - lay.d]
-    m = (beta @ M.T).reshape(z.shape[:-1] + (lay.K, lay.d))
-    eps = z[..., :lay.n_eps].reshape(z.shape[:-1] + (lay.K, lay.d))
-    return m + z[..., None, lay.size - lay.d:] * eps
-
-
-# ---------------------------------------------------------------------------------------
 # One chain
 # ---------------------------------------------------------------------------------------
-@dataclass
-class _JointTask:
-    """Everything a worker needs to run one Gibbs chain of one unit (picklable).
-
-    ``obs`` [K, n_t] and ``noise_var`` [K, n_t] are the years' data and likelihood variances;
-    ``X`` the per-input design matrices; ``slope_mean``/``slope_sd`` [d] and ``cauchy_scale``
-    [d] the priors; ``start`` the initial state [D]; ``eps_cov`` [K, d, d] and ``trend_cov``
-    [p, p] the proposals' covariances; ``trend_moves`` the trend's moves per sweep."""
-
-    bounds: np.ndarray
-    obs: np.ndarray
-    noise_var: np.ndarray
-    X: list
-    slope_mean: np.ndarray
-    slope_sd: np.ndarray
-    cauchy_scale: np.ndarray
-    start: np.ndarray
-    eps_cov: np.ndarray
-    trend_cov: np.ndarray
-    trend_moves: int
-    samples: int
-    burn_in: int
-    seed: int
-    thin: int
-
-
-def slope_prior(task: _JointTask, lay: _Layout) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Which trend coefficients are slopes (mask [n_beta]; every segment's columns are
-    (level, slope)), and their prior means and precisions, one per slope."""
-    slope = np.zeros(sum(lay.n_coef), bool)
-    slope[1::2] = True
-    mean = np.concatenate([np.full(p, task.slope_mean[i]) for i, p in enumerate(lay.n_coef)])
-    prec = np.concatenate([np.full(p, task.slope_sd[i] ** -2.0)
-                           for i, p in enumerate(lay.n_coef)])
-    return slope, mean[slope], prec[slope]
-
-
 class _JointLogDensity:
     """The joint log-posterior as a function of the whole Gibbs state::
 
@@ -262,7 +94,7 @@ class _JointLogDensity:
     one call.
     """
 
-    def __init__(self, surrogate, task: _JointTask, lay: _Layout):
+    def __init__(self, surrogate, task: JointTask, lay: Layout):
         self.lay, self.surrogate = lay, surrogate
         lds = [make_log_density(surrogate, task.obs[k], task.noise_var[k],
                                 Prior.uniform(task.bounds)) for k in range(lay.K)]
@@ -320,11 +152,11 @@ class _JointLogDensity:
         return [lp + float(self._ll.sum())]
 
 
-def _gibbs(surrogate, task: _JointTask):
+def _gibbs(surrogate, task: JointTask):
     """The OpenTURNS Gibbs sampler of one chain (see the module docstring)."""
     import openturns as ot
     K, d = task.obs.shape[0], task.bounds.shape[0]
-    lay = _Layout(K, d, [X.shape[1] for X in task.X])
+    lay = Layout(K, d, [X.shape[1] for X in task.X])
     D = lay.size
     ld = _JointLogDensity(surrogate, task, lay)
     target = ot.PythonFunction(D, 1, ld)
@@ -348,14 +180,14 @@ def _gibbs(surrogate, task: _JointTask):
     return ot.Gibbs(blocks), lay, ld
 
 
-def run_joint_task(surrogate, task: _JointTask) -> tuple[np.ndarray, np.ndarray, float]:
+def run_joint_task(surrogate, task: JointTask) -> tuple[np.ndarray, np.ndarray, float]:
     """One Gibbs chain of one unit, burn-in removed.
 
     Returns
     -------
     draws : ndarray, shape [samples, D]
         Kept states (every ``thin``-th sweep after ``burn_in`` sweeps); layout of
-        :class:`_Layout`.
+        :class:`Layout`.
     acceptance : ndarray, shape [K]
         Fraction of sweeps after the burn-in in which year ``k``'s ``eps`` moved (its
         block's acceptance rate: one move per sweep).
@@ -387,8 +219,8 @@ def run_joint_task(surrogate, task: _JointTask) -> tuple[np.ndarray, np.ndarray,
 # ---------------------------------------------------------------------------------------
 # One unit
 # ---------------------------------------------------------------------------------------
-class _JointRun:
-    """One unit's joint calibration, with :class:`~.sequential._UnitRun`'s interface.
+class JointRun:
+    """One unit's joint calibration, with :class:`~twinmon.calibrate.base.UnitRun`'s interface.
 
     :meth:`plan` returns one task per chain (all of the unit's years in each);
     :meth:`finish` takes their results and either accepts them or asks for longer chains
@@ -410,7 +242,7 @@ class _JointRun:
         designs = [design_matrix(self.years, s) for s in self.starts]
         self.X = [x for x, _ in designs]
         self.centres = [c for _, c in designs]
-        self.lay = _Layout(n_y, len(cfg.model.input_names), [x.shape[1] for x in self.X])
+        self.lay = Layout(n_y, len(cfg.model.input_names), [x.shape[1] for x in self.X])
         self.M = self.lay.mean_map(self.X)
         self.k = 0
         self.ext = 0
@@ -487,13 +319,13 @@ class _JointRun:
 
     def _starts(self, s: dict, chains: int, seed: int) -> np.ndarray:
         """Dispersed starting states [chains, D]: each year's theta drawn around its
-        maximum-likelihood point (:func:`~.sequential._initial_states`), the trend fitted to
-        them by least squares, ``s`` spread over a factor e^2 around its first guess, and
-        ``eps`` what makes up each theta."""
+        maximum-likelihood point (:func:`~twinmon.calibrate.shared.initial_states`), the
+        trend fitted to them by least squares, ``s`` spread over a factor e^2 around its first
+        guess, and ``eps`` what makes up each theta."""
         lay = self.lay
         rng = np.random.default_rng(seed)
         prior = Prior.uniform(self.cfg.model.bounds)
-        theta = np.stack([_initial_states(rng, s["x_ml"][k], s["cov"][k], prior, chains)
+        theta = np.stack([initial_states(rng, s["x_ml"][k], s["cov"][k], prior, chains)
                           for k in range(lay.K)], axis=1)              # [chains, K, d]
         out = np.empty((chains, lay.size))
         for c in range(chains):
@@ -506,7 +338,7 @@ class _JointRun:
             z[:lay.n_eps] = ((theta[c] - m) / sc).ravel()
         return out
 
-    def plan(self) -> list[_JointTask]:
+    def plan(self) -> list[JointTask]:
         cc = self.cfg.calibrate
         if self._setup is None:
             self._setup = self._prepare()
@@ -516,7 +348,7 @@ class _JointRun:
         seed = self.seed + 7919 * self.ext
         starts = self._starts(s, cc.chains, seed)
         thin, burn = 2 ** self.ext, cc.burn_in * 2 ** self.ext
-        return [_JointTask(self.cfg.model.bounds, self.flows, s["total"], self.X,
+        return [JointTask(self.cfg.model.bounds, self.flows, s["total"], self.X,
                            s["slope_mean"], s["slope_sd"], s["A"], starts[c], s["eps_cov"],
                            s["trend_cov"], cc.joint_trend_moves, cc.samples, burn,
                            seed + 1 + c, thin)
@@ -527,7 +359,7 @@ class _JointRun:
         z = np.array([r[0] for r in results])                  # [chains, samples, D]
         K, d = lay.K, lay.d
         n_c, n_s = z.shape[:2]
-        theta = _theta(z, lay, self.M)                          # [chains, samples, K, d]
+        theta = trend_theta(z, lay, self.M)                     # [chains, samples, K, d]
         rhat = np.array([[split_rhat(theta[:, :, k, j]) for j in range(d)] for k in range(K)])
         n_eff = np.array([[ess(theta[:, :, k, j], rank_normalize=True) for j in range(d)]
                           for k in range(K)])
@@ -565,8 +397,8 @@ class _JointRun:
         self.k = K
 
     def _trend(self, z: np.ndarray, acceptance: list) -> dict:
-        """The trend's draws and diagnostics (:data:`TREND_FIELDS`) from the chains' states
-        ``z`` [chains, samples, D]."""
+        """The trend's draws and diagnostics (:data:`~twinmon.calibrate.trend.TREND_FIELDS`)
+        from the chains' states ``z`` [chains, samples, D]."""
         lay = self.lay
         n_c, n_s = z.shape[:2]
         d = lay.d
@@ -610,7 +442,8 @@ def calibrate_unit_joint(surrogate, cfg: Config, years, flows, noise_std, rng_se
     cfg : Config
         Uses ``model`` (box, components, normal rates) and ``calibrate`` (chains, samples,
         burn-in, prior width, trend moves, R-hat/ESS marks, extensions; ``sampler``:
-        ``vectorised`` runs the chains batched in numpy (:mod:`.joint_vectorised`),
+        ``vectorised`` runs the chains batched in numpy
+        (:mod:`~twinmon.calibrate.samplers.joint_vectorised`),
         ``openturns`` with OpenTURNS' Gibbs, one after the other).
     years : array of int, shape [n_y]
     flows : ndarray, shape [n_y, n_t]
@@ -622,17 +455,15 @@ def calibrate_unit_joint(surrogate, cfg: Config, years, flows, noise_std, rng_se
     noise_source : str
         Recorded with the result.
     events : sequence of (year, component)
-        Maintenance events (see :func:`segment_starts`).
+        Maintenance events (see :func:`~twinmon.calibrate.trend.segment_starts`).
 
     Returns
     -------
     UnitPosterior
-        With ``trend`` (:data:`TREND_FIELDS`).
+        With ``trend`` (:data:`~twinmon.calibrate.trend.TREND_FIELDS`).
     """
-    run = _JointRun(surrogate, cfg, years, flows, noise_std, rng_seed, noise_source, events)
+    run = JointRun(surrogate, cfg, years, flows, noise_std, rng_seed, noise_source, events)
     if cfg.calibrate.sampler == "vectorised":
-        from .joint_vectorised import run_joint_tasks
-        from .vectorised import make_predictor
         predict = make_predictor(surrogate)[0]
 
         def chains(tasks):
@@ -645,41 +476,18 @@ def calibrate_unit_joint(surrogate, cfg: Config, years, flows, noise_std, rng_se
     return run.result()
 
 
-def sigma_prior_scale(cfg: Config) -> np.ndarray:
-    """Scale ``A`` [d] of sigma's half-Cauchy prior, input units: ``calibrate.prior_width``
-    times each input's design range (recorded with the trend as ``sigma_scale``)."""
-    return cfg.calibrate.prior_width * np.diff(cfg.model.bounds, axis=1).ravel()
+class JointMethod(Method):
+    """Each unit's whole history in one posterior with its degradation trend
+    (``calibrate.method: joint``)."""
 
+    name = "joint"
+    continues_years = False
 
-def last_segment(trend: dict, field: str) -> np.ndarray:
-    """Draws [n, d] of ``field`` (``intercept`` or ``slope``) of each input's last segment
-    (the one in force now) from ``UnitPosterior.trend`` (:data:`TREND_FIELDS`)."""
-    start = np.asarray(trend["start"])
-    last = (start >= 0).sum(axis=0) - 1                                 # [d]
-    return np.asarray(trend[field])[:, last, np.arange(start.shape[1])]
+    @property
+    def samplers(self):
+        return {"vectorised": JointVectorisedSampler(),
+                "openturns": OpenTurnsSampler(run_joint_task)}
 
-
-def trend_predictive(trend: dict, years, rng: np.random.Generator) -> np.ndarray:
-    """Draws of the inputs in (future) ``years`` from the trend's posterior predictive:
-    ``intercept + slope * (year - start) + sigma * N(0, 1)``, last segment of each input.
-
-    Parameters
-    ----------
-    trend : dict
-        ``UnitPosterior.trend`` (:data:`TREND_FIELDS`).
-    years : array of int, shape [n_h]
-    rng : numpy Generator
-
-    Returns
-    -------
-    ndarray, shape [n_draws, n_h, d]
-        Input units; not clipped to the design box.
-    """
-    years = np.asarray(years, float)
-    start = np.asarray(trend["start"])
-    last = (start >= 0).sum(axis=0) - 1                                 # [d]
-    a, b = last_segment(trend, "intercept"), last_segment(trend, "slope")   # [n, d]
-    s = np.asarray(trend["sigma"])
-    t0 = start[last, np.arange(start.shape[1])].astype(float)
-    mean = a[:, None, :] + b[:, None, :] * (years[None, :, None] - t0)
-    return mean + s[:, None, :] * rng.standard_normal(mean.shape)
+    def start(self, model, cfg: Config, years, flows, noise, seed: int, source: str,
+              events: Sequence = ()) -> JointRun:
+        return JointRun(model, cfg, years, flows, noise, seed, source, events)

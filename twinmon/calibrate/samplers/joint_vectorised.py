@@ -1,24 +1,25 @@
 """The joint method's fast path: its Gibbs sampler over every chain of many units at once, in
 numpy.
 
-The model, the blocks and their proposals are :mod:`.joint`'s (which samples them with
-OpenTURNS' ``Gibbs``, one chain per task: the reference); what changes is how they are run:
+The model, the blocks and their proposals are the joint method's
+(:mod:`~twinmon.calibrate.methods.joint`, which samples them with OpenTURNS' ``Gibbs``, one
+chain per task: the reference); what changes is how they are run:
 
 * **All years' blocks in one step.** Given the trend (levels, slopes, ``s``) the years'
   ``eps_k`` are independent, so the K per-year random-walk blocks of a sweep are proposed
   and accepted together, each on its own Metropolis ratio (the same transition as updating
   them one after the other): one surrogate call for every year of every chain.
 * **Batched surrogate.** Every block's proposals of a sweep, for all chains of all units in
-  the batch, go through :class:`.vectorised.GPBatch` (the Karhunen-Loeve + Gaussian-process
+  the batch, go through :class:`.gpbatch.GPBatch` (the Karhunen-Loeve + Gaussian-process
   prediction as array arithmetic) in one call, instead of one OpenTURNS call per chain and
   block through a Python callback. A trend move evaluates the K years of every chain at once.
 * **Adaptation as OpenTURNS'.** During the burn-in each block's proposal scale is adapted
-  every :data:`.vectorised.ADAPT_PERIOD` of its moves on its acceptance rate (range and
-  factors of OpenTURNS' random walk); the ``joint_trend_moves`` trend moves of a sweep share
-  one scale (OpenTURNS keeps one per block).
+  every :data:`~twinmon.calibrate.shared.ADAPT_PERIOD` of its moves on its acceptance rate
+  (range and factors of OpenTURNS' random walk); the ``joint_trend_moves`` trend moves of a
+  sweep share one scale (OpenTURNS keeps one per block).
 
 Determinism: each chain (row) draws its random numbers from its own generator, seeded by the
-task (``_JointTask.seed``), a fixed number of sweeps at a time, and every row is computed
+task (``JointTask.seed``), a fixed number of sweeps at a time, and every row is computed
 without reference to the others (element-wise operations, per-row sums, einsum rather than
 BLAS), so a chain's draws do not depend on which chains share its batch or on the number of
 workers. They differ from the OpenTURNS path's draws (another generator, another order of the
@@ -26,38 +27,41 @@ year blocks); the posterior is the same (``tests/unit/test_calibrate_joint.py`` 
 """
 from __future__ import annotations
 
-from typing import Callable, Optional
+from typing import Callable
 
 import numpy as np
 
-from .joint import _JointTask, _Layout, slope_prior
-from .vectorised import ADAPT_DOWN, ADAPT_PERIOD, ADAPT_RANGE, ADAPT_UP
+from ..base import Sampler, Work
+from ..shared import (ADAPT_DOWN, ADAPT_PERIOD, ADAPT_RANGE, ADAPT_UP, JointTask, sampling_pool,
+                      unit_groups)
+from ..trend import Layout, slope_prior
+from .gpbatch import make_predictor, worker_predict
 
 #: Sweeps whose random numbers a chain draws from its generator at once.
 RNG_CHUNK = 64
 
 
-def _signature(t: _JointTask) -> tuple:
+def _signature(t: JointTask) -> tuple:
     """Tasks that can share a batch: same years count, segment layout and run length."""
     return (t.obs.shape, tuple(X.shape for X in t.X), t.trend_moves, t.samples, t.burn_in,
             t.thin)
 
 
-def run_joint_tasks(predict: Callable[[np.ndarray], np.ndarray], tasks: list[_JointTask]
+def run_joint_tasks(predict: Callable[[np.ndarray], np.ndarray], tasks: list[JointTask]
                     ) -> list[tuple[np.ndarray, np.ndarray, float]]:
     """Run the Gibbs chains of ``tasks`` (any units, any mix), batched where they match.
 
     Parameters
     ----------
     predict : callable, X [m, d] -> [m, n_out]
-        The surrogate's batch prediction (:func:`.vectorised.make_predictor`).
-    tasks : list of _JointTask
-        One chain each (:meth:`.joint._JointRun.plan`).
+        The surrogate's batch prediction (:func:`.gpbatch.make_predictor`).
+    tasks : list of JointTask
+        One chain each (:meth:`~twinmon.calibrate.methods.joint.JointRun.plan`).
 
     Returns
     -------
     list, one per task, of ``(draws [samples, D], acceptance [K], trend_acceptance)``
-        What :func:`.joint.run_joint_task` returns for the task.
+        What :func:`~twinmon.calibrate.methods.joint.run_joint_task` returns for the task.
     """
     groups: dict[tuple, list[int]] = {}
     for i, t in enumerate(tasks):
@@ -72,10 +76,10 @@ def run_joint_tasks(predict: Callable[[np.ndarray], np.ndarray], tasks: list[_Jo
 class _Rows:
     """The fixed per-row arrays of a batch of chains that share a layout."""
 
-    def __init__(self, tasks: list[_JointTask]):
+    def __init__(self, tasks: list[JointTask]):
         t0 = tasks[0]
         K, d = t0.obs.shape[0], t0.bounds.shape[0]
-        self.lay = lay = _Layout(K, d, [X.shape[1] for X in t0.X])
+        self.lay = lay = Layout(K, d, [X.shape[1] for X in t0.X])
         R = len(tasks)
         self.R, self.K, self.d = R, K, d
         self.n_beta = sum(lay.n_coef)
@@ -128,7 +132,7 @@ class _Rows:
         return out
 
 
-def _run_batch(predict, tasks: list[_JointTask]) -> list[tuple[np.ndarray, np.ndarray, float]]:
+def _run_batch(predict, tasks: list[JointTask]) -> list[tuple[np.ndarray, np.ndarray, float]]:
     """Gibbs chains of tasks that share :func:`_signature`, in lockstep (see the module
     docstring)."""
     t0 = tasks[0]
@@ -235,68 +239,64 @@ def _adapt(rate: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------------------------------
 # The stage's entry (called by calibrate())
 # ---------------------------------------------------------------------------------------
-def _work(tasks: list[_JointTask]) -> list:
-    from . import _worker   # the surrogate set up once per worker by calibrate's initializer
-    from .vectorised import make_predictor
-    if "predict" not in _worker:
-        _worker["predict"] = make_predictor(_worker["surrogate"])[0]
-    return run_joint_tasks(_worker["predict"], tasks)
+def _work(tasks: list[JointTask]) -> list:
+    """One batch of chains in a worker process."""
+    return run_joint_tasks(worker_predict(), tasks)
 
 
-def run_joint_vectorised(cfg, surrogate, runs: dict, output,
-                         progress: Optional[Callable[[int, int], None]],
-                         pool_args: tuple) -> None:
-    """Finish every pending :class:`.joint._JointRun` of ``runs`` with the batched sampler.
+class JointVectorisedSampler(Sampler):
+    """The joint method's numpy sampler (``calibrate.sampler: vectorised``, the default):
+    finishes every pending :class:`~twinmon.calibrate.methods.joint.JointRun` of the work.
 
     Each round plans every unfinished unit's chains (first runs, or longer runs of units
     whose R-hat/ESS missed the marks), splits the units into groups (whole units, see
-    :func:`.vectorised._groups`), runs each group's chains in one batch in a worker
-    (``calibrate.workers``: 0 = one per core, 1 = in this process; ``pool_args`` =
-    ``(initializer, initargs)`` of calibrate's worker processes) and hands each unit its
-    chains. Results do not depend on the split.
+    :func:`~twinmon.calibrate.shared.unit_groups`), runs each group's chains in one batch in
+    a worker (``calibrate.workers``: 0 = one per core, 1 = in this process) and hands each
+    unit its chains. Results do not depend on the split.
     """
-    import os
 
-    from .vectorised import _groups, make_predictor
-    total = sum(len(r.years) for r in runs.values())
-    pending = [u for u, r in runs.items() if not r.done]
-    workers = min(cfg.calibrate.workers or len(os.sched_getaffinity(0)), len(pending))
-    dask_cluster = cfg.calibrate.executor == "dask" and cfg.dask.address
-    if not pending:
-        return
+    name = "vectorised"
 
-    def rounds(submit):
-        while True:
-            active = [u for u in pending if not runs[u].done]
-            if not active:
-                return
-            plans = {u: runs[u].plan() for u in active}
-            groups = _groups(active, max(workers, 1))
-            for group, result in zip(groups, submit([[t for u in g for t in plans[u]]
-                                                     for g in groups])):
-                i = 0
-                for u in group:
-                    n = len(plans[u])
-                    runs[u].finish(result[i:i + n])
-                    i += n
-            if progress:
-                progress(sum(r.k for r in runs.values()), total)
+    def finish(self, work: Work) -> None:
+        import os
 
-    if workers <= 1 and not dask_cluster:
-        predict = make_predictor(surrogate)[0]
-        rounds(lambda batches: [run_joint_tasks(predict, b) for b in batches])
-        return
-    from concurrent.futures import wait
+        cfg, runs = work.cfg, work.runs
+        pending = [u for u, r in runs.items() if not r.done]
+        workers = min(cfg.calibrate.workers or len(os.sched_getaffinity(0)), len(pending))
+        dask_cluster = cfg.calibrate.executor == "dask" and cfg.dask.address
+        if not pending:
+            return
 
-    from ..executors import InterruptGuard, open_pool
-    from . import sampling_pool
-    pool = open_pool(cfg, "calibrate", max(workers, 1), *pool_args)
-    with sampling_pool(pool, output), InterruptGuard() as guard:
-        def submit(batches):
-            futures = [pool.submit(_work, b) for b in batches]
-            # Poll, so that a Ctrl-C stops the work within a fraction of a second.
-            while wait(futures, timeout=0.2).not_done:
+        def rounds(submit):
+            while True:
+                active = [u for u in pending if not runs[u].done]
+                if not active:
+                    return
+                plans = {u: runs[u].plan() for u in active}
+                groups = unit_groups(active, max(workers, 1))
+                for group, result in zip(groups, submit([[t for u in g for t in plans[u]]
+                                                         for g in groups])):
+                    i = 0
+                    for u in group:
+                        n = len(plans[u])
+                        runs[u].finish(result[i:i + n])
+                        i += n
+                work.tick()
+
+        if workers <= 1 and not dask_cluster:
+            predict = make_predictor(work.model)[0]
+            rounds(lambda batches: [run_joint_tasks(predict, b) for b in batches])
+            return
+        from concurrent.futures import wait
+
+        from ...executors import InterruptGuard, open_pool
+        pool = open_pool(cfg, "calibrate", max(workers, 1), *work.pool_args)
+        with sampling_pool(pool, work.output), InterruptGuard() as guard:
+            def submit(batches):
+                futures = [pool.submit(_work, b) for b in batches]
+                # Poll, so that a Ctrl-C stops the work within a fraction of a second.
+                while wait(futures, timeout=0.2).not_done:
+                    guard.check()
                 guard.check()
-            guard.check()
-            return [f.result() for f in futures]
-        rounds(submit)
+                return [f.result() for f in futures]
+            rounds(submit)

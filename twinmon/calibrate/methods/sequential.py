@@ -1,35 +1,24 @@
 """The paper's method: each year sampled in turn, its prior centred on the previous year's.
 
 Random-walk Metropolis-Hastings (OpenTURNS) from several chains started around the MAP
-point with a proposal shaped on the Laplace covariance there.
+point with a proposal shaped on the Laplace covariance there: one task per chain
+(:func:`run_chain_task`, ``calibrate.sampler: openturns``). The default sampler moves every
+unit's chains of the same year at once in numpy
+(:mod:`~twinmon.calibrate.samplers.vectorised`).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Optional
-
 import numpy as np
 
-from ..config import Config
-from ..errors import CalibrationError
-from .density import LogDensity, Prior, find_map, make_log_density
-from .diagnostics import ess, split_rhat
-from .posterior import (FIT_FIELDS, STATUS_OK, STATUS_UNCONVERGED, UnitPosterior, thin_indices,
-                        year_fit)
-
-
-def _initial_states(rng: np.random.Generator, x_map: np.ndarray, cov: np.ndarray,
-                    prior: Prior, chains: int) -> np.ndarray:
-    """Dispersed starting points: N(MAP, (2 sd)^2) draws kept inside the box."""
-    L = np.linalg.cholesky(cov)
-    out = []
-    while len(out) < chains:
-        x = x_map + 2.0 * L @ rng.standard_normal(len(x_map))
-        if prior.inside(x)[0]:
-            out.append(x)
-        elif rng.random() < 0.05:  # stuck against a wall: fall back to the MAP itself
-            out.append(x_map.copy())
-    return np.array(out)
+from ...config import Config
+from ..base import Method
+from ..density import LogDensity, find_map, make_log_density
+from ..diagnostics import ess, split_rhat
+from ..fit import FIT_FIELDS, STATUS_OK, STATUS_UNCONVERGED, year_fit
+from ..posterior import UnitPosterior, thin_indices
+from ..samplers.openturns import OpenTurnsSampler
+from ..samplers.vectorised import VectorisedSampler
+from ..shared import ChainTask, initial_states, year_prior
 
 
 def plan_chains(ld: LogDensity, chains: int, seed: int) -> tuple[np.ndarray, np.ndarray,
@@ -38,7 +27,7 @@ def plan_chains(ld: LogDensity, chains: int, seed: int) -> tuple[np.ndarray, np.
 
     The proposal is Gaussian with covariance ``2.38^2/d`` times the Laplace covariance at the
     MAP (the optimal random-walk scale for a Gaussian target); the starting points are
-    dispersed around the MAP (see :func:`_initial_states`).
+    dispersed around the MAP (see :func:`initial_states`).
 
     Returns
     -------
@@ -47,7 +36,7 @@ def plan_chains(ld: LogDensity, chains: int, seed: int) -> tuple[np.ndarray, np.
     x_map : ndarray, shape [d]
     """
     x_map, cov = find_map(ld)
-    starts = _initial_states(np.random.default_rng(seed), x_map, cov, ld.prior, chains)
+    starts = initial_states(np.random.default_rng(seed), x_map, cov, ld.prior, chains)
     return starts, 2.38 ** 2 / len(x_map) * cov, x_map
 
 
@@ -121,42 +110,15 @@ def sample_posterior(ld: LogDensity, chains: int, samples: int, burn_in: int,
 
 
 
-def year_prior(cfg: Config, previous: Optional[np.ndarray],
-               previous_var: Optional[np.ndarray] = None) -> Prior:
-    """Prior of a year: uniform on the box without a previous estimate, else Gaussian
-    around it with ``prior_width * range`` (plus the previous posterior variance when
-    ``calibrate.prior_carry_variance`` is set)."""
-    bounds = cfg.model.bounds
-    if previous is None:
-        return Prior.uniform(bounds)
-    var = (cfg.calibrate.prior_width * np.diff(bounds, axis=1).ravel()) ** 2
-    if cfg.calibrate.prior_carry_variance and previous_var is not None:
-        var = var + previous_var
-    return Prior.gaussian(bounds, previous, np.sqrt(var))
-
-
-@dataclass
-class _ChainTask:
-    """Everything a worker needs to run one chain of one unit-year (picklable)."""
-
-    prior: Prior
-    obs_row: np.ndarray
-    noise_var: np.ndarray
-    start: np.ndarray
-    proposal_cov: np.ndarray
-    samples: int
-    burn_in: int
-    seed: int
-    thin: int
-
-
-def _run_task(surrogate, task: _ChainTask) -> tuple[np.ndarray, float]:
+def run_chain_task(surrogate, task: ChainTask) -> tuple[np.ndarray, float]:
+    """One chain of :meth:`SequentialRun.plan` (:func:`run_chain` on its unit-year's
+    log-posterior): draws [samples, d] and acceptance rate."""
     ld = make_log_density(surrogate, task.obs_row, task.noise_var, task.prior)
     return run_chain(ld, task.start, task.proposal_cov, task.samples, task.burn_in, task.seed,
                      task.thin)
 
 
-class _UnitRun:
+class SequentialRun:
     """One unit's calibration, advanced a year at a time.
 
     :meth:`plan` sets up the next year (prior, noise, MAP, starting points) and returns its
@@ -209,7 +171,7 @@ class _UnitRun:
     def done(self) -> bool:
         return self.k >= len(self.years)
 
-    def plan(self) -> list[_ChainTask]:
+    def plan(self) -> list[ChainTask]:
         cc, k = self.cfg.calibrate, self.k
         prior = year_prior(self.cfg, self.prev, self.prev_var)
         # The surrogate's variance is held at its value at the prior's centre: computing it
@@ -233,7 +195,7 @@ class _UnitRun:
         thin = (2 if prior.is_uniform else 1) * 2 ** self.ext
         burn = cc.burn_in * 2 ** self.ext
         seed = seed + 7919 * self.ext
-        return [_ChainTask(prior, self.flows[k], total, starts[c], cov, cc.samples, burn,
+        return [ChainTask(prior, self.flows[k], total, starts[c], cov, cc.samples, burn,
                            seed + 1 + c, thin) for c in range(cc.chains)]
 
     def finish(self, results: list[tuple[np.ndarray, float]]) -> None:
@@ -301,30 +263,23 @@ def calibrate_unit(surrogate, cfg: Config, years, flows, noise_std, rng_seed: in
     noise_source : str
         Recorded with the result.
     """
-    run = _UnitRun(surrogate, cfg, years, flows, noise_std, rng_seed, noise_source)
+    run = SequentialRun(surrogate, cfg, years, flows, noise_std, rng_seed, noise_source)
     while not run.done:
-        run.finish([_run_task(surrogate, t) for t in run.plan()])
+        run.finish([run_chain_task(surrogate, t) for t in run.plan()])
     return run.result()
 
 
-def estimate_noise(surrogate, cfg: Config, flows: np.ndarray) -> float:
-    """Output noise standard deviation (output units) of one unit from its own data.
+class SequentialMethod(Method):
+    """The paper's method (``calibrate.method: sequential``): a unit's years in turn, each
+    prior centred on the previous year's posterior."""
 
-    Each year is fitted by least squares (no prior) over the box; the residuals of all the
-    unit's years are pooled, with ``d`` degrees of freedom taken per year:
-    ``s^2 = sum RSS / (n_obs - d * n_y)``.
-    """
-    flows = np.atleast_2d(flows)
-    bounds = cfg.model.bounds
-    d = len(bounds)
-    rss, dof = 0.0, 0
-    for row in flows:
-        # Unit variance: find_map is then the plain (bounded) least-squares fit.
-        ld = make_log_density(surrogate, row, 1.0, Prior.uniform(bounds))
-        x, _ = find_map(ld)
-        rss += float(np.sum(ld.residuals(x) ** 2))
-        dof += int(ld.mask.sum()) - d
-    if dof <= 0:
-        raise CalibrationError(f"too few samples ({dof + d * len(flows)}) to estimate the noise "
-                               "level; set calibrate.noise_std")
-    return float(np.sqrt(rss / dof))
+    name = "sequential"
+    continues_years = True
+
+    @property
+    def samplers(self):
+        return {"vectorised": VectorisedSampler(), "openturns": OpenTurnsSampler(run_chain_task)}
+
+    def start(self, model, cfg: Config, years, flows, noise, seed: int, source: str,
+              events=()) -> SequentialRun:
+        return SequentialRun(model, cfg, years, flows, noise, seed, source)
