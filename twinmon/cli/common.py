@@ -1,4 +1,4 @@
-"""Options and helpers shared by the commands."""
+"""Options and small functions shared by the commands."""
 from __future__ import annotations
 
 import sys

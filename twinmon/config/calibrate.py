@@ -54,15 +54,16 @@ class CalibrateConfig:
     #: models; []: the output only.
     channels: Optional[tuple[str, ...]] = None
     #: How either method samples: ``vectorised`` (numpy, every unit's chains at once:
-    #: random-walk Metropolis run until the ESS is met, calibrate/vectorised.py, or the joint
-    #: method's Gibbs sweeps, calibrate/joint_vectorised.py) or ``openturns`` (OpenTURNS'
-    #: samplers, one chain per task: the reference). Same model, same diagnostics;
-    #: docs/calibration.md compares them.
+    #: random-walk Metropolis run until the ESS is met, calibrate/samplers/vectorised.py, or
+    #: the joint method's Gibbs sweeps, calibrate/samplers/joint_vectorised.py) or
+    #: ``openturns`` (OpenTURNS' samplers, one chain per task: the reference). Same model,
+    #: same diagnostics; docs/calibration.md compares them.
     sampler: Literal["vectorised", "openturns"] = "vectorised"
     #: ``sequential``: the paper's method, each year sampled in turn with a prior centred on
-    #: the previous year's estimate (calibrate/sequential.py). ``joint``: each unit's whole
-    #: history in one posterior with a linear trend per input (restarted at maintenance
-    #: events) and its year-to-year scatter inside (calibrate/joint.py; docs/calibration.md).
+    #: the previous year's estimate (calibrate/methods/sequential.py). ``joint``: each
+    #: unit's whole history in one posterior with a linear trend per input (restarted at
+    #: maintenance events) and its year-to-year scatter inside (calibrate/methods/joint.py;
+    #: docs/calibration.md).
     #: ``auto``: ``joint`` when the observations hold a fleet whose year-to-year sd
     #: ``forecast`` can pool (``forecast.pool_sigma`` and at least ``forecast.pool_min_units``
     #: units), else ``sequential``: on benchmarks/prognosis.py the pooled joint method is

@@ -100,7 +100,7 @@ class UnitGap:
     wall_time: float = 0.0
 
     def as_dict(self) -> dict:
-        """The ``--json`` entry of this unit (issue 4's schema, plus a few extra keys)."""
+        """The ``--json`` entry of this unit (the documented gap schema, plus a few extra keys)."""
         return {
             "verdict": self.verdict,
             "effects": list(self.effects),

@@ -133,7 +133,7 @@ def state_words(root_cause: Optional[str]) -> str:
 
 
 # ---------------------------------------------------------------------------------------
-# Small helpers
+# Small formatting functions
 # ---------------------------------------------------------------------------------------
 def pct(p: Optional[float]) -> str:
     if p is None or not np.isfinite(p):
