@@ -121,3 +121,12 @@ def fleet(seed: int, family: str = "linear", n_healthy: int = 12, n_both: int = 
                                   "pump_coef": NORMAL["pump_coef"] - TOL["pump_coef"] * mp},
             min(mm, mp), faulty_inputs=tuple(TOL))
     return units, kinds
+
+
+if __name__ == "__main__":
+    # What each family's units look like (seed 11): the faulty units' shapes and options.
+    for fam in FAMILIES:
+        units, kinds = fleet(11, fam)
+        shaped_units = {u: s for u, s in units.items() if kinds[u][0] != "healthy"}
+        u, spec = next(iter(shaped_units.items()))
+        print(f"{fam:14s} {len(units)} units ({len(shaped_units)} faulty); e.g. {u}: {spec}")
