@@ -413,8 +413,21 @@ def swap_groups(s: UnitState, final, model_effects: list, model_values: list,
     Returns ``(final, model_effects, model_values, groups)``: the model with any swap made
     and one :class:`EffectGroup` per place.
     """
+    for _ in range(2):
+        # A swap changes what the other places are screened beside: once more if any.
+        final, model_effects, model_values, groups, swapped = _swap_pass(
+            s, final, model_effects, model_values, candidates)
+        if not swapped:
+            break
+    return final, model_effects, model_values, groups
+
+
+def _swap_pass(s: UnitState, final, model_effects: list, model_values: list,
+               candidates: list) -> tuple:
+    """One pass of :func:`swap_groups` over the places of the model; also whether a place
+    changed effect."""
     u_now, rows, fixed, Qs = _current(s, final, model_effects, model_values)
-    groups = []
+    groups, swapped = [], False
     for j, (name_j, on_j) in enumerate(model_effects):
         others = [e for i, e in enumerate(model_effects) if i != j]
         o_vals = [v for i, v in enumerate(model_values) if i != j]
@@ -438,20 +451,34 @@ def swap_groups(s: UnitState, final, model_effects: list, model_values: list,
             scored.append((sc, name, v, on))
         scored.sort(reverse=True)
         own = next((sc for sc, n, _, _ in scored if n == name_j), 0.0)
-        tries = [t for i, t in enumerate(scored) if t[1] != name_j and (
+        # The effect in place is tried again around its screened onset (beside a new
+        # partner its onset may move).
+        tries = [t for i, t in enumerate(scored) if t[1] == name_j or (
             i < s.dc.confirm_further or (own > 0 and t[0] >= 0.5 * own))]
         fits = [(name_j, on_j, final, list(model_effects), list(model_values))]
-        for sc, name, v, on in tries:
-            effs = list(model_effects)
-            effs[j] = (name, on)
-            vals = list(model_values)
-            vals[j] = v
-            chi2, fit2, k02 = fit_with(s, effs, vals, u_now)
-            if fit2 is None:
-                continue
-            ue, _ = fit2.problem.unpack(fit2.x)
-            fits.append((name, on, (chi2, fit2, k02), effs,
-                         [s.twin.effect_of(n, ue[i]) for i, (n, _) in enumerate(effs)]))
+        for sc, name, v, on_s in tries:
+            best = None
+            # The screened onset and onset_search years either side, as for one effect.
+            for on in range(on_s - s.dc.onset_search, on_s + s.dc.onset_search + 1):
+                if on < s.years[0] or on > s.years[-1] or (name, on) == (name_j, on_j):
+                    continue
+                effs = list(model_effects)
+                effs[j] = (name, on)
+                vals = list(model_values)
+                vals[j] = v
+                chi2, fit2, k02 = fit_with(s, effs, vals, u_now)
+                if fit2 is not None and (best is None or chi2 < best[2][0]):
+                    ue, _ = fit2.problem.unpack(fit2.x)
+                    best = (name, on, (chi2, fit2, k02), effs,
+                            [s.twin.effect_of(n, ue[i]) for i, (n, _) in enumerate(effs)])
+            if best is not None:
+                fits.append(best)
+        # One model per candidate: its best onset.
+        by_name = {}
+        for f in fits:
+            if f[0] not in by_name or f[2][0] < by_name[f[0]][2][0]:
+                by_name[f[0]] = f
+        fits = list(by_name.values())
         # Every model here has the same number of effects: BIC differences are chi-square's.
         best_chi2 = min(f[2][0] for f in fits)
         members = [Member(n, int(on), vals[j], j, float(fit_[0] - best_chi2), 0.0, fit_, effs,
@@ -460,14 +487,13 @@ def swap_groups(s: UnitState, final, model_effects: list, model_values: list,
         members = _weighted(members)
         groups.append(EffectGroup(members))
         top = members[0]
-        if top.name != name_j:
+        if top.name != name_j or top.onset != on_j:
             # A better partner than the effect in place: it takes the place (and the next
             # place is screened against it).
             final, model_effects, model_values = top.fit, list(top.effects), list(top.values)
             u_now, rows, fixed, Qs = _current(s, final, model_effects, model_values)
-    # A later swap changes the model the earlier groups were fitted beside: keep each
-    # member's fit, but the named effects are the final model's.
-    return final, model_effects, model_values, groups
+            swapped = True
+    return final, model_effects, model_values, groups, swapped
 
 
 # -- the group: separating channel, ranking table ------------------------------------------------
