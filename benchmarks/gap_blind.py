@@ -16,8 +16,9 @@ Usage: ``python benchmarks/gap_blind.py [--cases 60] [--nulls 20] [--out-of-list
 configs/fleet_gap.yaml, and the DC drive, configs/dcdrive_gap.yaml) each with two withheld
 effects -- transient + plateau, transient + transient, plateau + plateau in turn, onsets
 coinciding in every other case and a year or two apart in the others -- plus ``--nulls``
-clean units per machine (see :func:`pair_main`). Tuning seed: 1 (the settings were chosen on
-it); held-out seeds: 2 and 3 (run once the code was fixed, never tuned on).
+clean units per machine (see :func:`pair_main`). Tuning seeds: 1 and 2 (the method was
+changed after looking at their misses); held-out seeds: 3 and 4 (run once the code was
+fixed, never tuned on).
 """
 from __future__ import annotations
 
@@ -491,8 +492,8 @@ def pair_main(argv) -> None:
     ap.add_argument("--pairs", type=int, default=24, help="pair units per machine")
     ap.add_argument("--nulls", type=int, default=8, help="clean units per machine")
     ap.add_argument("--years", type=int, default=8)
-    ap.add_argument("--seed", type=int, default=2,
-                    help="1: the tuning seed; 2 and 3: held out")
+    ap.add_argument("--seed", type=int, default=3,
+                    help="1 and 2: tuning seeds; 3 and 4: held out")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--machines", default="pump,dcdrive")
     ap.add_argument("-v", "--verbose", action="count", default=0,

@@ -348,8 +348,13 @@ def _fixed(s: UnitState, effects: list, values: list) -> dict:
 
 def _current(s: UnitState, final, model_effects, model_values) -> tuple:
     """The current model as the screening needs it: normalised inputs [n_y, d], whitened
-    residual rows, the effects per year, and the per-year bases of the inputs'
-    sensitivities (effects held)."""
+    residual rows, the effects per year, and per year an orthonormal basis of the
+    sensitivities of its inputs and of the effects active that year.
+
+    The effects' sensitivities are in the basis so that a new effect is screened with the
+    effects already in the twin re-adjusted too (linearly, each year on its own: a
+    relaxation the confirming fit removes): a start delay fitted alone takes up part of a
+    flowmeter lag, and held at that value it would hide the lag from the screening."""
     chi2_cur, fit, k0 = final
     _, ut = fit.problem.unpack(fit.x)
     u_now = s.base_u.copy()
@@ -363,8 +368,9 @@ def _current(s: UnitState, final, model_effects, model_values) -> tuple:
         # Sensitivities of this year's inputs at the current model (effects held).
         x = np.concatenate([[s.twin.effect_u(n, v) for (n, _), v in
                              zip(model_effects, model_values)], u_now[k]])
-        J = prob.jacobian(x)[:, len(model_effects):]
-        Qs.append(np.linalg.qr(J)[0])
+        J = prob.jacobian(x)
+        cols = prob.active[0] + list(range(len(model_effects), J.shape[1]))
+        Qs.append(np.linalg.qr(J[:, cols])[0])
     return u_now, rows, fixed, Qs
 
 
