@@ -346,7 +346,7 @@ def _fixed(s: UnitState, effects: list, values: list) -> dict:
             for k in range(s.n_y)}
 
 
-def _current(s: UnitState, final, model_effects, model_values) -> tuple:
+def _current(s: UnitState, final, model_effects, model_values, held: int | None = None) -> tuple:
     """The current model as the screening needs it: normalised inputs [n_y, d], whitened
     residual rows, the effects per year, and per year an orthonormal basis of the
     sensitivities of its inputs and of the effects active that year.
@@ -354,7 +354,9 @@ def _current(s: UnitState, final, model_effects, model_values) -> tuple:
     The effects' sensitivities are in the basis so that a new effect is screened with the
     effects already in the twin re-adjusted too (linearly, each year on its own: a
     relaxation the confirming fit removes): a start delay fitted alone takes up part of a
-    flowmeter lag, and held at that value it would hide the lag from the screening."""
+    flowmeter lag, and held at that value it would hide the lag from the screening.
+    ``held``: the index of an effect left out of the basis (the one being swapped: its
+    alternatives must not be projected onto it)."""
     chi2_cur, fit, k0 = final
     _, ut = fit.problem.unpack(fit.x)
     u_now = s.base_u.copy()
@@ -369,7 +371,8 @@ def _current(s: UnitState, final, model_effects, model_values) -> tuple:
         x = np.concatenate([[s.twin.effect_u(n, v) for (n, _), v in
                              zip(model_effects, model_values)], u_now[k]])
         J = prob.jacobian(x)
-        cols = prob.active[0] + list(range(len(model_effects), J.shape[1]))
+        cols = [j for j in prob.active[0] if j != held] + list(range(len(model_effects),
+                                                                      J.shape[1]))
         Qs.append(np.linalg.qr(J[:, cols])[0])
     return u_now, rows, fixed, Qs
 
@@ -432,9 +435,9 @@ def _swap_pass(s: UnitState, final, model_effects: list, model_values: list,
                candidates: list) -> tuple:
     """One pass of :func:`swap_groups` over the places of the model; also whether a place
     changed effect."""
-    u_now, rows, fixed, Qs = _current(s, final, model_effects, model_values)
     groups, swapped = [], False
     for j, (name_j, on_j) in enumerate(model_effects):
+        u_now, rows, fixed, Qs = _current(s, final, model_effects, model_values, held=j)
         others = [e for i, e in enumerate(model_effects) if i != j]
         o_vals = [v for i, v in enumerate(model_values) if i != j]
         # The residual with effect j taken out of the twin (inputs as fitted).
@@ -497,7 +500,6 @@ def _swap_pass(s: UnitState, final, model_effects: list, model_values: list,
             # A better partner than the effect in place: it takes the place (and the next
             # place is screened against it).
             final, model_effects, model_values = top.fit, list(top.effects), list(top.values)
-            u_now, rows, fixed, Qs = _current(s, final, model_effects, model_values)
             swapped = True
     return final, model_effects, model_values, groups, swapped
 
