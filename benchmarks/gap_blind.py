@@ -481,6 +481,11 @@ def pair_report(runs: dict, sc: dict, singles, args) -> None:
     print("by machine and kind (cases, all true effects in groups, >= 90 % closed):")
     for k, (c, a, cl) in sorted(sc["by_kind"].items()):
         print(f"    {k:<48s} {c:>3d} {a:>3d} {cl:>3d}")
+    for m in runs:
+        rows = [v for k, v in sc["by_kind"].items() if k.startswith(f"{m}:")]
+        c, a, cl = (sum(r[i] for r in rows) for i in range(3))
+        print(f"    {m + ', all kinds':<48s} {c:>3d} {a:>3d} {cl:>3d}   "
+              f"(in groups {pct(a, c)}, >= 90 % closed {pct(cl, c)})")
     print("wall time: " + ", ".join(f"{m} {r['wall']:.1f} s" for m, r in runs.items())
           + f" on {args.workers} workers")
 

@@ -405,7 +405,7 @@ def _further(s: UnitState, final, model_effects, model_values, candidates):
     return best if gain > s.dc.bic_gain else None
 
 
-# -- groups of a several-effect model ---------------------------------------------------------------
+# -- groups of a several-effect model --------------------------------------------------------------
 def swap_groups(s: UnitState, final, model_effects: list, model_values: list,
                 candidates: list) -> tuple:
     """The group of each effect of a several-effect model, found by swapping it.
