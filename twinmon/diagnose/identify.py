@@ -353,8 +353,8 @@ def _current(s: UnitState, final, model_effects, model_values, held: int | None 
 
     The effects' sensitivities are in the basis so that a new effect is screened with the
     effects already in the twin re-adjusted too (linearly, each year on its own: a
-    relaxation the confirming fit removes): a start delay fitted alone takes up part of a
-    flowmeter lag, and held at that value it would hide the lag from the screening.
+    relaxation the confirming fit removes): a delay-type effect fitted alone takes up part
+    of a lag-type one, and held at that value it would hide the lag from the screening.
     ``held``: the index of an effect left out of the basis (the one being swapped: its
     alternatives must not be projected onto it)."""
     chi2_cur, fit, k0 = final
