@@ -248,7 +248,10 @@ def group_records(s: UnitState, sh: Shrink, idn: Identification) -> list:
             u[k0:] = ut
             fy = failure_year(s, s.twin.theta_of(u), dict(zip([n for n, _ in m.effects],
                                                              m.values)))
-            est = sh.estimate.get(m.name, (m.value, np.nan, np.nan))
+            # From the member's own fit: an effect may sit in two groups, beside different
+            # partners, with two values.
+            est = interval(s, m.name, m.value,
+                           math.sqrt(max(fit.covariance()[m.index, m.index], 0.0)))
             members.append({"effect": m.name, "onset": int(m.onset), "value": float(m.value),
                             "q05": float(est[1]), "q95": float(est[2]),
                             "weight": float(m.weight), "delta_bic": float(m.dbic),
