@@ -11,6 +11,14 @@ targets are measured on cases whose gap is at least 3.
 
 Usage: ``python benchmarks/gap_blind.py [--cases 60] [--nulls 20] [--out-of-list 10]
 [--years 8] [--seed 7] [--workers 2]``
+
+``--pairs N`` runs the two-effect benchmark instead: N units per machine (the pump,
+configs/fleet_gap.yaml, and the DC drive, configs/dcdrive_gap.yaml) each with two withheld
+effects -- transient + plateau, transient + transient, plateau + plateau in turn, onsets
+coinciding in every other case and a year or two apart in the others -- plus ``--nulls``
+clean units per machine (see :func:`pair_main`). Tuning seeds: 1 and 2 (the method was
+changed after looking at their misses); held-out seeds: 3 and 4 (run once the code was
+fixed, never tuned on).
 """
 from __future__ import annotations
 
@@ -30,6 +38,7 @@ from twinmon.config import config_from_mapping, load_config  # noqa: E402
 from twinmon.diagnose import diagnose  # noqa: E402
 from twinmon.config import Disturbance  # noqa: E402
 from twinmon.fabricate import disturbance_signal, fabricate, read_truth  # noqa: E402
+from twinmon.errors import SimulationError  # noqa: E402
 from twinmon.fmu import FMUModel, resolve_fmu  # noqa: E402
 
 #: Effects whose flow signature is distinct (the transient-type effects of docs/model.md);
@@ -48,11 +57,22 @@ def _window_gap(cfg, delta_sigma: np.ndarray) -> float:
     return best
 
 
+def _gap_at(cfg, model, nominal, name, value, var, base, sigma) -> float:
+    """Gap (noise units) of effect ``name`` at ``value`` on a nominal unit; 0 where the FMU
+    fails (the DC drive's supply delay on a sample instant, e.g. 0.2 s)."""
+    try:
+        out = model.run({**nominal, name: value})[var]
+    except SimulationError:
+        return 0.0
+    return _window_gap(cfg, ((out - base) / sigma)[None])
+
+
 def min_magnitudes(cfg, model, sigma: float, target: float = 3.0) -> dict:
     """Per effect, the value (on each side of the baseline) whose gap at nominal inputs is
     ``target`` noise standard deviations; None if the range never gets there."""
     nominal = {s.variable: s.nominal for s in cfg.model.inputs.values()}
-    base = model.run(nominal)["sensor.m_flow"]
+    var = cfg.model.output.variable
+    base = model.run(nominal)[var]
     out = {}
     for name, e in cfg.model.effects.items():
         sides = []
@@ -60,8 +80,7 @@ def min_magnitudes(cfg, model, sigma: float, target: float = 3.0) -> dict:
             if end == e.baseline:
                 continue
             vals = e.baseline + np.linspace(0, 1, 101)[1:] * (end - e.baseline)
-            gaps = [_window_gap(cfg, ((model.run({**nominal, name: v})["sensor.m_flow"] - base)
-                                      / sigma)[None]) for v in vals]
+            gaps = [_gap_at(cfg, model, nominal, name, v, var, base, sigma) for v in vals]
             ok = np.flatnonzero(np.array(gaps) >= target)
             if ok.size:
                 sides.append((vals[ok[0]], end))
@@ -99,6 +118,8 @@ def build_cases(cfg, rng, n_cases, n_nulls, n_ool, years, mags):
 
 
 def main(argv=None):
+    if argv is None and "--pairs" in sys.argv:
+        return pair_main(sys.argv[1:])
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", type=int, default=63, help="effect cases (9 per candidate)")
     ap.add_argument("--nulls", type=int, default=20)
@@ -255,6 +276,244 @@ def report(cfg, summary, labels, gaps, wall, wall3, args, mags):
           f"({args.workers} workers)")
     print(f"wall time, 3 units x 10 years x 7 candidates (configs/fleet_gap.yaml): "
           f"{wall3:.1f} s on {args.workers} workers   target < 120 s")
+
+
+# -- two withheld effects at once -----------------------------------------------------------------
+#: Per machine: its gap config, the kind of each candidate effect on the observed output
+#: alone (transient: a distinct shape in the start-up; plateau: a shift of the settled
+#: level, alike between them), and a random degradation trajectory.
+PAIR_MACHINES = {
+    "pump": {
+        "config": ROOT / "configs" / "fleet_gap.yaml",
+        "transient": ("sensor.tau", "valve.opening_time", "motor.start_delay"),
+        "plateau": ("sensor.gain", "pipe.fouling", "pump.leak", "motor.supply_ratio"),
+        "trajectories": lambda rng: {
+            "motor_damping": {"start": float(rng.uniform(9.0, 11.0)),
+                              "slope": float(rng.uniform(0.0, 0.8)), "jitter": 0.15},
+            "pump_coef": {"start": float(rng.uniform(3.5, 3.8)),
+                          "slope": float(rng.uniform(-0.06, -0.01)), "jitter": 0.01}},
+    },
+    "dcdrive": {
+        "config": ROOT / "configs" / "dcdrive_gap.yaml",
+        "transient": ("tacho.tau", "supply.delay"),
+        "plateau": ("tacho.gain", "supply.ratio", "load.extra"),
+        "trajectories": lambda rng: {
+            "bearing_friction": {"start": float(rng.uniform(0.0009, 0.0011)),
+                                 "slope": float(rng.uniform(0.0, 1.0e-4)), "jitter": 2.0e-5},
+            "winding_resistance": {"start": float(rng.uniform(0.95, 1.02)),
+                                   "slope": float(rng.uniform(0.0, 0.01)), "jitter": 0.005}},
+    },
+}
+PAIR_KINDS = ("transient+plateau", "transient+transient", "plateau+plateau")
+#: Visible gap (noise sigma, worst window, after refitting the degradation inputs:
+#: :func:`effect_gaps`) below which an effect counts as absorbed by them.
+ABSORBED = 1.0
+
+
+def build_pairs(machine: dict, rng, n_pairs: int, n_nulls: int, years: int, mags: dict):
+    """Pair cases (kinds in turn, onsets coinciding in every other case) and clean units:
+    ``units`` (fabricate specs) and ``labels`` {unit: (kind, {effect: (value, onset)})}."""
+    units, labels = {}, {}
+    for i in range(n_pairs + n_nulls):
+        u = f"case{i:03d}"
+        spec = {"trajectories": machine["trajectories"](rng)}
+        if i >= n_pairs:
+            units[u], labels[u] = spec, ("clean", {})
+            continue
+        kind = PAIR_KINDS[i % len(PAIR_KINDS)]
+        first, second = kind.split("+")
+        a = str(rng.choice([n for n in machine[first] if mags[n]]))
+        b = str(rng.choice([n for n in machine[second] if mags[n] and n != a]))
+        on_a = int(rng.integers(2, years - 2))
+        on_b = on_a if (i // len(PAIR_KINDS)) % 2 == 0 else on_a + int(rng.integers(1, 3))
+        if rng.uniform() < 0.5:
+            on_a, on_b = on_b, on_a
+        truth = {}
+        for name, on in ((a, on_a), (b, on_b)):
+            lo, end = mags[name][int(rng.integers(len(mags[name])))]
+            truth[name] = (float(lo + rng.uniform(0, 0.7) * (end - lo)), on)
+        spec["effects"] = {n: {"value": v, "onset": on} for n, (v, on) in truth.items()}
+        onsets = "same onset" if on_a == on_b else "onsets apart"
+        units[u], labels[u] = spec, (f"{kind}, {onsets}", truth)
+    return units, labels
+
+
+def effect_gaps(cfg, fmu, truth, sigma: float) -> tuple:
+    """Gap (noise units, worst window, its years on) of each withheld effect, raw and
+    visible: ``({unit: {effect: gap}}, {unit: {effect: visible gap}})``.
+
+    The raw gap compares the unit's output with both effects and with this one off, at its
+    true degradation inputs (the single-effect benchmark's gap). The visible gap is what
+    remains once the twin with this effect off (the other at its true value) has its
+    degradation inputs refitted (least squares, noise-free) to the output with both: the
+    part of the effect no degradation can take up, hence what any diagnosis on the
+    recorded output can see of it."""
+    from scipy.optimize import least_squares
+    t = cfg.model.output.times.times
+    var = cfg.model.output.variable
+    ins = list(cfg.model.inputs.values())
+    raw, visible = {}, {}
+    with FMUModel(fmu, [var], t) as model:
+        def out(p):
+            try:
+                return model.run(p)[var]
+            except SimulationError:
+                return np.full(t.size, 1e6)
+        for u, eff in truth.effects.items():
+            raw[u], visible[u] = {}, {}
+            for name, vals in eff.items():
+                lo = np.array([q.low for q in ins])
+                hi = np.array([q.high for q in ins])
+                deltas, vis = [], []
+                for k in np.flatnonzero(np.isfinite(vals)):
+                    p = {q.variable: float(truth.inputs[u][n][k])
+                         for n, q in cfg.model.inputs.items()}
+                    both = {**p, **{n: float(v[k]) for n, v in eff.items() if np.isfinite(v[k])}}
+                    target = out(both)
+                    off = {**both, name: cfg.model.effects[name].baseline}
+                    deltas.append(target - out(off))
+                    x0 = np.array([p[q.variable] for q in ins])
+
+                    def resid(z, off=off, target=target):
+                        x = lo + z * (hi - lo)
+                        return (out({**off, **{q.variable: float(v) for q, v in zip(ins, x)}})
+                                - target) / sigma
+                    fit = least_squares(resid, np.clip((x0 - lo) / (hi - lo), 0, 1),
+                                        bounds=(0, 1), diff_step=1e-4, max_nfev=40)
+                    vis.append(resid(fit.x) * sigma)
+                raw[u][name] = _window_gap(cfg, np.array(deltas) / sigma) if deltas else 0.0
+                visible[u][name] = _window_gap(cfg, np.array(vis) / sigma) if vis else 0.0
+    return raw, visible
+
+
+def run_pairs(name: str, machine: dict, args) -> dict:
+    """Fabricate and diagnose one machine's pair cases; the scores (see :func:`pair_report`)."""
+    base = load_config(machine["config"])
+    raw = copy.deepcopy(dict(base.raw))
+    sigma = base.fabricate.noise_std           # 1 % of the nominal output
+    fmu = resolve_fmu(base.model.fmu)
+    t = base.model.output.times.times
+    with FMUModel(fmu, [base.model.output.variable], t) as model:
+        mags = min_magnitudes(base, model, sigma)
+    rng = np.random.default_rng([args.seed, list(PAIR_MACHINES).index(name)])
+    units, labels = build_pairs(machine, rng, args.pairs, args.nulls, args.years, mags)
+    raw["fabricate"] = {"years": args.years, "noise_std": sigma,
+                        "seed": int(rng.integers(1 << 30)), "units": units}
+    cfg = config_from_mapping(raw, Path(machine["config"]))
+    with tempfile.TemporaryDirectory(prefix="gap-pairs-") as tmp:
+        obs, truth_path = Path(tmp) / "obs.h5", Path(tmp) / "truth.h5"
+        fabricate(cfg, obs, truth_path)
+        t0 = time.perf_counter()
+        summary = diagnose(cfg, obs, Path(tmp) / "gap.h5", workers=args.workers)
+        wall = time.perf_counter() - t0
+        truth = read_truth(truth_path)           # only the scorer reads it
+        gaps, visible = effect_gaps(cfg, fmu, truth, sigma)
+    return {"summary": summary, "labels": labels, "gaps": gaps, "visible": visible,
+            "wall": wall, "cfg": cfg}
+
+
+def pair_scores(runs: dict, verbose: int = 0, absorbed: float = 0.0) -> dict:
+    """Score pair cases whose every withheld effect alone has a raw gap of at least 3 sigma
+    and a visible gap (:func:`effect_gaps`) of at least ``absorbed`` sigma."""
+    sc = {"n": 0, "below": 0, "detected": 0, "all_in": 0, "closed90": 0, "closed": [],
+          "sizes": [], "two_named": 0, "clean": 0, "false": 0, "spread": 0,
+          "multi": 0, "sep": 0, "by_kind": {}, "absorbed": absorbed}
+    for machine, r in runs.items():
+        for u, (kind, truth) in r["labels"].items():
+            g = r["summary"].units[u]
+            if kind == "clean":
+                sc["clean"] += 1
+                sc["false"] += int(g.verdict != "none")
+                continue
+            if min(r["gaps"][u].values()) < 3.0 or min(r["visible"][u].values()) < absorbed:
+                sc["below"] += 1
+                continue
+            sc["n"] += 1
+            k = sc["by_kind"].setdefault(f"{machine}: {kind}", [0, 0, 0])
+            k[0] += 1
+            members = [set(m["effect"] for m in grp["members"]) for grp in g.groups]
+            found = all(any(n in mem for mem in members) for n in truth)
+            sc["detected"] += int(g.verdict != "none")
+            sc["all_in"] += int(g.verdict == "effect" and found)
+            k[1] += int(g.verdict == "effect" and found)
+            ok90 = g.verdict == "effect" and g.closed_percent >= 90.0
+            sc["closed90"] += int(ok90)
+            k[2] += int(ok90)
+            sc["closed"].append(g.closed_percent)
+            sc["two_named"] += int(len(g.groups) == 2)
+            for grp in g.groups:
+                sc["sizes"].append(len(grp["members"]))
+                if len(grp["members"]) > 1:
+                    sc["multi"] += 1
+                    sc["sep"] += int(bool(grp["separating_channel"]))
+                sc["spread"] += int(grp["failure_year_spread"])
+            if verbose and (g.verdict != "effect" or not found or not ok90 or verbose > 1):
+                print(f"  {machine} {u} {kind}: truth "
+                      + ", ".join(f"{n} {v:.3g} from {on}" for n, (v, on) in truth.items())
+                      + " (gaps " + ", ".join(f"{x:.1f}" for x in r["gaps"][u].values())
+                      + "; visible " + ", ".join(f"{x:.1f}" for x in r["visible"][u].values())
+                      + f"); {g.verdict}, closed {g.closed_percent:.1f} %, groups "
+                      + "; ".join("[" + ", ".join(f"{m['effect']} {m['weight']:.2f}"
+                                                  for m in grp["members"]) + f"] from "
+                                  f"{grp['onset']}" for grp in g.groups))
+    return sc
+
+
+def pair_report(runs: dict, sc: dict, singles, args) -> None:
+    def pct(a, b):
+        return f"{a / b:.2f} ({a}/{b})" if b else "n/a"
+    n = sc["n"]
+    what = "gap >= 3 sigma" + (f" and visible gap >= {sc['absorbed']:g} sigma (not absorbed "
+                               "by the degradation inputs)" if sc["absorbed"] else "")
+    print(f"\n{n} pair cases with every effect's {what} ({sc['below']} others excluded)")
+    print(f"every true effect inside a reported group : {pct(sc['all_in'], n)}   target >= 0.90")
+    print(f"mean group size                           : "
+          f"{np.mean(sc['sizes']) if sc['sizes'] else float('nan'):.2f}   target <= 3")
+    print(f">= 90 % of the excess gap closed          : {pct(sc['closed90'], n)}   target >= 0.90")
+    print(f"false alarms on clean units               : {pct(sc['false'], sc['clean'])}   "
+          "target <= 0.05")
+    print(f"detection (verdict != none)               : {pct(sc['detected'], n)}   —")
+    print(f"two effects named (a group each)          : {pct(sc['two_named'], n)}   —")
+    print(f"median % of the excess gap closed         : "
+          f"{np.median(sc['closed']) if sc['closed'] else float('nan'):.1f} %   —")
+    print(f"groups of 2+ with a separating channel    : {pct(sc['sep'], sc['multi'])}   —")
+    print(f"groups whose failure years spread > 1 year: {sc['spread']}   —")
+    print("by machine and kind (cases, all true effects in groups, >= 90 % closed):")
+    for k, (c, a, cl) in sorted(sc["by_kind"].items()):
+        print(f"    {k:<48s} {c:>3d} {a:>3d} {cl:>3d}")
+    for m in runs:
+        rows = [v for k, v in sc["by_kind"].items() if k.startswith(f"{m}:")]
+        c, a, cl = (sum(r[i] for r in rows) for i in range(3))
+        print(f"    {m + ', all kinds':<48s} {c:>3d} {a:>3d} {cl:>3d}   "
+              f"(in groups {pct(a, c)}, >= 90 % closed {pct(cl, c)})")
+    print("wall time: " + ", ".join(f"{m} {r['wall']:.1f} s" for m, r in runs.items())
+          + f" on {args.workers} workers")
+
+
+def pair_main(argv) -> None:
+    """The two-effect benchmark (``--pairs N``): N pair units and ``--nulls`` clean units per
+    machine, scored against the targets."""
+    ap = argparse.ArgumentParser(description="gap_blind, two withheld effects at once")
+    ap.add_argument("--pairs", type=int, default=24, help="pair units per machine")
+    ap.add_argument("--nulls", type=int, default=8, help="clean units per machine")
+    ap.add_argument("--years", type=int, default=8)
+    ap.add_argument("--seed", type=int, default=3,
+                    help="1 and 2: tuning seeds; 3 and 4: held out")
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--machines", default="pump,dcdrive")
+    ap.add_argument("-v", "--verbose", action="count", default=0,
+                    help="list the cases missed (-vv: every case)")
+    args = ap.parse_args(argv)
+    runs = {m: run_pairs(m, PAIR_MACHINES[m], args) for m in args.machines.split(",")}
+    print(f"gap_blind --pairs: seed {args.seed}, {args.pairs} pair units + {args.nulls} clean "
+          f"units per machine ({', '.join(runs)}), {args.years} years, noise 1 % of nominal")
+    # Every case with a 3-sigma gap, as for one effect; then those whose effects the
+    # degradation inputs do not absorb (an absorbed effect is invisible to any diagnosis on
+    # the recorded channel: the DC drive's plateau effects, a load torque looking like
+    # friction, a supply ratio like a winding resistance).
+    for absorbed in (0.0, ABSORBED):
+        pair_report(runs, pair_scores(runs, args.verbose if not absorbed else 0, absorbed),
+                    None, args)
 
 
 if __name__ == "__main__":

@@ -147,3 +147,50 @@ def test_two_effects_are_both_found(tmp_path):
     assert abs(g.effect_onsets[second] - 4) <= 1 and abs(g.effect_onsets["motor.start_delay"] - 2) <= 1
     assert abs(g.estimate["motor.start_delay"][0] - 1.0) < 0.2
     assert g.closed_percent >= 90.0
+
+
+def test_pair_gets_a_group_per_effect(tmp_path):
+    # A lagging flowmeter and fouling from the same year: the lag is named alone, the
+    # fouling only up to the plateau-type effects the flow cannot tell apart beside it.
+    # Each effect gets its group; the JSON, gap.h5 and the per-member consequences carry it.
+    from twinmon.diagnose import read_gap
+    units = {"P": {"trajectories": TRAJ, "effects": {
+        "sensor.tau": {"value": 1.5, "onset": ONSET},
+        "pipe.fouling": {"value": 0.25, "onset": ONSET}}}}
+    cfg = _cfg(units, seed=5)
+    fabricate(cfg, tmp_path / "obs.h5", tmp_path / "truth.h5")
+    g = diagnose(cfg, tmp_path / "obs.h5", tmp_path / "gap.h5", workers=1).units["P"]
+    assert g.verdict == "effect"
+    assert len(g.groups) == 2
+    members = [[m["effect"] for m in grp["members"]] for grp in g.groups]
+    assert ["sensor.tau"] in members
+    plateau = next(m for m in members if m != ["sensor.tau"])
+    assert "pipe.fouling" in plateau and len(plateau) > 1
+    assert set(plateau) <= {"pipe.fouling", "sensor.gain", "pump.leak", "motor.supply_ratio"}
+    assert g.group == members[0]
+    horizon_end = YEARS + load_config(PUMP).forecast.horizon
+    for grp in g.groups:
+        ws = [m["weight"] for m in grp["members"]]
+        assert abs(sum(ws) - 1.0) < 1e-9 and ws == sorted(ws, reverse=True)
+        assert grp["effect"] == grp["members"][0]["effect"]
+        assert abs(grp["onset"] - ONSET) <= 1
+        for m in grp["members"]:
+            assert 0 <= m["delta_bic"] <= load_config(PUMP).diagnose.group_bic
+            assert m["closed_percent"] >= 90.0
+            assert m["q05"] <= m["value"] <= m["q95"]
+            assert m["failure_year"] is None or 1 <= m["failure_year"] <= horizon_end
+        fys = [horizon_end + 1 if m["failure_year"] is None else m["failure_year"]
+               for m in grp["members"]]
+        assert grp["failure_year_spread"] == (max(fys) - min(fys) > 1)
+        lo, hi = grp["failure_year_range"]
+        assert (lo or horizon_end + 1) == min(fys) and (hi or horizon_end + 1) == max(fys)
+    sep = next(grp for grp in g.groups if len(grp["members"]) > 1)
+    assert sep["separating_channel"] in load_config(PUMP).model.channels
+    fouling = next(m for m in sep["members"] if m["effect"] == "pipe.fouling")
+    assert abs(fouling["value"] - 0.25) < 0.05
+    # What --json prints and what gap.h5 holds.
+    js = g.as_dict()["groups"]
+    assert [[m["effect"] for m in grp["members"]] for grp in js] == members
+    back = read_gap(tmp_path / "gap.h5").units["P"]
+    assert [[m["effect"] for m in grp["members"]] for grp in back.groups] == members
+    assert back.groups[0]["failure_year_range"] == g.groups[0]["failure_year_range"]

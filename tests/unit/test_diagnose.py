@@ -194,7 +194,20 @@ def test_diagnose_writes_gap_and_reads_back(tmp_path):
         assert doc["residual_before"][0] == "1"
         inputs = json.loads(f.attrs["inputs"])
         assert inputs[0]["path"].endswith("obs.h5")
+    # One effect: one group, its members those of `group`, each with its consequences.
+    assert [[m["effect"] for m in grp["members"]] for grp in b.groups] == [b.group]
+    assert rb.groups == json.loads(json.dumps(b.groups))
+    assert s.units["A"].groups == [] and gap.units["A"].groups == []
     d = s.as_dict()["units"]["B"]
+    assert d["groups"][0]["effect"] == "motor.start_delay"
+    assert sum(m["weight"] for m in d["groups"][0]["members"]) == pytest.approx(1.0, abs=1e-5)
+    # A gap.h5 written before groups were recorded reads with none.
+    import h5py
+    with h5py.File(tmp_path / "gap.h5", "r+") as f:
+        res = json.loads(f["units/B"].attrs["result"])
+        del res["groups"]
+        f["units/B"].attrs["result"] = json.dumps(res)
+    assert read_gap(tmp_path / "gap.h5").units["B"].groups == []
     assert set(d) >= {"verdict", "effects", "where", "shrink", "estimate"}
     assert set(d["shrink"]) == {"rms_before", "rms_after", "closed_percent"}
     assert set(d["estimate"]["motor.start_delay"]) == {"mean", "q05", "q95"}

@@ -56,7 +56,9 @@ _ATTRS = ("verdict", "onset", "rms_before", "rms_after", "closed_percent", "delt
           "separating_channel", "absorbed_share", "p_gap", "noise_std", "failure_year_before",
           "failure_year_after", "fmu_runs", "wall_time")
 _JSON_ATTRS = ("effects", "group", "where_windows", "where_years", "estimate",
-               "separation_scores", "candidates", "effect_onsets")
+               "separation_scores", "candidates", "effect_onsets", "groups")
+#: Values a file written before them lacks, and what they are then.
+_OPTIONAL = {"groups": []}
 
 
 #: Arrays of ``_ARRAYS`` indexed by candidate (ranking order); the others by year.
@@ -101,7 +103,12 @@ def write_gap(path, results: dict, cfg: Config, time: np.ndarray, inputs) -> Non
                                        horizon), fmu_runs, wall_time, effects, group,
                                        where_windows, where_years, estimate ({name: [mean,
                                        q05, q95]}), separation_scores, candidates,
-                                       effect_onsets ({name: onset year})
+                                       effect_onsets ({name: onset year}), groups (one per
+                                       effect of the final twin: its members with weight,
+                                       value, q05, q95, delta_bic, closed_percent,
+                                       failure_year; failure_year_range, failure_year_spread,
+                                       separating_channel, separation_scores; absent in
+                                       files written before it: read as [])
         /units/<U>/cache               compound [n_y], gzip: per-year records for diagnose
                                        --update (:func:`.update.write_cache`): digest,
                                        base_u [d], base_rows [m], base_jac [m, d], base_lev [m]
@@ -182,6 +189,8 @@ def _read_unit(g, unit: str, path) -> dict:
     if "result" not in g.attrs:
         raise ArtifactError(f"{path}: attribute /units/{unit}.result is missing")
     result = json.loads(g.attrs["result"])
+    for n, default in _OPTIONAL.items():
+        result.setdefault(n, default)
     missing = [n for n in _ATTRS + _JSON_ATTRS if n not in result]
     if missing:
         raise ArtifactError(f"{path}: attribute /units/{unit}.result lacks {missing[0]!r}")
@@ -202,7 +211,7 @@ def _read_unit_v1(g, unit: str, path) -> dict:
             v = None
         kw[n] = v
     for n in _JSON_ATTRS:
-        kw[n] = json.loads(g.attrs[n])
+        kw[n] = json.loads(g.attrs[n]) if n in g.attrs else _OPTIONAL[n]
     return kw
 
 

@@ -91,6 +91,12 @@ class UnitGap:
     failure_year_after: Optional[int]
     #: Onset year of each effect in the final twin ({fmu parameter: year}).
     effect_onsets: dict = field(default_factory=dict)
+    #: One record per effect of the final twin (its place in the model): the effects the
+    #: data cannot tell apart there, each with its evidence share, value, share of the gap
+    #: closed and projected failure year, the spread of those years and the channel that
+    #: would separate them (:func:`~twinmon.diagnose.shrink.group_records`; empty unless the
+    #: verdict is ``"effect"``).
+    groups: list = field(default_factory=list)
     #: Per-year records for ``diagnose --update`` (:class:`~twinmon.diagnose.update.YearCache`;
     #: None when read by ``read_gap`` without ``cache=True`` or from a gap.h5 without them).
     cache: Optional[object] = None
@@ -112,6 +118,7 @@ class UnitGap:
             "onset": self.onset,
             "onsets": dict(self.effect_onsets),
             "group": list(self.group),
+            "groups": [_plain(g) for g in self.groups],
             "separating_channel": self.separating_channel or None,
             "bic_gain": _num(self.delta_bic_final),
             "absorbed_share": _num(self.absorbed_share),
@@ -121,6 +128,17 @@ class UnitGap:
             "ranking": [{"effect": c, "delta_bic": _num(b), "screen": _num(s)}
                         for c, b, s in zip(self.candidates, self.delta_bic, self.screen_score)],
         }
+
+
+def _plain(x):
+    """``x`` with every float rounded as :func:`_num` does (NaN -> None)."""
+    if isinstance(x, dict):
+        return {k: _plain(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_plain(v) for v in x]
+    if isinstance(x, float):
+        return _num(x)
+    return x
 
 
 def _num(x) -> Optional[float]:

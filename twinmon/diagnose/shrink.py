@@ -6,7 +6,8 @@ remains passes the noise tests, hence the verdict (``none``, ``effect``, ``unexp
 the effect estimates with a 90 % interval and the BIC gain. :func:`predictions`,
 :func:`input_sd` and :func:`failure_years` then give the output of both twins, the
 degradation estimates with their standard deviations, and how the projected failure year
-moves.
+moves; :func:`group_records` gives, for each member of each effect's group, the share of the
+gap it closes and its projected failure year.
 """
 from __future__ import annotations
 
@@ -152,13 +153,13 @@ def shrink(s: UnitState, idn: Identification) -> Shrink:
         for j, (n, _) in enumerate(model_effects):
             sd_u = math.sqrt(max(cov[j, j], 0.0))
             estimate[n] = interval(s, n, model_values[j], sd_u)
-        for n in group[1:]:
-            if n in estimate:
-                continue
-            c = confirmed[n]
-            ue, _ = c[1].problem.unpack(c[1].x)
-            sd_u = math.sqrt(max(c[1].covariance()[0, 0], 0.0))
-            estimate[n] = interval(s, n, s.twin.effect_of(n, ue[0]), sd_u)
+        # Every member of every group gets its estimate from its own model's fit.
+        for g in idn.groups:
+            for m in g.members:
+                if m.name in estimate:
+                    continue
+                sd_u = math.sqrt(max(m.fit[1].covariance()[m.index, m.index], 0.0))
+                estimate[m.name] = interval(s, m.name, m.value, sd_u)
 
     eff_year = [{n: v for (n, on), v in zip(model_effects, model_values) if s.years[k] >= on}
                 if verdict == "effect" else {} for k in range(s.n_y)]
@@ -206,6 +207,69 @@ def input_sd(s: UnitState, sh: Shrink) -> tuple:
         var = np.clip(np.diag(sh.after_cov), 0, None)[sh.n_eff:].reshape(-1, s.d)
         sd_a[sh.k0:] = np.sqrt(var) * width
     return sd_b, sd_a
+
+
+# -- the groups of the final twin, member by member --------------------------------------------
+def group_records(s: UnitState, sh: Shrink, idn: Identification) -> list:
+    """What each effect's group means, member by member (``verdict`` ``effect`` only).
+
+    For every member of every group of ``idn.groups``, its model (the final model with this
+    member in the group's place) gives the share of the excess gap it closes over the
+    affected years ``sh.aff`` and the projected failure year; a group whose members' failure
+    years differ by more than a year is flagged, since the one of the named effect alone
+    would then be arbitrary. Returns one JSON-ready dict per group::
+
+        {"effect": named effect, "onset": year,
+         "members": [{"effect", "onset", "value", "q05", "q95", "weight", "delta_bic",
+                      "closed_percent", "failure_year"}, ...],
+         "failure_year_range": [earliest, latest]   (null: no failure within the horizon),
+         "failure_year_spread": bool, "separating_channel": str or null,
+         "separation_scores": {channel: score}}
+    """
+    if sh.verdict != "effect":
+        return []
+    from .identify import group_separation
+    k_aff = np.flatnonzero(sh.aff)
+    n_aff = int(s.n_rows[sh.aff].sum())
+    dof_b = max(n_aff - s.d * int(sh.aff.sum()), 1)
+    ex_b = sh.rms_before ** 2 - 1.0
+    horizon_end = int(s.years[-1]) + s.cfg.forecast.horizon + 1
+    out = []
+    for g in idn.groups:
+        members = []
+        for m in g.members:
+            chi2, fit, k0 = m.fit
+            rows = list(s.base_rows[:k0]) + list(fit.rows)
+            rss = float(sum(float(rows[k] @ rows[k]) for k in k_aff))
+            rms = math.sqrt(rss / max(dof_b - len(m.effects), 1))
+            closed = (100.0 * (1.0 - max(rms ** 2 - 1.0, 0.0) / ex_b)) if ex_b > 0 else 0.0
+            _, ut = fit.problem.unpack(fit.x)
+            u = s.base_u.copy()
+            u[k0:] = ut
+            fy = failure_year(s, s.twin.theta_of(u), dict(zip([n for n, _ in m.effects],
+                                                             m.values)))
+            # From the member's own fit: an effect may sit in two groups, beside different
+            # partners, with two values.
+            est = interval(s, m.name, m.value,
+                           math.sqrt(max(fit.covariance()[m.index, m.index], 0.0)))
+            members.append({"effect": m.name, "onset": int(m.onset), "value": float(m.value),
+                            "q05": float(est[1]), "q95": float(est[2]),
+                            "weight": float(m.weight), "delta_bic": float(m.dbic),
+                            "closed_percent": float(np.clip(closed, 0.0, 100.0)),
+                            "failure_year": fy})
+        years = [horizon_end if r["failure_year"] is None else r["failure_year"]
+                 for r in members]
+        lo, hi = min(years), max(years)
+        sep, scores = ("", {})
+        if len(g.members) > 1:
+            sep, scores = group_separation(s, g)
+        out.append({"effect": g.name, "onset": int(g.members[0].onset), "members": members,
+                    "failure_year_range": [None if lo == horizon_end else lo,
+                                           None if hi == horizon_end else hi],
+                    "failure_year_spread": bool(hi - lo > 1),
+                    "separating_channel": sep or None,
+                    "separation_scores": {c: float(v) for c, v in scores.items()}})
+    return out
 
 
 # -- failure year ----------------------------------------------------------------------------------

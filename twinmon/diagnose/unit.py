@@ -37,9 +37,12 @@ def run_unit(s: UnitState, candidates: list) -> UnitGap:
     absorbed = (locate.absorbed_share(s, idn.model_effects[0][0], sh.after_u, sh.eff_year,
                                       sh.aff)
                 if verdict == "effect" else float("nan"))
+    groups = shrink.group_records(s, sh, idn)
     sep_channel, sep_scores = "", {}
     if verdict == "effect" and len(idn.group) > 1:
-        sep_channel, sep_scores = identify.separation(s, idn.group, idn.confirmed)
+        # The first effect's group: one effect alone, or its place in a combination.
+        sep_channel = groups[0]["separating_channel"] or ""
+        sep_scores = groups[0]["separation_scores"]
     fy_b, fy_a = shrink.failure_years(s, sh)
     table = identify.ranking(s, idn)
     return UnitGap(
@@ -63,5 +66,6 @@ def run_unit(s: UnitState, candidates: list) -> UnitGap:
         failure_year_before=fy_b, failure_year_after=fy_a,
         effect_onsets=({n: int(on) for n, on in idn.model_effects} if verdict == "effect"
                        else {}),
+        groups=groups,
         cache=YearCache.of(s, idn.screened),
         fmu_runs=s.twin.runs - runs0, wall_time=_time.perf_counter() - t0)

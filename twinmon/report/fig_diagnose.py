@@ -7,9 +7,21 @@ from .common import LIMIT_COLOUR, Figures
 from .load import Inputs
 
 
+def effects_text(g) -> str:
+    """The diagnosed effects: ``a / b`` for a group the data cannot tell apart, each group's
+    members with their evidence share when the twin needs several effects
+    (``a 60 % / b 40 % + c``)."""
+    groups = getattr(g, "groups", None) or []
+    if len(groups) > 1:
+        return " + ".join(" / ".join(f"{m['effect']} {100 * m['weight']:.0f} %"
+                                     if len(grp["members"]) > 1 else m["effect"]
+                                     for m in grp["members"]) for grp in groups)
+    return " / ".join(g.group) if len(g.group) > 1 else ", ".join(g.effects)
+
+
 def gap_title(g) -> str:
     if g.verdict == "effect":
-        eff = " / ".join(g.group) if len(g.group) > 1 else ", ".join(g.effects)
+        eff = effects_text(g)
         return f"effect {eff}" + (f" from year {g.onset}" if g.onset is not None else "")
     if g.verdict == "unexplained":
         return "gap not explained by any candidate"

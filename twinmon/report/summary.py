@@ -267,6 +267,7 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
             "separating_channel": gap.separating_channel or None,
             "failure_year_before": gap.failure_year_before,
             "failure_year_after": gap.failure_year_after,
+            "groups": list(getattr(gap, "groups", []) or []),
             "estimate": {k: {"mean": plain(float(v[0])), "q05": plain(float(v[1])),
                              "q95": plain(float(v[2]))} for k, v in gap.estimate.items()},
         }
@@ -281,6 +282,12 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
         if gap.verdict == "effect":
             group = gap.group if len(gap.group) > 1 else gap.effects
             eff = " or ".join(group)
+            groups = getattr(gap, "groups", None) or []
+            if len(groups) > 1:
+                # Several effects: one of each group, which one the data cannot tell.
+                eff = " and ".join("(" + " or ".join(m["effect"] for m in grp["members"]) + ")"
+                                   if len(grp["members"]) > 1 else grp["effect"]
+                                   for grp in groups)
             if s.status == "withheld" and not s.forced:
                 s.action = (f"check {eff} (diagnose: the twin misses the plant from year "
                             f"{gap.onset}); with it in the twin, diagnose projects "
@@ -319,6 +326,17 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
                 why.append(f"with the effect in the twin the projected failure year moves from "
                            f"{gap.failure_year_before or 'none'} to "
                            f"{gap.failure_year_after or 'none'}")
+            for grp in groups:
+                if grp.get("failure_year_spread"):
+                    # The named member's year alone would be arbitrary: show each member's.
+                    why.append(
+                        f"the effects that cannot be told apart for {grp['effect']} project "
+                        "different failure years: " + ", ".join(
+                            f"{m['effect']} ({100 * m['weight']:.0f} %) "
+                            + (f"year {m['failure_year']}" if m["failure_year"] is not None
+                               else "none within the horizon") for m in grp["members"])
+                        + (f"; {grp['separating_channel']} would tell them apart"
+                           if grp.get("separating_channel") else ""))
         elif gap.verdict == "unexplained":
             s.action += "; the twin misses the plant and no candidate explains it: check the data"
             why.append("diagnose: a significant gap no candidate effect explains, so the "
