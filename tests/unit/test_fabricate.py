@@ -236,7 +236,7 @@ def test_thin_irregular_records_and_unrecorded_repairs(tmp_path, dcdrive_fmu_bui
 @pytest.mark.parametrize("unit, key", [
     ({"missing_years": [8]}, "missing_years.0"),
     ({"last_year": 9}, "last_year"),
-    ({"missing_years": [2, 3], "last_year": 3}, "missing_years"),
+    ({"missing_years": [1, 3], "last_year": 3}, "missing_years.1"),
     ({"events": [{"year": 4, "component": "bearing"}], "missing_years": [4]}, "events.0.year"),
     ({"nan_fraction": 1.0}, "nan_fraction"),
 ])

@@ -146,14 +146,10 @@ class FabricateConfig:
             end = spec.last_year or self.years
             if end > self.years:
                 yield f"units.{unit}.last_year", f"must be <= years ({self.years})", end
-            kept = set(range(1, end + 1)) - set(spec.missing_years)
             for i, y in enumerate(spec.missing_years):
                 if not 1 <= y < end:
                     yield f"units.{unit}.missing_years.{i}", \
                         f"must lie in [1, {end - 1}] (the record's last year stays)", y
-            if len(kept) < 2:
-                yield f"units.{unit}.missing_years", "must leave at least two recorded years", \
-                    list(spec.missing_years)
             seen = set()
             for i, ev in enumerate(spec.events):
                 # Year 1 is the first recording: an event then has no "before" to end.
@@ -161,7 +157,6 @@ class FabricateConfig:
                     yield f"units.{unit}.events.{i}.year", \
                         f"must lie in [2, {self.years}] (after the first year, within years)", \
                         ev.year
-                end = spec.last_year or self.years
                 if ev.recorded and (ev.year > end or ev.year in spec.missing_years):
                     yield f"units.{unit}.events.{i}.year", \
                         "a recorded event needs that year's recording (it is after the " \
