@@ -22,7 +22,7 @@ from typing import Any, Callable, Iterator, Sequence
 import h5py
 import numpy as np
 
-from .errors import ArtifactError, OutputBusyError, ReadError, TwinmonError
+from .errors import ArtifactError, OutputBusyError, ReadError, TwinmonError, UsageError
 
 #: Lowest HDF5 file-format version of the fleet-sized artifacts (``write_artifact(compact=True)``):
 #: HDF5 >= 1.10 indexes a one-chunk dataset without a B-tree (about 2.3 kB less per dataset,
@@ -131,6 +131,39 @@ def write_artifact(path: str | os.PathLike, kind: str, *, config: str = "",
         finally:
             if tmp.exists():
                 tmp.unlink()
+
+
+def same_file(a: str | os.PathLike, b: str | os.PathLike) -> bool:
+    """True when two paths name one file: the same inode when both exist (a symlink, a hard
+    link, ``./x`` and ``x``), the same resolved path otherwise."""
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return Path(a).resolve() == Path(b).resolve()
+
+
+def check_outputs_not_inputs(outputs: Mapping[str, Any], inputs: Mapping[str, Any]) -> None:
+    """Refuse a command line whose output is one of its inputs (or two outputs that are one
+    file), before anything is read or written.
+
+    Parameters
+    ----------
+    outputs, inputs : mapping option name -> path or None
+        The command's options as the user would write them (``"-o"``, ``"--observations"``);
+        ``None`` values are skipped.
+
+    Raises
+    ------
+    UsageError
+        Naming both options and the path: writing the output would overwrite the input.
+    """
+    outs = [(k, v) for k, v in outputs.items() if v is not None]
+    ins = [(k, v) for k, v in inputs.items() if v is not None]
+    for i, (name, out) in enumerate(outs):
+        for other, src in ins + outs[i + 1:]:
+            if same_file(out, src):
+                raise UsageError(f"{out}: {name} is also {other}; writing it would overwrite "
+                                 "what the command reads: choose another output")
 
 
 # ---------------------------------------------------------------------------------------
