@@ -172,6 +172,23 @@ def check_outputs_not_inputs(outputs: Mapping[str, Any], inputs: Mapping[str, An
 _held: dict[str, list] = {}
 
 
+def _forget_locks_in_child() -> None:
+    """In a forked child (a pool worker): close the inherited lock descriptors, so that the
+    lock dies with the process that took it, not with the last of its children. Only closed,
+    never unlocked: ``flock`` belongs to the open file, and unlocking here would release the
+    parent's lock."""
+    for fd, _ in _held.values():
+        try:
+            os.close(fd)
+        except OSError:
+            pass
+    _held.clear()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_locks_in_child)
+
+
 def lock_path(path: str | os.PathLike) -> Path:
     path = Path(path)
     return path.with_name(f".{path.name}.lock")
@@ -182,8 +199,10 @@ def output_lock(path: str | os.PathLike, command: str = "twinmon") -> Iterator[N
     """Hold an advisory lock on ``path`` (a file or a folder) while writing it.
 
     The lock is ``flock`` on a hidden ``.<name>.lock`` file beside ``path`` holding the
-    holder's PID and command: the kernel drops it when the holder dies (even by ``kill -9``),
-    so a lock is never stale. Re-entrant within one process.
+    holder's PID and command: the kernel drops it when the holder dies (even by ``kill -9``).
+    Forked children do not keep it (their copy of the descriptor is closed at fork), and a
+    lock whose recorded holder is dead (kept by some other process that inherited it) is
+    taken over with a warning on stderr. Re-entrant within one process.
 
     Raises
     ------
@@ -204,11 +223,17 @@ def output_lock(path: str | os.PathLike, command: str = "twinmon") -> Iterator[N
     lp = lock_path(path)
     lp.parent.mkdir(parents=True, exist_ok=True)
     while True:
-        fd = os.open(lp, os.O_RDWR | os.O_CREAT, 0o644)
+        fd = os.open(lp, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             holder = os.pread(fd, 4096, 0).decode("utf-8", "replace").strip() or "another process"
+            pid = _holder_pid(holder)
+            if pid is not None and not _alive(pid) and _unlink_if_same(lp, fd):
+                os.close(fd)
+                sys.stderr.write(f"twinmon: warning: {path}: the lock of {holder} was left by a "
+                                 "process that is gone; taking it over\n")
+                continue
             os.close(fd)
             raise OutputBusyError(f"{path} is being written by {holder}; wait for it to finish "
                                   "or choose another output") from None
@@ -233,6 +258,27 @@ def output_lock(path: str | os.PathLike, command: str = "twinmon") -> Iterator[N
         except OSError:
             pass
         os.close(fd)
+
+
+def _holder_pid(holder: str) -> int | None:
+    """The PID in a lock file's ``<command> (pid N)`` text, or None."""
+    import re
+    m = re.search(r"\(pid (\d+)\)\s*$", holder)
+    return int(m.group(1)) if m else None
+
+
+def _unlink_if_same(lp: Path, fd: int) -> bool:
+    """Remove the lock file ``lp`` if it is still the one open as ``fd`` (a new holder may
+    have replaced it meanwhile: that one is not stale)."""
+    try:
+        if os.stat(lp).st_ino != os.fstat(fd).st_ino:
+            return True             # already replaced: try again with the current one
+        os.unlink(lp)
+        return True
+    except FileNotFoundError:
+        return True
+    except OSError:
+        return False
 
 
 def remove_stale_temporaries(path: str | os.PathLike) -> list[Path]:
