@@ -281,6 +281,33 @@ def _unlink_if_same(lp: Path, fd: int) -> bool:
         return False
 
 
+def locks_output(arg: str, command: str) -> Callable:
+    """Decorate a stage function so that it holds the output lock of its argument ``arg``
+    for the whole call: from before it reads what it will overwrite or continue (an
+    ``--update`` plans from the output's present content) to the rename of the new file.
+    Locking only at the write let two writers plan from the same old file and the last one
+    replace the other's work. The lock is re-entrant: :func:`write_artifact` inside takes it
+    again at no cost."""
+    import functools
+    import inspect
+
+    def wrap(func):
+        sig = inspect.signature(func)
+
+        @functools.wraps(func)
+        def locked(*args, **kwargs):
+            bound = sig.bind(*args, **kwargs)
+            bound.apply_defaults()
+            target = bound.arguments[arg]
+            if target is None:                  # nothing written
+                return func(*args, **kwargs)
+            Path(target).parent.mkdir(parents=True, exist_ok=True)
+            with output_lock(target, command):
+                return func(*args, **kwargs)
+        return locked
+    return wrap
+
+
 def remove_stale_temporaries(path: str | os.PathLike) -> list[Path]:
     """Remove ``.<name>.<pid>.tmp`` files beside ``path`` whose writer is gone (a crash or
     ``kill -9`` before it could clean up). Call with the output lock held."""

@@ -267,6 +267,7 @@ def calibrate_cut(cfg: Config, surrogate_path, obs, units: list, last_year: int,
     return dict(read_posterior(out).units)
 
 
+@artifacts.locks_output("output", "twinmon backtest")
 def backtest(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str | os.PathLike,
              output: str | os.PathLike | None = None, executor=None,
              progress: Optional[Callable[[int, int], None]] = None,

@@ -68,6 +68,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
+from .. import artifacts
 from ..config import Config
 from ..errors import ArtifactError, CalibrationError, InputDataError, Interrupted
 from ..observations import check_events, read_observations
@@ -282,6 +283,7 @@ def _likelihood_model(cfg: Config, surrogate, surrogate_path, obs):
     return StackedSurrogate({cfg.model.output.name: surrogate, **parts}), channels, warnings
 
 
+@artifacts.locks_output("output", "twinmon calibrate")
 def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
               observations_path: str | os.PathLike, output: str | os.PathLike,
               truth_path: str | os.PathLike | None = None,

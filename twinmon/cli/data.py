@@ -81,9 +81,11 @@ def import_csv(csv_file, config_path, overrides, output, noise_std, events, as_j
     cfg = load(config_path, overrides)
     if noise_std is not None and not (math.isfinite(noise_std) and noise_std > 0):
         raise InputDataError(f"--noise-std: expected a positive number, got {noise_std!r}")
-    obs = run(csv_file, output, cfg.model.output.name, noise_std,
-              channels=list(cfg.model.channels), units=cfg.model.channel_units,
-              events=events, components=list(cfg.model.components))
+    from ..artifacts import output_lock
+    with output_lock(output, "twinmon import-csv"):     # from reading to the rename
+        obs = run(csv_file, output, cfg.model.output.name, noise_std,
+                  channels=list(cfg.model.channels), units=cfg.model.channel_units,
+                  events=events, components=list(cfg.model.components))
     n_events = sum(len(o.events) for o in obs.units.values())
     summary = {"units": {u: {"years": o.years.tolist(), "channels": sorted(o.channels),
                              "events": [dataclasses.asdict(e) for e in o.events]}

@@ -56,6 +56,7 @@ from typing import Optional
 
 import numpy as np
 
+from .. import artifacts
 from ..config import Config
 from ..errors import ArtifactError, ConfigError, InputDataError, Interrupted, SimulationError
 from ..observations import read_observations
@@ -209,6 +210,7 @@ def _posterior_for(posterior_path, post, cfg: Config, unit: str, years: np.ndarr
     return np.asarray(up.mean, float), cov
 
 
+@artifacts.locks_output("output", "twinmon diagnose")
 def diagnose(cfg: Config, observations: str | os.PathLike, output: str | os.PathLike,
              workers: int | None = None, progress=None,
              posterior: str | os.PathLike | None = None,
