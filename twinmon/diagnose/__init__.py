@@ -56,7 +56,7 @@ from typing import Optional
 
 import numpy as np
 
-from .. import artifacts
+from .. import artifacts, lineage
 from ..config import Config
 from ..errors import ArtifactError, ConfigError, InputDataError, Interrupted, SimulationError
 from ..observations import read_observations
@@ -266,6 +266,7 @@ def diagnose(cfg: Config, observations: str | os.PathLike, output: str | os.Path
     if posterior is not None:
         from ..calibrate import read_posterior
         post = read_posterior(posterior)
+        lineage.check_made_for_model(posterior, "posterior", cfg.section_yaml("model"))
     sigma = {u: _unit_sigma(cfg, uo, obs.time) for u, uo in obs.units.items()}
     kept, update_info = {}, None
     if update:
