@@ -45,6 +45,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from . import artifacts, lineage
+from .plausibility import check_observations
 from .config import Config
 from .errors import ArtifactError
 
@@ -227,6 +228,7 @@ def check_calibrated_from(cfg: Config, posterior_path, observations_path, units:
         raise ArtifactError(f"{observations_path}: not the observations {posterior_path} was "
                             f"calibrated from (sha256 {digest[:12]} is not among its inputs)")
     obs = read_observations(observations_path, cfg.model.output.name)
+    check_observations(cfg, obs)
     missing = [u for u in units if u not in obs.units]
     if missing:
         raise ArtifactError(f"{observations_path}: no unit {missing[0]!r} of {posterior_path}")

@@ -72,6 +72,7 @@ from .. import artifacts
 from ..config import Config
 from ..errors import ArtifactError, CalibrationError, InputDataError, Interrupted
 from ..observations import check_events, read_observations
+from ..plausibility import check_observations
 from .channels import StackedSurrogate, channel_noise, select_channels, stacked_rows
 from .density import LogDensity, Prior, find_map, make_log_density
 from .diagnostics import ess, split_rhat
@@ -324,6 +325,7 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
     from ..reduce import read_surrogate
     surrogate = read_surrogate(surrogate_path)
     obs = read_observations(observations_path, cfg.model.output.name)
+    check_observations(cfg, obs)
     check_events(cfg, obs)
     _check_inputs(cfg, surrogate, surrogate_path, obs)
     truth = None

@@ -60,6 +60,7 @@ from .. import artifacts, lineage
 from ..config import Config
 from ..errors import ArtifactError, ConfigError, InputDataError, Interrupted, SimulationError
 from ..observations import read_observations
+from ..plausibility import check_observations
 from .artifact import SECTIONS, GapFile, read_gap, write_gap
 from .fit import FD_STEP, FitResult, JointFit
 from .result import VERDICTS, UnitGap
@@ -256,6 +257,7 @@ def diagnose(cfg: Config, observations: str | os.PathLike, output: str | os.Path
     check_workers(workers if workers is not None else cfg.diagnose.workers)
     check_model(cfg)
     obs = read_observations(observations, cfg.model.output.name)
+    check_observations(cfg, obs)
     candidate_names(cfg)
     expected = cfg.model.output.times.times
     if obs.time.shape != expected.shape or not np.allclose(obs.time, expected):

@@ -13,6 +13,7 @@ import numpy as np
 from .. import artifacts, lineage
 from ..config import Config
 from ..errors import ArtifactError
+from ..plausibility import check_observations
 from .common import Words, indicator_rows
 
 
@@ -62,6 +63,7 @@ def load(cfg: Config, paths: dict) -> Inputs:
     if paths.get("observations") is not None:
         from ..observations import read_observations
         inp.obs = read_observations(paths["observations"], cfg.model.output.name)
+        check_observations(cfg, inp.obs)
     if paths.get("simulations") is not None:
         from ..simulate import read_simulations
         inp.sims = read_simulations(paths["simulations"])
