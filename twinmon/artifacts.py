@@ -520,7 +520,15 @@ def read_provenance(path: str | os.PathLike) -> dict:
     with h5py.File(path, "r") as f:
         out = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
     if "inputs" in out:
-        out["inputs"] = json.loads(out["inputs"])
+        try:
+            out["inputs"] = json.loads(out["inputs"])
+        except (json.JSONDecodeError, TypeError):
+            raise ArtifactError(f"{path}: attribute 'inputs' is not JSON (damaged or edited "
+                                "file); re-run the stage that made it") from None
+        if not isinstance(out["inputs"], list) or not all(
+                isinstance(r, dict) and "sha256" in r for r in out["inputs"]):
+            raise ArtifactError(f"{path}: attribute 'inputs' is not a list of {{path, sha256}} "
+                                "records (damaged or edited file)")
     return out
 
 

@@ -68,6 +68,7 @@ def check_observations(cfg: Config, obs, path: str | os.PathLike | None = None) 
     low, high = lo - slack, hi + slack
     name = obs.output or cfg.model.output.name
     units = cfg.model.output.units
+    _check_noise(obs, path, name, float(np.max(hi) - np.min(lo)), units)
     for unit in obs.units:
         y = obs.output_of(unit)
         outside = (y < low) | (y > high)
@@ -81,6 +82,24 @@ def check_observations(cfg: Config, obs, path: str | os.PathLike | None = None) 
                 f"samples lie outside what the twin gives over the design box (e.g. "
                 f"{y[k, j]:.4g} {units} at t = {obs.time[j]:g} s, plausible "
                 f"{low[j]:.4g}..{high[j]:.4g}); wrong units, sign or channel?")
+
+
+def _check_noise(obs, path, name: str, span: float, units: str) -> None:
+    """A recorded noise level must be a positive finite number; the output's at most the
+    span of the output over the design box (1e300 overflowed the likelihood)."""
+    for unit, u in obs.units.items():
+        for ch, std in (u.noise_std or {}).items():
+            try:
+                value = float(std)
+            except (TypeError, ValueError):
+                value = float("nan")
+            limit = span if ch == name and np.isfinite(span) and span > 0 else np.inf
+            if not (np.isfinite(value) and 0 < value <= limit):
+                what = (f"a positive number at most {limit:.4g} {units} (the output's span "
+                        "over the design box)" if np.isfinite(limit) else
+                        "a positive finite number")
+                raise InputDataError(f"{path}: /units/{unit} attribute noise_std: {ch} is "
+                                     f"{std!r}, expected {what}")
 
 
 def _check_years(obs, path) -> None:
