@@ -247,7 +247,16 @@ def output_lock(path: str | os.PathLike, command: str = "twinmon") -> Iterator[N
             break
         os.close(fd)
     argv = " ".join(Path(sys.argv[0]).name if i == 0 else a for i, a in enumerate(sys.argv[:2]))
-    os.pwrite(fd, f"{argv or command} (pid {os.getpid()})".encode(), 0)
+    try:
+        os.pwrite(fd, f"{argv or command} (pid {os.getpid()})".encode(), 0)
+    except OSError as exc:
+        # A full disk: the writer cannot write its output either; leave no empty lock file.
+        try:
+            os.unlink(lp)
+        except OSError:
+            pass
+        os.close(fd)
+        raise OSError(exc.errno, f"cannot write: {exc.strerror}", str(path)) from None
     _held[key] = [fd, 1]
     try:
         yield
