@@ -115,6 +115,7 @@ def write_artifact(path: str | os.PathLike, kind: str, *, config: str = "",
         try:
             if base is not None:
                 import shutil
+                verify_artifact(base, kind)
                 shutil.copyfile(base, tmp)
             mode = "r+" if base is not None else "w"
             with h5py.File(tmp, mode, **({"libver": COMPACT_LIBVER} if compact else {})) as f:
@@ -525,9 +526,21 @@ def _stamp(path: Path) -> tuple:
 
 
 def read_provenance(path: str | os.PathLike) -> dict:
-    """The root attributes of an artifact as plain Python (any schema)."""
-    with h5py.File(path, "r") as f:
-        out = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
+    """The root attributes of an artifact as plain Python (any schema).
+
+    Raises
+    ------
+    ArtifactError
+        Not a readable HDF5 file (truncated, damaged), or ``inputs`` that is not JSON."""
+    try:
+        with h5py.File(path, "r") as f:
+            out = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
+    except FileNotFoundError:
+        raise ArtifactError(f"{path}: file not found") from None
+    except OSError as exc:
+        what = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise ArtifactError(f"{path}: not a readable HDF5 file ({what}); re-run the stage "
+                            "that made it") from None
     if "inputs" in out:
         try:
             out["inputs"] = json.loads(out["inputs"])
@@ -548,10 +561,9 @@ def is_up_to_date(output: str | os.PathLike, kind: str, config: str,
     output = Path(output)
     if not output.exists():
         return False
-    try:
-        prov = read_provenance(output)
-    except OSError:
-        return False
+    if not _readable_hdf5(output):
+        return False                    # damaged: the stage makes it again
+    prov = read_provenance(output)
     if prov.get("schema") != schema_name(kind) or prov.get("config") != config:
         return False
     try:
@@ -559,6 +571,40 @@ def is_up_to_date(output: str | os.PathLike, kind: str, config: str,
     except OSError:
         return False
     return [r["sha256"] for r in prov.get("inputs", [])] == [r["sha256"] for r in want]
+
+
+def _readable_hdf5(path: Path) -> bool:
+    try:
+        with h5py.File(path, "r"):
+            return True
+    except OSError:
+        return False
+
+
+def verify_artifact(path: str | os.PathLike, kind: str) -> None:
+    """Read every dataset of an artifact, so that damage anywhere (a flipped byte caught by
+    a chunk's checksum, a truncated file) is found before the artifact is continued.
+
+    ``--update`` copies the earlier output and adds to it: without this, bytes of it that
+    the update does not read would be carried into the new file unchecked.
+
+    Raises
+    ------
+    ArtifactError
+        Naming the file and the first damaged dataset.
+    """
+    def read(name, obj):
+        if isinstance(obj, h5py.Dataset):
+            try:
+                obj[()]
+            except (OSError, ValueError, RuntimeError, TypeError) as exc:
+                what = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+                raise ArtifactError(f"{path}: damaged artifact, dataset /{name} cannot be read "
+                                    f"({what}); re-run the stage that made it without "
+                                    "--update") from None
+        return None
+    with open_artifact(path, kind) as f:
+        f.visititems(read)
 
 
 def json_attr(obj: Any) -> str:
