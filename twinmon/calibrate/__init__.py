@@ -325,9 +325,9 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
     from ..reduce import read_surrogate
     surrogate = read_surrogate(surrogate_path)
     obs = read_observations(observations_path, cfg.model.output.name)
-    check_observations(cfg, obs)
     check_events(cfg, obs)
     _check_inputs(cfg, surrogate, surrogate_path, obs)
+    check_observations(cfg, obs)
     truth = None
     if truth_path is not None:
         from ..fabricate import read_truth
