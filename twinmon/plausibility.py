@@ -58,7 +58,7 @@ def check_observations(cfg: Config, obs, path: str | os.PathLike | None = None) 
     _check_years(obs, path)
     expected = cfg.model.output.times.times
     if obs.time.shape != expected.shape or not np.allclose(obs.time, expected):
-        raise InputDataError(f"{path}: /time ({obs.time[0]:g}..{obs.time[-1]:g} s, "
+        raise InputDataError(f"{path}: /time: time grid ({obs.time[0]:g}..{obs.time[-1]:g} s, "
                              f"{obs.time.size} samples) is not the config's output grid "
                              f"model.output.times ({expected[0]:g}..{expected[-1]:g} s, "
                              f"{expected.size} samples)")

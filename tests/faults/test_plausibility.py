@@ -43,7 +43,7 @@ DAMAGE = {
     "flow 1e30": (_flow(lambda y: np.full_like(y, 1e30)), OUTPUT),
     "negated flow": (_flow(lambda y: -y), OUTPUT),
     "flow x1000": (_flow(lambda y: 1000 * y), OUTPUT),
-    "another time grid": (_time, "/time"),
+    "another time grid": (_time, "time grid"),
 }
 
 STAGES = {
