@@ -311,9 +311,19 @@ def locks_output(arg: str, command: str) -> Callable:
             target = bound.arguments[arg]
             if target is None:                  # nothing written
                 return func(*args, **kwargs)
-            Path(target).parent.mkdir(parents=True, exist_ok=True)
-            with output_lock(target, command):
-                return func(*args, **kwargs)
+            parent = Path(target).parent
+            made = not parent.exists()
+            parent.mkdir(parents=True, exist_ok=True)
+            try:
+                with output_lock(target, command):
+                    return func(*args, **kwargs)
+            except BaseException:
+                if made:                        # a failed stage leaves no empty folder
+                    try:
+                        parent.rmdir()
+                    except OSError:
+                        pass
+                raise
         return locked
     return wrap
 
