@@ -12,7 +12,7 @@ machine recorded, before a stage spends minutes on it:
   over the corners and the centre of the design box (:func:`output_envelope`), widened by
   the range's own width at each sample time plus a tenth of its overall width (measurement
   noise at samples where every run agrees). A record most of whose samples lie outside is
-  refused: a flow of 1e30, a negated one, one in other units (g/s for kg/s), all zeros.
+  refused: an output of 1e30, a negated one, one in other units (grams for kilograms), all zeros.
 
 Every stage that reads observations calls :func:`check_observations` (calibrate, diagnose,
 backtest, report).
