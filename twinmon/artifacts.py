@@ -22,7 +22,7 @@ from typing import Any, Callable, Iterator, Sequence
 import h5py
 import numpy as np
 
-from .errors import ArtifactError, OutputBusyError, ReadError, TwinmonError
+from .errors import ArtifactError, OutputBusyError, ReadError, TwinmonError, UsageError
 
 #: Lowest HDF5 file-format version of the fleet-sized artifacts (``write_artifact(compact=True)``):
 #: HDF5 >= 1.10 indexes a one-chunk dataset without a B-tree (about 2.3 kB less per dataset,
@@ -115,6 +115,7 @@ def write_artifact(path: str | os.PathLike, kind: str, *, config: str = "",
         try:
             if base is not None:
                 import shutil
+                verify_artifact(base, kind)
                 shutil.copyfile(base, tmp)
             mode = "r+" if base is not None else "w"
             with h5py.File(tmp, mode, **({"libver": COMPACT_LIBVER} if compact else {})) as f:
@@ -133,10 +134,60 @@ def write_artifact(path: str | os.PathLike, kind: str, *, config: str = "",
                 tmp.unlink()
 
 
+def same_file(a: str | os.PathLike, b: str | os.PathLike) -> bool:
+    """True when two paths name one file: the same inode when both exist (a symlink, a hard
+    link, ``./x`` and ``x``), the same resolved path otherwise."""
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return Path(a).resolve() == Path(b).resolve()
+
+
+def check_outputs_not_inputs(outputs: Mapping[str, Any], inputs: Mapping[str, Any]) -> None:
+    """Refuse a command line whose output is one of its inputs (or two outputs that are one
+    file), before anything is read or written.
+
+    Parameters
+    ----------
+    outputs, inputs : mapping option name -> path or None
+        The command's options as the user would write them (``"-o"``, ``"--observations"``);
+        ``None`` values are skipped.
+
+    Raises
+    ------
+    UsageError
+        Naming both options and the path: writing the output would overwrite the input.
+    """
+    outs = [(k, v) for k, v in outputs.items() if v is not None]
+    ins = [(k, v) for k, v in inputs.items() if v is not None]
+    for i, (name, out) in enumerate(outs):
+        for other, src in ins + outs[i + 1:]:
+            if same_file(out, src):
+                raise UsageError(f"{out}: {name} is also {other}; writing it would overwrite "
+                                 "what the command reads: choose another output")
+
+
 # ---------------------------------------------------------------------------------------
 # Output locks: one writer per output
 # ---------------------------------------------------------------------------------------
 _held: dict[str, list] = {}
+
+
+def _forget_locks_in_child() -> None:
+    """In a forked child (a pool worker): close the inherited lock descriptors, so that the
+    lock dies with the process that took it, not with the last of its children. Only closed,
+    never unlocked: ``flock`` belongs to the open file, and unlocking here would release the
+    parent's lock."""
+    for fd, _ in _held.values():
+        try:
+            os.close(fd)
+        except OSError:
+            pass
+    _held.clear()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_locks_in_child)
 
 
 def lock_path(path: str | os.PathLike) -> Path:
@@ -149,8 +200,10 @@ def output_lock(path: str | os.PathLike, command: str = "twinmon") -> Iterator[N
     """Hold an advisory lock on ``path`` (a file or a folder) while writing it.
 
     The lock is ``flock`` on a hidden ``.<name>.lock`` file beside ``path`` holding the
-    holder's PID and command: the kernel drops it when the holder dies (even by ``kill -9``),
-    so a lock is never stale. Re-entrant within one process.
+    holder's PID and command: the kernel drops it when the holder dies (even by ``kill -9``).
+    Forked children do not keep it (their copy of the descriptor is closed at fork), and a
+    lock whose recorded holder is dead (kept by some other process that inherited it) is
+    taken over with a warning on stderr. Re-entrant within one process.
 
     Raises
     ------
@@ -171,11 +224,17 @@ def output_lock(path: str | os.PathLike, command: str = "twinmon") -> Iterator[N
     lp = lock_path(path)
     lp.parent.mkdir(parents=True, exist_ok=True)
     while True:
-        fd = os.open(lp, os.O_RDWR | os.O_CREAT, 0o644)
+        fd = os.open(lp, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             holder = os.pread(fd, 4096, 0).decode("utf-8", "replace").strip() or "another process"
+            pid = _holder_pid(holder)
+            if pid is not None and not _alive(pid) and _unlink_if_same(lp, fd):
+                os.close(fd)
+                sys.stderr.write(f"twinmon: warning: {path}: the lock of {holder} was left by a "
+                                 "process that is gone; taking it over\n")
+                continue
             os.close(fd)
             raise OutputBusyError(f"{path} is being written by {holder}; wait for it to finish "
                                   "or choose another output") from None
@@ -189,7 +248,16 @@ def output_lock(path: str | os.PathLike, command: str = "twinmon") -> Iterator[N
             break
         os.close(fd)
     argv = " ".join(Path(sys.argv[0]).name if i == 0 else a for i, a in enumerate(sys.argv[:2]))
-    os.pwrite(fd, f"{argv or command} (pid {os.getpid()})".encode(), 0)
+    try:
+        os.pwrite(fd, f"{argv or command} (pid {os.getpid()})".encode(), 0)
+    except OSError as exc:
+        # A full disk: the writer cannot write its output either; leave no empty lock file.
+        try:
+            os.unlink(lp)
+        except OSError:
+            pass
+        os.close(fd)
+        raise OSError(exc.errno, f"cannot write: {exc.strerror}", str(path)) from None
     _held[key] = [fd, 1]
     try:
         yield
@@ -200,6 +268,64 @@ def output_lock(path: str | os.PathLike, command: str = "twinmon") -> Iterator[N
         except OSError:
             pass
         os.close(fd)
+
+
+def _holder_pid(holder: str) -> int | None:
+    """The PID in a lock file's ``<command> (pid N)`` text, or None."""
+    import re
+    m = re.search(r"\(pid (\d+)\)\s*$", holder)
+    return int(m.group(1)) if m else None
+
+
+def _unlink_if_same(lp: Path, fd: int) -> bool:
+    """Remove the lock file ``lp`` if it is still the one open as ``fd`` (a new holder may
+    have replaced it meanwhile: that one is not stale)."""
+    try:
+        if os.stat(lp).st_ino != os.fstat(fd).st_ino:
+            return True             # already replaced: try again with the current one
+        os.unlink(lp)
+        return True
+    except FileNotFoundError:
+        return True
+    except OSError:
+        return False
+
+
+def locks_output(arg: str, command: str) -> Callable:
+    """Decorate a stage function so that it holds the output lock of its argument ``arg``
+    for the whole call: from before it reads what it will overwrite or continue (an
+    ``--update`` plans from the output's present content) to the rename of the new file.
+    Locking only at the write let two writers plan from the same old file and the last one
+    replace the other's work. The lock is re-entrant: :func:`write_artifact` inside takes it
+    again at no cost."""
+    import functools
+    import inspect
+
+    def wrap(func):
+        sig = inspect.signature(func)
+
+        @functools.wraps(func)
+        def locked(*args, **kwargs):
+            bound = sig.bind(*args, **kwargs)
+            bound.apply_defaults()
+            target = bound.arguments[arg]
+            if target is None:                  # nothing written
+                return func(*args, **kwargs)
+            parent = Path(target).parent
+            made = not parent.exists()
+            parent.mkdir(parents=True, exist_ok=True)
+            try:
+                with output_lock(target, command):
+                    return func(*args, **kwargs)
+            except BaseException:
+                if made:                        # a failed stage leaves no empty folder
+                    try:
+                        parent.rmdir()
+                    except OSError:
+                        pass
+                raise
+        return locked
+    return wrap
 
 
 def remove_stale_temporaries(path: str | os.PathLike) -> list[Path]:
@@ -410,11 +536,31 @@ def _stamp(path: Path) -> tuple:
 
 
 def read_provenance(path: str | os.PathLike) -> dict:
-    """The root attributes of an artifact as plain Python (any schema)."""
-    with h5py.File(path, "r") as f:
-        out = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
+    """The root attributes of an artifact as plain Python (any schema).
+
+    Raises
+    ------
+    ArtifactError
+        Not a readable HDF5 file (truncated, damaged), or ``inputs`` that is not JSON."""
+    try:
+        with h5py.File(path, "r") as f:
+            out = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
+    except FileNotFoundError:
+        raise ArtifactError(f"{path}: file not found") from None
+    except OSError as exc:
+        what = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise ArtifactError(f"{path}: not a readable HDF5 file ({what}); re-run the stage "
+                            "that made it") from None
     if "inputs" in out:
-        out["inputs"] = json.loads(out["inputs"])
+        try:
+            out["inputs"] = json.loads(out["inputs"])
+        except (json.JSONDecodeError, TypeError):
+            raise ArtifactError(f"{path}: attribute 'inputs' is not JSON (damaged or edited "
+                                "file); re-run the stage that made it") from None
+        if not isinstance(out["inputs"], list) or not all(
+                isinstance(r, dict) and "sha256" in r for r in out["inputs"]):
+            raise ArtifactError(f"{path}: attribute 'inputs' is not a list of {{path, sha256}} "
+                                "records (damaged or edited file)")
     return out
 
 
@@ -425,10 +571,9 @@ def is_up_to_date(output: str | os.PathLike, kind: str, config: str,
     output = Path(output)
     if not output.exists():
         return False
-    try:
-        prov = read_provenance(output)
-    except OSError:
-        return False
+    if not _readable_hdf5(output):
+        return False                    # damaged: the stage makes it again
+    prov = read_provenance(output)
     if prov.get("schema") != schema_name(kind) or prov.get("config") != config:
         return False
     try:
@@ -436,6 +581,40 @@ def is_up_to_date(output: str | os.PathLike, kind: str, config: str,
     except OSError:
         return False
     return [r["sha256"] for r in prov.get("inputs", [])] == [r["sha256"] for r in want]
+
+
+def _readable_hdf5(path: Path) -> bool:
+    try:
+        with h5py.File(path, "r"):
+            return True
+    except OSError:
+        return False
+
+
+def verify_artifact(path: str | os.PathLike, kind: str) -> None:
+    """Read every dataset of an artifact, so that damage anywhere (a flipped byte caught by
+    a chunk's checksum, a truncated file) is found before the artifact is continued.
+
+    ``--update`` copies the earlier output and adds to it: without this, bytes of it that
+    the update does not read would be carried into the new file unchecked.
+
+    Raises
+    ------
+    ArtifactError
+        Naming the file and the first damaged dataset.
+    """
+    def read(name, obj):
+        if isinstance(obj, h5py.Dataset):
+            try:
+                obj[()]
+            except (OSError, ValueError, RuntimeError, TypeError) as exc:
+                what = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+                raise ArtifactError(f"{path}: damaged artifact, dataset /{name} cannot be read "
+                                    f"({what}); re-run the stage that made it without "
+                                    "--update") from None
+        return None
+    with open_artifact(path, kind) as f:
+        f.visititems(read)
 
 
 def json_attr(obj: Any) -> str:

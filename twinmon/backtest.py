@@ -44,7 +44,8 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from . import artifacts
+from . import artifacts, lineage
+from .plausibility import check_observations
 from .config import Config
 from .errors import ArtifactError
 
@@ -227,6 +228,7 @@ def check_calibrated_from(cfg: Config, posterior_path, observations_path, units:
         raise ArtifactError(f"{observations_path}: not the observations {posterior_path} was "
                             f"calibrated from (sha256 {digest[:12]} is not among its inputs)")
     obs = read_observations(observations_path, cfg.model.output.name)
+    check_observations(cfg, obs)
     missing = [u for u in units if u not in obs.units]
     if missing:
         raise ArtifactError(f"{observations_path}: no unit {missing[0]!r} of {posterior_path}")
@@ -267,6 +269,7 @@ def calibrate_cut(cfg: Config, surrogate_path, obs, units: list, last_year: int,
     return dict(read_posterior(out).units)
 
 
+@artifacts.locks_output("output", "twinmon backtest")
 def backtest(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str | os.PathLike,
              output: str | os.PathLike | None = None, executor=None,
              progress: Optional[Callable[[int, int], None]] = None,
@@ -292,6 +295,9 @@ def backtest(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
     sur = read_surrogate(surrogate_path)
     check_made_for(cfg, surrogate_path, sur.input_names, sur.time, sur.bounds,
                    "simulate and reduce")
+    # (The observations a joint posterior is calibrated again from are checked with the
+    # cuts, by check_calibrated_from.)
+    lineage.check_chain({"posterior": posterior_path, "surrogate": surrogate_path})
     if list(post.input_names) != cfg.model.input_names:
         raise ArtifactError(f"{posterior_path}: posterior inputs {list(post.input_names)} "
                             f"differ from the config's inputs {cfg.model.input_names}")

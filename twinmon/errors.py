@@ -28,6 +28,14 @@ class TwinmonError(Exception):
         return self.message
 
 
+class UsageError(TwinmonError):
+    """The command line itself is wrong: e.g. an output named as one of the command's inputs.
+    Nothing was read or written."""
+
+    exit_code = 2
+    family = "usage error"
+
+
 class ConfigError(TwinmonError):
     """A YAML config or a ``--set`` override is malformed or invalid."""
 
@@ -85,5 +93,5 @@ class Interrupted(TwinmonError):
 
 
 EXIT_CODES = {cls.family: cls.exit_code for cls in
-              (TwinmonError, ConfigError, InputDataError, ArtifactError,
+              (TwinmonError, UsageError, ConfigError, InputDataError, ArtifactError,
                SimulationError, CalibrationError, ReadError, OutputBusyError, Interrupted)}

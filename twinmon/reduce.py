@@ -373,6 +373,7 @@ class ReduceSummary:
                 "warnings": list(self.warnings)}
 
 
+@artifacts.locks_output("output", "twinmon reduce")
 def reduce(cfg: Config, simulations: str | os.PathLike, output: str | os.PathLike) -> ReduceSummary:
     """Fit the surrogate on the training runs, validate it on the test runs, write it.
 

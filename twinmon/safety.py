@@ -172,6 +172,27 @@ def with_units(number: str, units: str) -> str:
     return number if units in ("", "1") else f"{number} {units}"
 
 
+def check_against_grid(cfg: Config, spec: IndicatorSpec, time: np.ndarray) -> None:
+    """Refuse indicator settings the record cannot answer (see :meth:`Indicator.from_config`).
+
+    Parameters
+    ----------
+    time : ndarray, shape [n_t]
+        Sample times of the record (s).
+    """
+    from .errors import ConfigError
+    t = np.asarray(time, dtype=float)
+    grid = f"the record (model.output.times) runs {t[0]:g}..{t[-1]:g} s in {t.size} samples"
+    if spec.kind == "value_at" and spec.at is not None and not t[0] <= spec.at <= t[-1]:
+        raise ConfigError(f"{cfg.source}: safety.indicator.at: {spec.at:g} s is outside the "
+                          f"record; {grid}")
+    if spec.kind in ("max", "min", "mean") and spec.window is not None:
+        lo, hi = spec.window
+        if not np.any((t >= lo) & (t <= hi)):
+            raise ConfigError(f"{cfg.source}: safety.indicator.window: [{lo:g}, {hi:g}] s holds "
+                              f"no sample time; {grid}")
+
+
 @dataclass(frozen=True)
 class Indicator:
     """The config's indicator with its resolved words, for computing and for reports.
@@ -198,7 +219,16 @@ class Indicator:
 
     @classmethod
     def from_config(cls, cfg: Config) -> "Indicator":
+        """The config's indicator, its settings checked against the record's time grid.
+
+        Raises
+        ------
+        ConfigError
+            A ``window`` that holds no sample time, or an ``at`` outside the record: every
+            indicator would be NaN (or silently the value at an end of the record).
+        """
         spec = cfg.safety.indicator
+        check_against_grid(cfg, spec, cfg.model.output.times.times)
         var = cfg.indicator_variable
         vlabel, vunits = cfg.model.variable_words(var)
         units = spec.units or ("s" if spec.kind == "time_to_reach" else vunits)

@@ -20,7 +20,7 @@ import numpy as np
 from . import artifacts
 from .config import Config
 from .errors import ArtifactError, ConfigError, Interrupted, SimulationError
-from .executors import Executor, InterruptGuard, SimulationSpec, make_executor
+from .executors import Executor, InterruptGuard, SimulationSpec, check_workers, make_executor
 
 SPLITS = ("train", "test")
 #: Config sections recorded in the artifact (and compared by ``twinmon run``).
@@ -273,6 +273,8 @@ def simulate(cfg: Config, output: str | os.PathLike, *, workers: int | None = No
         ``progress(done, total)`` after each run.
     """
     output = Path(output)
+    # Before the lock and the partial file: a bad count leaves nothing behind.
+    check_workers(cfg.simulate.workers if workers is None else workers)
     check_model(cfg)
     output.parent.mkdir(parents=True, exist_ok=True)
     # One writer per output: a second 'simulate' into the same file must not take the

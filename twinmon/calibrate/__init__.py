@@ -74,9 +74,11 @@ from typing import Callable, Optional
 
 import numpy as np
 
+from .. import artifacts
 from ..config import Config
 from ..errors import ArtifactError, InputDataError
 from ..observations import check_events, read_observations
+from ..plausibility import check_observations
 from .base import Method, Sampler, Work
 from .channels import StackedSurrogate, channel_noise, select_channels, stacked_rows
 from .density import LogDensity, Prior, estimate_noise, find_map, make_log_density
@@ -270,6 +272,7 @@ def _likelihood_model(cfg: Config, surrogate, surrogate_path, obs):
     return StackedSurrogate({cfg.model.output.name: surrogate, **parts}), channels, warnings
 
 
+@artifacts.locks_output("output", "twinmon calibrate")
 def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
               observations_path: str | os.PathLike, output: str | os.PathLike,
               truth_path: str | os.PathLike | None = None,
@@ -312,6 +315,7 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
     obs = read_observations(observations_path, cfg.model.output.name)
     check_events(cfg, obs)
     _check_inputs(cfg, surrogate, surrogate_path, obs)
+    check_observations(cfg, obs)
     truth = None
     if truth_path is not None:
         from ..fabricate import read_truth

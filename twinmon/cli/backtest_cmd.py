@@ -4,7 +4,7 @@ from __future__ import annotations
 import click
 
 from .app import main
-from .common import config_options, emit_json, json_option, load, say, warn
+from .common import config_options, emit_json, json_option, load, refuse_overwrite, say, warn
 
 
 @main.command()
@@ -29,6 +29,8 @@ def backtest(config_path, overrides, posterior, surrogate, observations, output,
     accuracy, prognostic horizon).
     """
     from ..backtest import backtest as run
+    refuse_overwrite({"-o": output}, {"--posterior": posterior, "--surrogate": surrogate,
+                                      "--observations": observations, "-c": config_path})
     cfg = load(config_path, overrides)
     s = run(cfg, posterior, surrogate, output, observations_path=observations)
     if as_json:

@@ -4,7 +4,8 @@ from __future__ import annotations
 import click
 
 from .app import main
-from .common import config_options, emit_json, json_option, load, progress_bar, say
+from .common import (config_options, emit_json, json_option, load, progress_bar,
+                     refuse_overwrite, say)
 
 #: Warning lines printed; the rest are counted (all are in the --json summary).
 MAX_WARNINGS = 12
@@ -27,6 +28,8 @@ MAX_WARNINGS = 12
 def calibrate(config_path, overrides, surrogate, observations, truth, output, update, as_json):
     """Bayesian calibration (MCMC) of each unit's inputs, year by year."""
     from ..calibrate import calibrate as run
+    refuse_overwrite({"-o": output}, {"--surrogate": surrogate, "--observations": observations,
+                                      "--truth": truth, "-c": config_path})
     cfg = load(config_path, overrides)
     with progress_bar(lambda: _count_years(observations), "calibrate") as tick:
         s = run(cfg, surrogate, observations, output, truth_path=truth, progress=tick,

@@ -19,6 +19,13 @@ def config_options(f):
     return f
 
 
+def refuse_overwrite(outputs: dict, inputs: dict) -> None:
+    """Exit 2 (one line) when an output is one of the command's inputs: first thing a
+    writing command does, before reading anything."""
+    from ..artifacts import check_outputs_not_inputs
+    check_outputs_not_inputs(outputs, inputs)
+
+
 def json_option(f):
     return click.option("--json", "as_json", is_flag=True,
                         help="Print a machine-readable JSON summary on stdout.")(f)

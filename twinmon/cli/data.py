@@ -6,7 +6,8 @@ import dataclasses
 import click
 
 from .app import main
-from .common import config_options, emit_json, json_option, load, progress_bar, say, warn
+from .common import (config_options, emit_json, json_option, load, progress_bar,
+                     refuse_overwrite, say, warn)
 
 
 @main.command()
@@ -19,6 +20,7 @@ from .common import config_options, emit_json, json_option, load, progress_bar, 
 def simulate(config_path, overrides, output, workers, as_json):
     """Run the design of experiments through the FMU."""
     from ..simulate import simulate as run
+    refuse_overwrite({"-o": output}, {"-c": config_path})
     cfg = load(config_path, overrides)
     total = cfg.simulate.train_size + cfg.simulate.test_size
     with progress_bar(total, "simulate") as update:
@@ -43,8 +45,9 @@ def simulate(config_path, overrides, output, workers, as_json):
 def fabricate(config_path, overrides, output, truth, as_json):
     """Synthetic observations (simulation + noise) and their withheld truth."""
     from ..fabricate import fabricate as run
-    cfg = load(config_path, overrides)
     truth = truth or (output[:-3] if output.endswith(".h5") else output) + "_truth.h5"
+    refuse_overwrite({"-o": output, "--truth": truth}, {"-c": config_path})
+    cfg = load(config_path, overrides)
     summary = run(cfg, output, truth)
     if as_json:
         emit_json(summary.as_dict())
@@ -73,12 +76,16 @@ def import_csv(csv_file, config_path, overrides, output, noise_std, events, as_j
 
     from ..errors import InputDataError
     from ..observations import import_csv as run
+    refuse_overwrite({"-o": output}, {"CSV_FILE": csv_file, "--events": events,
+                                      "-c": config_path})
     cfg = load(config_path, overrides)
     if noise_std is not None and not (math.isfinite(noise_std) and noise_std > 0):
         raise InputDataError(f"--noise-std: expected a positive number, got {noise_std!r}")
-    obs = run(csv_file, output, cfg.model.output.name, noise_std,
-              channels=list(cfg.model.channels), units=cfg.model.channel_units,
-              events=events, components=list(cfg.model.components))
+    from ..artifacts import output_lock
+    with output_lock(output, "twinmon import-csv"):     # from reading to the rename
+        obs = run(csv_file, output, cfg.model.output.name, noise_std,
+                  channels=list(cfg.model.channels), units=cfg.model.channel_units,
+                  events=events, components=list(cfg.model.components))
     n_events = sum(len(o.events) for o in obs.units.values())
     summary = {"units": {u: {"years": o.years.tolist(), "channels": sorted(o.channels),
                              "events": [dataclasses.asdict(e) for e in o.events]}

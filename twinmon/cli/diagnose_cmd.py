@@ -5,7 +5,8 @@ from __future__ import annotations
 import click
 
 from .app import main
-from .common import config_options, emit_json, json_option, load, progress_bar, say, warn
+from .common import (config_options, emit_json, json_option, load, progress_bar,
+                     refuse_overwrite, say, warn)
 
 
 @main.command()
@@ -30,6 +31,8 @@ def diagnose(config_path, overrides, observations, posterior, output, workers, u
     from ..errors import TwinmonError
     from ..observations import read_observations
     from ..executors import check_workers
+    refuse_overwrite({"-o": output}, {"--observations": observations,
+                                      "--posterior": posterior, "-c": config_path})
     cfg = load(config_path, overrides)
     check_workers(workers if workers is not None else cfg.diagnose.workers)
     hint = "" if candidate_names(cfg) else no_candidates_hint(cfg)

@@ -5,8 +5,8 @@ import click
 
 from .app import main
 from ..errors import TwinmonError
-from .common import (config_options, emit_json, json_option, load, progress_bar, say,
-                     warn)
+from .common import (config_options, emit_json, json_option, load, progress_bar,
+                     refuse_overwrite, say, warn)
 
 
 @main.command()
@@ -35,6 +35,8 @@ def forecast(config_path, overrides, posterior, surrogate, output, truth, worker
     slopes against normal ageing, then attributed to components with probabilities.
     """
     from ..forecast import forecast as run
+    refuse_overwrite({"-o": output}, {"--posterior": posterior, "--surrogate": surrogate,
+                                      "--truth": truth, "-c": config_path})
     if force_prognosis:
         overrides = (*overrides, "forecast.force_prognosis=true")
     from ..calibrate import read_posterior

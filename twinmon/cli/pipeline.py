@@ -5,7 +5,7 @@ from __future__ import annotations
 import click
 
 from .app import main
-from .common import config_options, emit_json, json_option, load, say
+from .common import config_options, emit_json, json_option, load, refuse_overwrite, say
 
 
 @main.command()
@@ -18,6 +18,7 @@ from .common import config_options, emit_json, json_option, load, say
 def reduce(config_path, overrides, simulations, output, as_json):
     """Karhunen-Loeve reduction + Gaussian-process surrogate of the FMU."""
     from ..reduce import reduce as run
+    refuse_overwrite({"-o": output}, {"--simulations": simulations, "-c": config_path})
     cfg = load(config_path, overrides)
     s = run(cfg, simulations, output)
     if as_json:
@@ -64,7 +65,15 @@ def reduce(config_path, overrides, simulations, output, as_json):
 def run(config_path, overrides, observations, gap_observations, truth, workdir, force, update,
         smoke, as_json):
     """Every stage in order, skipping those whose output is up to date."""
+    from pathlib import Path
+
     from ..pipeline import SMOKE, run_pipeline
+    # Every artifact the pipeline may write into the workdir.
+    refuse_overwrite({f"--workdir {name}": Path(workdir) / name
+                      for name in ("simulations.h5", "surrogate.h5", "posterior.h5",
+                                   "forecast.h5", "gap.h5", "backtest.h5", "report")},
+                     {"--observations": observations, "--gap-observations": gap_observations,
+                      "--truth": truth, "-c": config_path})
     if smoke:
         say(f"run --smoke: small sizes ({', '.join(SMOKE)}); for a check of the chain, "
             "not for results")

@@ -6,7 +6,7 @@ from pathlib import Path
 import click
 
 from .app import main
-from .common import config_options, emit_json, json_option, load, say
+from .common import config_options, emit_json, json_option, load, refuse_overwrite, say
 
 #: Artifacts looked up in ``--workdir`` when not given explicitly.
 _WORKDIR_ARTIFACTS = ("simulations", "surrogate", "posterior", "forecast", "backtest", "gap")
@@ -69,7 +69,6 @@ def report(config_path, overrides, workdir, observations, simulations, surrogate
     pipeline.
     """
     from ..report import report as run
-    cfg = load(config_path, overrides)
     given = {"simulations": simulations, "surrogate": surrogate, "posterior": posterior,
              "forecast": forecast, "backtest": None, "gap": gap}
     if workdir is not None:
@@ -77,6 +76,10 @@ def report(config_path, overrides, workdir, observations, simulations, surrogate
             v is not None for v in (*given.values(), observations, truth)))
     if output is None:
         output = str(Path(workdir) / "report") if workdir is not None else "out/report"
+    refuse_overwrite({"-o": output}, {f"--{k}": v for k, v in
+                                      {**given, "observations": observations,
+                                       "truth": truth}.items()} | {"-c": config_path})
+    cfg = load(config_path, overrides)
     s = run(cfg, output, observations=observations, truth=truth, units=units, **given)
     if as_json:
         emit_json(s.as_dict())

@@ -56,9 +56,11 @@ from typing import Optional
 
 import numpy as np
 
+from .. import artifacts, lineage
 from ..config import Config
 from ..errors import ArtifactError, ConfigError, InputDataError, Interrupted, SimulationError
 from ..observations import read_observations
+from ..plausibility import check_observations
 from .artifact import SECTIONS, GapFile, read_gap, write_gap
 from .fit import FD_STEP, FitResult, JointFit
 from .result import VERDICTS, UnitGap
@@ -218,6 +220,7 @@ def _posterior_for(posterior_path, post, cfg: Config, unit: str, years: np.ndarr
     return np.asarray(up.mean, float), cov
 
 
+@artifacts.locks_output("output", "twinmon diagnose")
 def diagnose(cfg: Config, observations: str | os.PathLike, output: str | os.PathLike,
              workers: int | None = None, progress=None,
              posterior: str | os.PathLike | None = None,
@@ -263,6 +266,7 @@ def diagnose(cfg: Config, observations: str | os.PathLike, output: str | os.Path
     check_workers(workers if workers is not None else cfg.diagnose.workers)
     check_model(cfg)
     obs = read_observations(observations, cfg.model.output.name)
+    check_observations(cfg, obs)
     candidate_names(cfg)
     expected = cfg.model.output.times.times
     if obs.time.shape != expected.shape or not np.allclose(obs.time, expected):
@@ -273,6 +277,7 @@ def diagnose(cfg: Config, observations: str | os.PathLike, output: str | os.Path
     if posterior is not None:
         from ..calibrate import read_posterior
         post = read_posterior(posterior)
+        lineage.check_made_for_model(posterior, "posterior", cfg.section_yaml("model"))
     sigma = {u: _unit_sigma(cfg, uo, obs.time) for u, uo in obs.units.items()}
     kept, update_info = {}, None
     if update:

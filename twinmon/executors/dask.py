@@ -59,6 +59,35 @@ def _require_distributed():
 
 
 # ---------------------------------------------------------------------------------------
+def _client_within(distributed, address: str, timeout: float):
+    """A ``distributed.Client`` of ``address``, or ``TimeoutError`` after ``timeout`` s.
+
+    ``Client(timeout=...)`` bounds reaching the address, not the handshake after it: a
+    socket that accepts and never speaks (or an HTTP server, or a full backlog) kept it
+    waiting for good. The client is made in a daemon thread, abandoned if it has not
+    answered in time (a late connection is closed when it comes)."""
+    import threading
+    box: dict = {}
+
+    def connect():
+        try:
+            box["client"] = distributed.Client(address, timeout=timeout, set_as_default=False)
+        except BaseException as exc:  # noqa: BLE001 -- handed to the caller
+            box["error"] = exc
+        if box.get("late") and "client" in box:
+            box["client"].close()
+
+    t = threading.Thread(target=connect, name="twinmon-dask-connect", daemon=True)
+    t.start()
+    t.join(timeout)
+    if t.is_alive():
+        box["late"] = True
+        raise TimeoutError("no Dask handshake: is it a Dask scheduler?")
+    if "error" in box:
+        raise box["error"]
+    return box["client"]
+
+
 # The connection: a client, and the LocalCluster it owns when there is no address
 # ---------------------------------------------------------------------------------------
 class DaskConnection:
@@ -101,8 +130,7 @@ class DaskConnection:
         logging.getLogger("distributed").setLevel(logging.CRITICAL)
         if address:
             try:
-                self.client = distributed.Client(address, timeout=timeout,
-                                                 set_as_default=False)
+                self.client = _client_within(distributed, address, timeout)
             except (OSError, TimeoutError, ValueError) as exc:
                 raise ConfigError(f"dask.address: cannot reach the Dask scheduler at "
                                   f"{address} within {timeout:g} s "

@@ -71,17 +71,66 @@ def detach_worker() -> None:
     # multiprocessing's finalizers (the extracted FMU folder) still run.
     signal.signal(signal.SIGTERM, _exit_on_term)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    # Neither the command's stdout nor its stderr stays open in a worker: a worker outliving
+    # its parent would otherwise keep a `twinmon ... | tee log` pipeline waiting.
     # A worker's errors reach the parent through its results, which reports them in one
     # line; what a worker would print itself when a pool is torn down (multiprocessing's
     # EOFError from a closed queue, a native solver's complaint about an interrupted
     # callback) is noise on the user's terminal. Both Python's and the C library's stderr go.
-    devnull = os.open(os.devnull, os.O_WRONLY)
-    os.dup2(devnull, 2)
+    devnull = os.open(os.devnull, os.O_RDWR)
+    for fd in (0, 1, 2):
+        os.dup2(devnull, fd)
     os.close(devnull)
+    sys.stdin = open(os.devnull)
+    sys.stdout = open(os.devnull, "w")
     sys.stderr = open(os.devnull, "w")
 
 
+def die_with_parent(parent: int, scratch: str = "") -> None:
+    """Make this worker end when ``parent`` (the command) dies, even by ``kill -9``: Linux
+    sends it SIGTERM (``PR_SET_PDEATHSIG``), which leaves through SystemExit, so the
+    worker's extracted FMU is removed, then the pool's ``scratch`` folder (the parent, dead,
+    cannot). Without it, orphaned workers live on, holding the command's output and its
+    scratch folder. Elsewhere than Linux this is a no-op."""
+    if scratch:
+        from multiprocessing.util import Finalize
+        # exitpriority 0: after the FMU instance (10) is closed.
+        Finalize(None, _remove_if_orphan, (parent, scratch), exitpriority=0)
+    global _parent
+    _parent = parent
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        import ctypes
+        libc = ctypes.CDLL(None, use_errno=True)
+        PR_SET_PDEATHSIG = 1
+        libc.prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
+    except (OSError, AttributeError):
+        return
+    if os.getppid() != parent:      # the parent died before prctl took effect
+        os.kill(os.getpid(), signal.SIGTERM)
+
+
+def _remove_if_orphan(parent: int, scratch: str) -> None:
+    if os.getppid() != parent:
+        import shutil
+        shutil.rmtree(scratch, ignore_errors=True)
+
+
+#: PID of the command that started this worker (0: not a pool worker).
+_parent = 0
+
+
 def _exit_on_term(signum, frame):
+    if _parent and os.getppid() != _parent:
+        # The command is gone: nobody will read a result, and a SystemExit raised inside a
+        # task would be caught by the pool and sent back as that task's result (the worker
+        # then waits for the next task forever). Clean up and leave now.
+        from multiprocessing import util
+        try:
+            util._run_finalizers(0)
+        finally:
+            os._exit(0)
     raise SystemExit(0)
 
 
@@ -147,7 +196,7 @@ def start_pool(workers: int, initializer=None, initargs=()):
     scratch = tempfile.mkdtemp(prefix="twinmon-pool-")
     with sigint_deferred():
         pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_detached,
-                                   initargs=(initializer, initargs, scratch))
+                                   initargs=(initializer, initargs, scratch, os.getpid()))
         weakref.finalize(pool, shutil.rmtree, scratch, True)
         # Start every worker inside the block (a fork context starts them all at the first
         # submit) and let each finish its initializer.
@@ -201,8 +250,10 @@ def closing_pool(pool, broken: Exception, interrupted: Optional[Exception] = Non
             stop_pool(pool)
 
 
-def _init_detached(initializer, initargs, scratch: str = "") -> None:
+def _init_detached(initializer, initargs, scratch: str = "", parent: int = 0) -> None:
     detach_worker()
+    if parent:
+        die_with_parent(parent, scratch)
     if scratch:
         import tempfile
         # tempfile caches its folder: a forked worker would otherwise keep the parent's.

@@ -99,6 +99,7 @@ __all__ = ["forecast", "forecast_units", "iter_forecast", "read_forecast", "Fore
            "Attribution", "attribute", "AMBIGUOUS", "HEALTHY", "SEVERAL"]
 
 
+@artifacts.locks_output("output", "twinmon forecast")
 def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str | os.PathLike,
              output: str | os.PathLike, truth_path: str | os.PathLike | None = None,
              executor=None, workers: Optional[int] = None,
@@ -136,12 +137,15 @@ def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
         A unit has fewer than 3 years (no prediction interval is possible).
     """
     from ..calibrate import read_posterior
+    from ..executors import check_workers
+    from ..lineage import check_chain
     from ..reduce import check_made_for, read_surrogate
 
-    from ..executors import check_workers
     start = _time.perf_counter()
     check_workers(cfg.simulate.workers if workers is None else workers)
     posterior_path, surrogate_path = Path(posterior_path), Path(surrogate_path)
+    # A posterior of another surrogate or another fleet's chain: refused naming both files.
+    check_chain({"posterior": posterior_path, "surrogate": surrogate_path})
     names = cfg.model.input_names
     post = read_posterior(posterior_path)
     if list(post.input_names) != names:

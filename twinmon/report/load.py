@@ -10,9 +10,10 @@ from typing import Any, Optional
 
 import numpy as np
 
-from .. import artifacts
+from .. import artifacts, lineage
 from ..config import Config
 from ..errors import ArtifactError
+from ..plausibility import check_observations
 from .common import Words, indicator_rows
 
 
@@ -56,9 +57,13 @@ def load(cfg: Config, paths: dict) -> Inputs:
     """Load (and schema-check) every artifact given in ``paths`` ({role: path or None})."""
     inp = Inputs(cfg=cfg, words=Words.from_config(cfg),
                  paths={k: str(v) for k, v in paths.items() if v is not None})
+    # A report of artifacts from different runs would put one run's forecast beside
+    # another's posterior: refused, naming the two files.
+    lineage.check_chain(paths)
     if paths.get("observations") is not None:
         from ..observations import read_observations
         inp.obs = read_observations(paths["observations"], cfg.model.output.name)
+        check_observations(cfg, inp.obs)
     if paths.get("simulations") is not None:
         from ..simulate import read_simulations
         inp.sims = read_simulations(paths["simulations"])

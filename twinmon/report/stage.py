@@ -30,7 +30,20 @@ from .summary import ReportSummary, calibration_diagnostics, unit_summary, words
 GROUP = 4
 
 
-def report(cfg: Config, output_dir: str | os.PathLike, *,
+def report(cfg: Config, output_dir: str | os.PathLike, *args, **kwargs):
+    """Write the report (:func:`_report`) without numpy's RuntimeWarnings: the report
+    summarises arrays that may hold NaN (an unreliable year, a failed run), and "All-NaN
+    slice encountered" lines on stderr say nothing to the user (a real problem ends the
+    command with its one-line error)."""
+    import warnings
+
+    import numpy as np
+    with warnings.catch_warnings(), np.errstate(all="ignore"):
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return _report(cfg, output_dir, *args, **kwargs)
+
+
+def _report(cfg: Config, output_dir: str | os.PathLike, *,
            observations: str | os.PathLike | None = None,
            simulations: str | os.PathLike | None = None,
            surrogate: str | os.PathLike | None = None,
