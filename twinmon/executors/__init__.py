@@ -1,8 +1,9 @@
 """Executors run batches of FMU simulations; swap one for another through the config.
 
 ``base.Executor`` is the interface; ``local`` holds the serial and process-pool executors,
-``dask`` the executor and pool on a ``dask.distributed`` cluster (optional dependency,
-imported only when chosen). A distributed backend only has to implement :meth:`Executor.map`.
+``dask`` the executor and pool on a ``dask.distributed`` cluster, over the connection of
+``dask_cluster`` (optional dependency, imported only when chosen). A distributed backend only
+has to implement :meth:`Executor.map`.
 
 Stages that fan out their own tasks (calibrate's chains, diagnose's units) take a pool from
 :func:`open_pool` and stop it with :func:`stop_pool` after an error or a Ctrl-C; a process
