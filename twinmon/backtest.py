@@ -159,6 +159,10 @@ class BacktestSummary:
     warnings: list = field(default_factory=list)
     #: ``truncated`` (the stored posterior cut at each cut year) or ``recalibrated``.
     cut_posteriors: str = "truncated"
+    #: False when the coverage is outside ``coverage_band`` beyond its sampling error
+    #: (:func:`coverage_verdict`; the warning is among ``warnings``).
+    coverage_in_band: bool = True
+    coverage_band: tuple = (float("nan"), float("nan"))
 
     @property
     def alpha_lambda(self) -> float:
@@ -169,6 +173,8 @@ class BacktestSummary:
         f = (lambda v: None if v is None or not np.isfinite(v) else round(float(v), 4))
         return {
             "coverage": f(self.coverage), "confidence": self.confidence,
+            "coverage_in_band": self.coverage_in_band,
+            "coverage_band": [f(b) for b in self.coverage_band],
             "pairs": self.n_pairs, "indicator_mae": f(self.indicator_mae),
             "alpha_lambda_accuracy": f(self.alpha_lambda),
             "units_reaching_unsafe": len(self.ttf),
@@ -182,6 +188,50 @@ class BacktestSummary:
             "cut_posteriors": self.cut_posteriors, "warnings": list(self.warnings),
             "output": self.output,
         }
+
+
+def coverage_verdict(coverage: float, n_pairs: int, confidence: float,
+                     band: float) -> tuple[bool, str]:
+    """Whether a back-test's coverage is consistent with its intervals' confidence.
+
+    Parameters
+    ----------
+    coverage : float
+        Share of the ``n_pairs`` later observations inside the forecast intervals.
+    confidence : float
+        The intervals' nominal confidence (``forecast.confidence``).
+    band : float
+        Tolerated departure (``backtest.coverage_band``): coverage in
+        ``[confidence - band, confidence + band]`` is in the band.
+
+    Returns
+    -------
+    in_band : bool
+        False when the coverage's 90 % Wilson interval lies wholly outside the band: with
+        few pairs a coverage outside the band may be chance, and is not flagged.
+    message : str
+        The warning, naming the coverage, the pairs and what it means; ``""`` when in band.
+    """
+    lo_band, hi_band = confidence - band, confidence + band
+    if n_pairs == 0 or not np.isfinite(coverage):
+        return True, ""
+    z = 1.645
+    centre = (coverage + z * z / (2 * n_pairs)) / (1 + z * z / n_pairs)
+    half = (z * np.sqrt(coverage * (1 - coverage) / n_pairs + z * z / (4 * n_pairs ** 2))
+            / (1 + z * z / n_pairs))
+    lo, hi = centre - half, centre + half
+    if hi < lo_band:
+        return False, (f"back-test coverage {coverage:.2f} of {n_pairs} later observations "
+                       f"(90 % interval {lo:.2f}-{hi:.2f}) is below {lo_band:.2f}-{hi_band:.2f}: "
+                       f"the {100 * confidence:.0f} % forecast intervals were too narrow on "
+                       "this history (wear that is not a straight line, an unrecorded repair, "
+                       "a record too short); do not rely on the forecast's failure years")
+    if lo > hi_band:
+        return False, (f"back-test coverage {coverage:.2f} of {n_pairs} later observations "
+                       f"(90 % interval {lo:.2f}-{hi:.2f}) is above {lo_band:.2f}-{hi_band:.2f}: "
+                       f"the {100 * confidence:.0f} % forecast intervals were wider than this "
+                       "history needed; failure years come early")
+    return True, ""
 
 
 def truncate(up, last_year: int):
@@ -366,10 +416,16 @@ def backtest(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
             s = ttf_scores(cuts, fp, eol, h, bt.alpha, bt.lambda_value)
             if s is not None:
                 ttf[u] = s
-    summary = BacktestSummary(units, float(np.mean(pairs_in)) if pairs_in else float("nan"),
+    coverage = float(np.mean(pairs_in)) if pairs_in else float("nan")
+    in_band, message = coverage_verdict(coverage, len(pairs_in), c, bt.coverage_band)
+    if not in_band:
+        warnings.append(message)
+    summary = BacktestSummary(units, coverage,
                               len(pairs_in), float(np.median(errs)) if errs else float("nan"),
                               ttf, str(output or ""), c, warnings,
-                              "recalibrated" if recalibrate else "truncated")
+                              "recalibrated" if recalibrate else "truncated",
+                              coverage_in_band=in_band,
+                              coverage_band=(c - bt.coverage_band, c + bt.coverage_band))
     if output is not None:
         write_backtest(output, cfg, summary, ind, [posterior_path, surrogate_path] +
                        ([observations_path] if recalibrate else []))
@@ -385,6 +441,8 @@ def write_backtest(path, cfg: Config, s: BacktestSummary, ind, inputs) -> None:
     with artifacts.write_artifact(path, "backtest", config=cfg.section_yaml(*sections),
                                   inputs=inputs, seed=cfg.seed) as f:
         f.attrs["coverage"] = s.coverage
+        f.attrs["coverage_in_band"] = s.coverage_in_band
+        f.attrs["coverage_band"] = np.asarray(s.coverage_band, float)
         f.attrs["cut_posteriors"] = s.cut_posteriors
         f.attrs["warnings"] = artifacts.json_attr(list(s.warnings))
         f.attrs["confidence"] = s.confidence
@@ -434,4 +492,8 @@ def read_backtest(path: str | os.PathLike) -> BacktestSummary:
         return BacktestSummary(units, float(f.attrs["coverage"]), 0,
                                float(f.attrs["indicator_mae"]), ttf, str(path),
                                float(f.attrs["confidence"]), warnings,
-                               str(f.attrs.get("cut_posteriors", "truncated")))
+                               str(f.attrs.get("cut_posteriors", "truncated")),
+                               coverage_in_band=bool(f.attrs.get("coverage_in_band", True)),
+                               coverage_band=tuple(float(b) for b in
+                                                   f.attrs.get("coverage_band",
+                                                               (np.nan, np.nan))))

@@ -65,6 +65,11 @@ def test_stages_chain_through_the_cli(small):
     assert bt["units"]["Colt"]["cuts"] == [3, 4]
     # cut 3 sees years 4, 5; cut 4 sees year 5: three later observations per unit
     assert bt["pairs"] == 9 and 0 <= bt["coverage"] <= 1
+    # The coverage is judged against its band, and the judgement is in the JSON and the file.
+    from twinmon.backtest import coverage_verdict, read_backtest
+    assert bt["coverage_band"] == [0.85, 0.95]
+    assert bt["coverage_in_band"] == coverage_verdict(bt["coverage"], 9, 0.9, 0.05)[0]
+    assert read_backtest(tmp / "backtest.h5").coverage_in_band == bt["coverage_in_band"]
     gap = run_json("diagnose", "-c", cfg, "--observations", obs, "-o", tmp / "gap.h5")
     assert {u["verdict"] for u in gap["units"].values()} <= {"none", "effect", "unexplained"}
     rep = twinmon("report", "-c", cfg, "--workdir", tmp, "--observations", obs,

@@ -72,6 +72,9 @@ class BacktestConfig:
     alpha: float = 0.2
     #: ... at the cut this fraction of the way from the first cut to the end of life.
     lambda_value: float = 0.5
+    #: The back-test warns when its coverage leaves ``forecast.confidence`` +- this band
+    #: (0.85-0.95 for 90 % intervals) by more than its own sampling error allows.
+    coverage_band: float = 0.05
 
     def _check(self):
         if self.min_years < 3:
@@ -81,3 +84,5 @@ class BacktestConfig:
             yield "alpha", "must lie in (0, 1)", self.alpha
         if not 0 <= self.lambda_value <= 1:
             yield "lambda_value", "must lie in [0, 1]", self.lambda_value
+        if not 0 < self.coverage_band < 0.5:
+            yield "coverage_band", "must lie in (0, 0.5)", self.coverage_band

@@ -62,6 +62,11 @@ def fig_backtest(figs: Figures, inp: Inputs, colours: dict) -> None:
         ax.legend(fontsize=8, loc="upper left")
     axes[-1].set_xlabel("year of service")
     cover = "n/a" if not np.isfinite(bt.coverage) else f"{100 * bt.coverage:.0f} %"
+    if not bt.coverage_in_band:
+        lo, hi = bt.coverage_band
+        cover = (f"Only {cover}" if bt.coverage < lo else cover) + (
+            f" (outside {100 * lo:.0f}-{100 * hi:.0f} %: the forecast's intervals do not hold "
+            "on this history, so its failure years should not be relied on)")
     al = (f"; alpha-lambda accuracy {100 * bt.alpha_lambda:.0f} % over {len(bt.ttf)} unit(s) "
           "that reached unsafe" if bt.ttf else "; no unit reached unsafe in its history")
     figs.save(fig, "fig_backtest", "backtest", f"Past forecasts of {ind.name} vs what came",
