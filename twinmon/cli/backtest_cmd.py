@@ -33,6 +33,10 @@ def backtest(config_path, overrides, posterior, surrogate, observations, output,
                                       "--observations": observations, "-c": config_path})
     cfg = load(config_path, overrides)
     s = run(cfg, posterior, surrogate, output, observations_path=observations)
+    # Warnings go to stderr with --json too: a coverage outside its band must not pass
+    # unseen in a pipeline that reads only stdout.
+    for w in s.warnings:
+        warn(w)
     if as_json:
         emit_json(s.as_dict())
         return
@@ -53,6 +57,4 @@ def backtest(config_path, overrides, posterior, surrogate, observations, output,
         say("time to failure: no unit reached unsafe in its history")
     if s.cut_posteriors == "recalibrated":
         say("each cut's history calibrated again (joint method)")
-    for w in s.warnings:
-        warn(w)
     say(f"wrote {output}")
