@@ -194,3 +194,9 @@ def test_pair_gets_a_group_per_effect(tmp_path):
     back = read_gap(tmp_path / "gap.h5").units["P"]
     assert [[m["effect"] for m in grp["members"]] for grp in back.groups] == members
     assert back.groups[0]["failure_year_range"] == g.groups[0]["failure_year_range"]
+    # The command's human line names both groups, the plateau group with each member's share.
+    from twinmon.cli.diagnose_cmd import summary_line
+    line = summary_line("P", g)
+    assert "sensor.tau = " in line and " + " in line and "(" in line
+    assert all(f"{e} = " in line for e in plateau)
+    assert f"{sep['separating_channel']} would separate the groups" in line

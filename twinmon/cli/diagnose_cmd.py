@@ -90,16 +90,23 @@ def summary_line(unit: str, g, no_candidates: str = "") -> str:
         return (f"{unit}: UNEXPLAINED gap from year {g.onset} ({where}); residual RMS "
                 f"{g.rms_before:.2f} x noise; best candidate {best} would close only "
                 f"{g.closed_percent:.0f} %")
-    parts = []
-    for e in g.effects:
-        est = g.estimate.get(e)
-        parts.append(f"{e} = {est[0]:.4g} [{est[1]:.4g}, {est[2]:.4g}]" if est else e)
-    text = " or ".join(parts[:len(g.group)]) if len(g.group) > 1 else parts[0]
-    extra = [p for p, e in zip(parts, g.effects) if e not in g.group]
-    if extra:
-        text += " + " + " + ".join(extra)
-    sep = (f"; {g.separating_channel} would separate the group" if g.separating_channel
-           else "")
+    if len(g.groups) > 1:
+        # Several effects: each with the effects the data cannot tell from it.
+        text = " + ".join(group_text(grp) for grp in g.groups)
+        seps = sorted({grp["separating_channel"] for grp in g.groups
+                       if len(grp["members"]) > 1 and grp["separating_channel"]})
+        sep = f"; {', '.join(seps)} would separate the groups" if seps else ""
+    else:
+        parts = []
+        for e in g.effects:
+            est = g.estimate.get(e)
+            parts.append(f"{e} = {est[0]:.4g} [{est[1]:.4g}, {est[2]:.4g}]" if est else e)
+        text = " or ".join(parts[:len(g.group)]) if len(g.group) > 1 else parts[0]
+        extra = [p for p, e in zip(parts, g.effects) if e not in g.group]
+        if extra:
+            text += " + " + " + ".join(extra)
+        sep = (f"; {g.separating_channel} would separate the group" if g.separating_channel
+               else "")
     fy = ""
     if g.failure_year_before != g.failure_year_after:
         fy = (f"; projected failure year {g.failure_year_before or 'none'} -> "
@@ -107,3 +114,19 @@ def summary_line(unit: str, g, no_candidates: str = "") -> str:
     return (f"{unit}: {text} from year {g.onset} ({where}); residual RMS "
             f"{g.rms_before:.2f} -> {g.rms_after:.2f} x noise, {g.closed_percent:.0f} % of "
             f"the excess gap closed, BIC gain {g.delta_bic_final:.0f}{sep}{fy}")
+
+
+def group_text(grp: dict) -> str:
+    """One effect's group of a several-effect twin: ``a = v [q05, q95]`` alone, or
+    ``(a = v 62 % or b = w 38 %)`` with each member's evidence share; a failure-year spread
+    is named."""
+    ms = grp["members"]
+    if len(ms) == 1:
+        m = ms[0]
+        return f"{m['effect']} = {m['value']:.4g} [{m['q05']:.4g}, {m['q95']:.4g}]"
+    text = "(" + " or ".join(f"{m['effect']} = {m['value']:.4g} {100 * m['weight']:.0f} %"
+                             for m in ms) + ")"
+    if grp.get("failure_year_spread"):
+        lo, hi = grp["failure_year_range"]
+        text += f" [failure year {lo or 'none'}-{hi or 'none'} across the group]"
+    return text
