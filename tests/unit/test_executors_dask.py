@@ -137,9 +137,10 @@ def test_a_scheduler_out_of_reach_fails_fast_in_one_line(small_cfg, tmp_path):
 def test_ctrl_c_on_dask_exits_130_and_leaves_no_worker(small_cfg, tmp_path):
     scratch = tmp_path / "tmp"          # the command's $TMPDIR: where its workers' files go
     scratch.mkdir()
-    # Model Exchange runs are slow enough for a small design to be interrupted mid-way.
+    # A design long enough to be interrupted mid-way: 400 Model Exchange runs take about 1 s
+    # on 2 idle cores, 20 000 about a minute (Ctrl-C comes after a second).
     p = subprocess.Popen(_cli("simulate", "-c", small_cfg, "--set", "simulate.executor=dask",
-                              "--set", "simulate.workers=2", "--set", "simulate.train_size=400",
+                              "--set", "simulate.workers=2", "--set", "simulate.train_size=20000",
                               "--set", "model.fmi_type=ModelExchange", "-o", tmp_path / "s.h5"),
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                          cwd=tmp_path, start_new_session=True,
