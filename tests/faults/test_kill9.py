@@ -8,6 +8,7 @@ from __future__ import annotations
 import os
 import signal
 import subprocess
+import time
 
 import h5py
 import numpy as np
@@ -136,3 +137,52 @@ def test_lock_of_a_dead_holder_is_taken_over(work):
     finally:
         holder.kill()
         holder.wait()
+
+
+def test_kill9_of_calibrate_with_a_pool(work, tmp_path):
+    """The same for calibrate's sampling pool (OpenTURNS chains, one task each): workers
+    gone, scratch gone, the lock free; the re-run equals a run on one process."""
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    env = {**os.environ, "TMPDIR": str(scratch)}
+    args = ["-c", work / "small.yaml", "--surrogate", work / "surrogate.h5",
+            "--observations", work / "fleet.h5", "--set", "calibrate.sampler=openturns"]
+    out = work / "k" / "posterior.h5"
+    out.parent.mkdir()
+    p = subprocess.Popen(cmd("calibrate", *args, "--set", "calibrate.workers=2", "-o", out),
+                         cwd=work, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    workers: set[int] = set()
+    try:
+        assert wait_for(lambda: len(_children(p.pid)) >= 2, 60, p), \
+            "calibrate never started its pool"
+        time.sleep(1.0)                                 # chains under way
+        assert p.poll() is None, "calibrate ended before it could be killed"
+        workers = _children(p.pid)
+        p.kill()
+        try:
+            p.communicate(timeout=15)
+        except subprocess.TimeoutExpired:
+            raise AssertionError("the killed command's stdout/stderr are still held open") \
+                from None
+        assert wait_for(lambda: not any(_running(w) for w in workers), 15), \
+            f"workers outlived the killed command: {_describe(w for w in workers if _running(w))}"
+        assert wait_for(lambda: not any(scratch.glob("twinmon-*")), 10), \
+            f"left in TMPDIR: {sorted(x.name for x in scratch.iterdir())}"
+        assert not out.exists()
+        r = twinmon("calibrate", *args, "--set", "calibrate.workers=2", "-o", out, cwd=work,
+                    env=env)
+        assert_ok(r)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+        for w in workers:
+            if _running(w):
+                os.kill(w, signal.SIGKILL)
+    ref = work / "ref.h5"
+    assert_ok(twinmon("calibrate", *args, "--set", "calibrate.workers=1", "-o", ref, cwd=work,
+                      env=env))
+    with h5py.File(out, "r") as a, h5py.File(ref, "r") as b:
+        for unit in b["units"]:
+            np.testing.assert_array_equal(a[f"units/{unit}/samples"][()],
+                                          b[f"units/{unit}/samples"][()], err_msg=unit)
