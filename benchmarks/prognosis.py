@@ -179,7 +179,11 @@ def score(cfg, summary, kinds, truth) -> dict:
               "cover_inputs": (int(np.sum(cx)), len(cx)),
               "fail_within1": (int(np.sum(within)), len(within)),
               "fail50_within1": (int(np.sum(within50)), len(within50)),
-              "soon_missed": (len(missed_soon), len(soon))}
+              "soon_missed": (len(missed_soon), len(soon)),
+              "unreliable_healthy": (sum(r[3].status == "unreliable" for r in healthy),
+                                     len(healthy)),
+              "unreliable_faulty": (sum(r[3].status == "unreliable" for r in faulty),
+                                    len(faulty))}
     out = {key: k / n if n else float("nan") for key, (k, n) in counts.items()}
     return {**out, "counts": counts, "confusion": conf, "labels": labels,
             "n_strong": len(strong),
@@ -397,6 +401,9 @@ def report(tag: str, r: dict) -> None:
           f"(median failure year {r['fail50_within1']:.3f})")
     print("  failure years (P>5 %, median, true):",
           " ".join(f"{u} {a}/{b}/{c}" for u, (a, b, c) in sorted(r["failure_years"].items())))
+    (kh, nh), (kf, nf) = r["counts"]["unreliable_healthy"], r["counts"]["unreliable_faulty"]
+    print(f"  status unreliable (a twin that did not converge, or a trend that accelerates): "
+          f"healthy {kh}/{nh}, faulty {kf}/{nf}")
     k, n = r["counts"]["soon_missed"]
     print(f"  failing within 3 years of the record but told ok with max P(unsafe) < 5 %: "
           f"{k} of {n} (target 0){': ' + ', '.join(r['missed_soon']) if k else ''}")

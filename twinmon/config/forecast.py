@@ -41,6 +41,11 @@ class ForecastConfig:
     #: jointly. false: each unit's own prior (``calibrate.prior_width``).
     pool_sigma: bool = True
     pool_min_units: int = 5
+    #: Trend-shape gate: an input that drifts abnormally and whose yearly estimates
+    #: accelerate in its degrading direction (one-sided test of a quadratic term over the
+    #: current part's years, at this level, Bonferroni over the inputs tested) makes the
+    #: unit's prognosis ``unreliable``: its straight-line trend understates the wear. 0: off.
+    shape_alpha: float = 0.01
 
     def _check(self):
         if self.pool_min_units < 2:
@@ -56,6 +61,8 @@ class ForecastConfig:
             yield "samples", "must be >= 10", self.samples
         if not 0 < self.alpha < 1:
             yield "alpha", "must lie in (0, 1)", self.alpha
+        if not 0 <= self.shape_alpha < 1:
+            yield "shape_alpha", "must lie in [0, 1)", self.shape_alpha
         if self.observed_samples < 1:
             yield "observed_samples", "must be >= 1", self.observed_samples
         if self.withhold_years < 1:

@@ -18,13 +18,14 @@ from ..config import Config
 from ..errors import ArtifactError, CalibrationError
 from .covariance import estimate_error_covariance
 from .detection import gradient_from, gradient_points, mid_state
-from .judge import STATUS_UNRELIABLE, STATUS_WITHHELD, judge, prognosis_status
+from .judge import STATUS_OK, STATUS_UNRELIABLE, STATUS_WITHHELD, judge, prognosis_status
 from .plan import maintenance_plan
 from .pooling import _pool_unit
 from .predictive import (residual_correlation, sample_predictive, sample_state,
                          state_interval, state_predictive)
 from .streams import unit_rng
-from .trend import posterior_slope_test, repair_years, segment_trend, slope_test
+from .trend import (posterior_slope_test, repair_years, segment_trend, shape_gate,
+                    slope_test)
 from .twin import SOURCE_FAILED, TwinResult, evaluate_twin
 from .unit import UnitForecast
 
@@ -217,6 +218,12 @@ def _finish_unit(cfg: Config, unit: str, up, p: dict, twin: TwinResult,
                                int(p["years"][-1]), float(p_obs[-1]), cfg.safety,
                                drift=drift, attribution=attribution, cfg=cfg)
     uf.status, uf.status_reason = prognosis_status(up, cfg, fit_windows)
+    if uf.status == STATUS_OK:
+        # The twin fits, but the trend may not: accelerating wear makes the line's
+        # failure year late with intervals that look sure.
+        shape = shape_gate(cfg, up, p["years"], p["mean"], trends)
+        if shape:
+            uf.status, uf.status_reason = STATUS_UNRELIABLE, shape
     if uf.status == STATUS_WITHHELD:
         if fc.force_prognosis:
             uf.forced = True

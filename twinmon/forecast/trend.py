@@ -243,3 +243,86 @@ def posterior_slope_test(trend: Trend, draws: np.ndarray, normal_rate: float,
     trend.slope_ci = (float(lo), float(hi))
     return slope_test(trend, normal_rate, tolerance, direction, alpha, dof=POSTERIOR_DOF,
                       what="test on the joint posterior's slope")
+
+
+#: Fewest years of a part's history on which acceleration is tested (a quadratic fit has
+#: three coefficients; five years leave two degrees of freedom).
+SHAPE_MIN_YEARS = 5
+
+
+def acceleration_test(years: np.ndarray, values: np.ndarray, direction: int) -> float:
+    """p-value of a one-sided test that the yearly values accelerate in ``direction``.
+
+    The least-squares fit ``a + b x + c x^2`` (x the centred year); H0: ``direction * c <=
+    0``; Student t with n - 3 dof.
+
+    Parameters
+    ----------
+    years : ndarray, shape [n]
+    values : ndarray, shape [n]
+        Yearly estimates of one input (input units), n >= :data:`SHAPE_MIN_YEARS`.
+    direction : int
+        +1 when an increase degrades the unit, -1 when a decrease does (0: two-sided).
+
+    Returns
+    -------
+    float
+        The p-value (1 for fewer than :data:`SHAPE_MIN_YEARS` years or an exact fit).
+    """
+    from scipy import stats
+    x = np.asarray(years, float)
+    y = np.asarray(values, float)
+    if x.size < SHAPE_MIN_YEARS:
+        return 1.0
+    x = x - x.mean()
+    X = np.column_stack([np.ones_like(x), x, x * x])
+    coef, *_ = np.linalg.lstsq(X, y, rcond=None)
+    dof = x.size - 3
+    resid = y - X @ coef
+    se = float(np.sqrt(resid @ resid / dof * np.linalg.inv(X.T @ X)[2, 2]))
+    if se == 0:
+        return 1.0
+    t = coef[2] / se
+    if direction:
+        return float(stats.t.sf(direction * t, dof))
+    return float(min(1.0, 2 * stats.t.sf(abs(t), dof)))
+
+
+def shape_gate(cfg: Config, up, years: np.ndarray, mean: np.ndarray, trends: dict) -> str:
+    """Why a unit's straight-line trends cannot be trusted, or ``""``.
+
+    Only inputs whose slope test found abnormal drift are tested (a sound input's bend does
+    not move the failure year, and testing only those keeps healthy units out): each for
+    acceleration in its degrading direction over its current part's years
+    (:func:`acceleration_test`), at ``forecast.shape_alpha`` divided by the number tested.
+
+    Parameters
+    ----------
+    up : UnitPosterior
+        For its maintenance events (:func:`repair_years`).
+    years : ndarray of int, shape [n_y]
+    mean : ndarray, shape [n_y, d]
+        The yearly estimates the trends were fitted to.
+    trends : dict name -> Trend
+        With their tests filled in.
+    """
+    alpha = cfg.forecast.shape_alpha
+    if alpha <= 0:
+        return ""
+    since = repair_years(cfg, up, years)
+    names = list(trends)
+    tested = [i for i, n in enumerate(names)
+              if trends[n].rejects and (years >= since[n]).sum() >= SHAPE_MIN_YEARS]
+    found = []
+    for i in tested:
+        n = names[i]
+        seg = years >= since[n]
+        p = acceleration_test(years[seg], mean[seg, i], trends[n].direction)
+        if p < alpha / len(tested):
+            found.append((p, n, int(years[seg][0]), int(years[seg][-1])))
+    if not found:
+        return ""
+    p, n, a, b = min(found)
+    return (f"{n}'s yearly estimates accelerate over years {a}-{b} (one-sided test of a "
+            f"quadratic term, p = {p:.2g}): the straight-line trend understates its wear and "
+            "the failure may come earlier than forecast")
