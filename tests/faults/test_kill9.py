@@ -8,7 +8,6 @@ from __future__ import annotations
 import os
 import signal
 import subprocess
-import time
 
 import h5py
 import numpy as np
@@ -44,6 +43,18 @@ def _running(pid: int) -> bool:
     except OSError:
         return False
     return state != "Z"
+
+
+def _cpu_seconds(pids) -> float:
+    """User + system CPU time used so far by ``pids`` (from /proc)."""
+    total = 0
+    for pid in pids:
+        try:
+            fields = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        total += int(fields[11]) + int(fields[12])      # utime, stime (clock ticks)
+    return total / os.sysconf("SC_CLK_TCK")
 
 
 def _describe(pids) -> list[str]:
@@ -145,8 +156,11 @@ def test_kill9_of_calibrate_with_a_pool(work, tmp_path):
     scratch = tmp_path / "tmp"
     scratch.mkdir()
     env = {**os.environ, "TMPDIR": str(scratch)}
+    # Long enough chains (~5 s of sampling) that the kill lands while they run, not after
+    # the pool has shut down.
     args = ["-c", work / "small.yaml", "--surrogate", work / "surrogate.h5",
-            "--observations", work / "fleet.h5", "--set", "calibrate.sampler=openturns"]
+            "--observations", work / "fleet.h5", "--set", "calibrate.sampler=openturns",
+            "--set", "calibrate.samples=8000"]
     out = work / "k" / "posterior.h5"
     out.parent.mkdir()
     p = subprocess.Popen(cmd("calibrate", *args, "--set", "calibrate.workers=2", "-o", out),
@@ -155,9 +169,12 @@ def test_kill9_of_calibrate_with_a_pool(work, tmp_path):
     try:
         assert wait_for(lambda: len(_children(p.pid)) >= 2, 60, p), \
             "calibrate never started its pool"
-        time.sleep(1.0)                                 # chains under way
-        assert p.poll() is None, "calibrate ended before it could be killed"
         workers = _children(p.pid)
+        # Chains under way: the workers have sampled for a while.
+        assert wait_for(lambda: _cpu_seconds(workers) > 1.0, 60, p), \
+            "calibrate's workers never started sampling"
+        assert p.poll() is None, "calibrate ended before it could be killed"
+        assert any(scratch.glob("twinmon-pool-*"))
         p.kill()
         try:
             p.communicate(timeout=15)

@@ -68,7 +68,8 @@ def detach_worker() -> None:
         pass
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     # stop_pool() terminates workers with SIGTERM: leave through SystemExit so that
-    # multiprocessing's finalizers (the extracted FMU folder) still run.
+    # multiprocessing's finalizers (the extracted FMU folder) still run. The command's death
+    # has a signal of its own (die_with_parent).
     signal.signal(signal.SIGTERM, _exit_on_term)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     # Neither the command's stdout nor its stderr stays open in a worker: a worker outliving
@@ -88,27 +89,57 @@ def detach_worker() -> None:
 
 def die_with_parent(parent: int, scratch: str = "") -> None:
     """Make this worker end when ``parent`` (the command) dies, even by ``kill -9``: Linux
-    sends it SIGTERM (``PR_SET_PDEATHSIG``), which leaves through SystemExit, so the
-    worker's extracted FMU is removed, then the pool's ``scratch`` folder (the parent, dead,
-    cannot). Without it, orphaned workers live on, holding the command's output and its
-    scratch folder. Elsewhere than Linux this is a no-op."""
+    sends it SIGUSR1 (``PR_SET_PDEATHSIG``), on which the worker closes what it opened (its
+    extracted FMU), removes the pool's ``scratch`` folder (the parent, dead, cannot) and
+    leaves. Without it, orphaned workers live on, holding the command's output and its
+    scratch folder. Elsewhere than Linux this is a no-op.
+
+    Why not SIGTERM, which :func:`stop_pool` sends: Linux signals the death of the *thread*
+    that forked the worker, and a process killed by ``kill -9`` loses its threads one by one,
+    so the first signal often comes while ``getppid()`` still names the dying command. Only a
+    signal of its own tells the worker, without guessing, that its command is ending."""
+    global _parent, _scratch
+    _parent, _scratch = parent, scratch
     if scratch:
         from multiprocessing.util import Finalize
-        # exitpriority 0: after the FMU instance (10) is closed.
+        # A worker that leaves some other way once the command is gone; exitpriority 0:
+        # after the FMU instance (10) is closed.
         Finalize(None, _remove_if_orphan, (parent, scratch), exitpriority=0)
-    global _parent
-    _parent = parent
     if not sys.platform.startswith("linux"):
         return
     try:
         import ctypes
         libc = ctypes.CDLL(None, use_errno=True)
         PR_SET_PDEATHSIG = 1
-        libc.prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
+        signal.signal(_PARENT_DIED, _on_parent_death)
+        libc.prctl(PR_SET_PDEATHSIG, int(_PARENT_DIED), 0, 0, 0)
     except (OSError, AttributeError):
         return
     if os.getppid() != parent:      # the parent died before prctl took effect
-        os.kill(os.getpid(), signal.SIGTERM)
+        _on_parent_death()
+
+
+#: The signal Linux sends a worker when its command dies (``PR_SET_PDEATHSIG``).
+_PARENT_DIED = signal.SIGUSR1
+
+#: PID of the command that started this worker (0: not a pool worker), and the pool's
+#: scratch folder.
+_parent = 0
+_scratch = ""
+
+
+def _on_parent_death(signum=None, frame=None) -> None:
+    # Nobody will read a result, and a SystemExit raised inside a task would be caught by the
+    # pool and sent back as that task's result (the worker then waits for the next task
+    # forever): clean up and leave now.
+    from multiprocessing import util
+    try:
+        util._run_finalizers(0)
+        if _scratch:
+            import shutil
+            shutil.rmtree(_scratch, ignore_errors=True)
+    finally:
+        os._exit(0)
 
 
 def _remove_if_orphan(parent: int, scratch: str) -> None:
@@ -117,20 +148,9 @@ def _remove_if_orphan(parent: int, scratch: str) -> None:
         shutil.rmtree(scratch, ignore_errors=True)
 
 
-#: PID of the command that started this worker (0: not a pool worker).
-_parent = 0
-
-
 def _exit_on_term(signum, frame):
     if _parent and os.getppid() != _parent:
-        # The command is gone: nobody will read a result, and a SystemExit raised inside a
-        # task would be caught by the pool and sent back as that task's result (the worker
-        # then waits for the next task forever). Clean up and leave now.
-        from multiprocessing import util
-        try:
-            util._run_finalizers(0)
-        finally:
-            os._exit(0)
+        _on_parent_death()
     raise SystemExit(0)
 
 
@@ -197,11 +217,26 @@ def start_pool(workers: int, initializer=None, initargs=()):
     with sigint_deferred():
         pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_detached,
                                    initargs=(initializer, initargs, scratch, os.getpid()))
-        weakref.finalize(pool, shutil.rmtree, scratch, True)
+        # Removed as soon as the pool is shut down (shutdown_pool, stop_pool), not when the
+        # pool object is collected: a command killed between the two would leave it behind.
+        pool._twinmon_scratch = weakref.finalize(pool, shutil.rmtree, scratch, True)
         # Start every worker inside the block (a fork context starts them all at the first
         # submit) and let each finish its initializer.
         wait([pool.submit(_noop) for _ in range(workers)])
     return pool
+
+
+def _drop_scratch(pool) -> None:
+    cleanup = getattr(pool, "_twinmon_scratch", None)
+    if cleanup is not None:
+        cleanup()
+
+
+def shutdown_pool(pool) -> None:
+    """Shut ``pool`` down once its work is done: wait for the workers, then remove their
+    scratch folder at once."""
+    pool.shutdown(wait=True)
+    _drop_scratch(pool)
 
 
 def stop_pool(pool) -> None:
@@ -222,6 +257,7 @@ def stop_pool(pool) -> None:
             p.kill()
             p.join(1)
     pool.shutdown(wait=False, cancel_futures=True)
+    _drop_scratch(pool)
 
 
 @contextmanager
@@ -245,7 +281,7 @@ def closing_pool(pool, broken: Exception, interrupted: Optional[Exception] = Non
         raise interrupted from None
     finally:
         if ok:
-            pool.shutdown(wait=True)
+            shutdown_pool(pool)
         else:
             stop_pool(pool)
 
@@ -337,7 +373,7 @@ class ProcessExecutor(Executor):
 
     def close(self) -> None:
         if self._pool is not None:
-            self._pool.shutdown(wait=True)
+            shutdown_pool(self._pool)
             self._pool, self._spec = None, None
 
     def _pool_for(self, spec: SimulationSpec):
