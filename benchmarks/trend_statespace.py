@@ -1,26 +1,46 @@
-"""A candidate trend model measured on the prognosis families: a local linear trend on
-per-year likelihood summaries, its hyperparameters pooled over the fleet.
+"""Candidate trend models measured on the prognosis families: per unit, an average over a
+local linear trend, an accelerating trend and a step, on per-year likelihood summaries, their
+variances pooled over the fleet.
 
 Each unit-year is calibrated alone under the design box's uniform prior (the sequential
 method's first year), which summarises that year's likelihood by the draws' mean ``m_k`` and
-covariance ``P_k``. A Kalman filter then carries each unit's level and slope through the
-years: ``level' = level + slope``, ``slope' = slope + drift`` (drift sd ``q`` a year, the
-acceleration the trend may take), ``m_k = level_k + jitter_k + error_k`` (jitter sd ``s``,
-the true year-to-year variation; error covariance ``P_k``). A recorded replacement restarts
-the part's level and slope. ``q`` and ``s`` per input are fitted by maximising the fleet's
-summed marginal likelihood (empirical Bayes, as ``forecast.pool_sigma`` pools the joint
-method's sd). The future state is the filter's prediction plus the jitter; it runs through
-the twin (surrogate inside the box, FMU outside) for P(unsafe) and the failure year.
-Detection tests the last filtered slope against normal ageing plus tolerance.
+covariance ``P_k``. Kalman filters then carry each unit's inputs through the years, with
+``m_k = level_k + jitter_k + error_k`` (jitter sd ``s``, the true year-to-year variation;
+error covariance ``P_k``), under three trend models:
+
+* ``llt``, the local linear trend: ``level' = level + slope``, ``slope' = slope + drift``
+  (drift sd ``q`` a year);
+* ``acc``, the same plus an acceleration: ``level' = level + slope + acc / 2``,
+  ``slope' = slope + acc + drift``, ``acc' = acc + acc drift``, the acceleration's prior sd
+  ``a`` at the first year and its drift sd ``q3`` a year;
+* ``step``, the local linear trend plus one jump of the level (sd ``j``) and of the slope
+  (sd ``js``) in one year after the first, each such year equally likely; in the future it
+  expects further jumps at that rate (one per record), their variance added to each year's.
+
+A recorded replacement restarts the part's level and slope (its acceleration back to 0). The variances per
+input are fitted by empirical Bayes (as ``forecast.pool_sigma`` pools the joint method's sd):
+``q`` and ``s`` by maximising the fleet's summed marginal likelihood under the local linear
+trend alone, so that on straight lines the average stays that model; then ``a``, ``q3``,
+``j`` and ``js`` by maximising the fleet's summed likelihood of the mixture. A unit's models
+are weighted by prior (0.6 on the straight line, 0.2 on each other) times the likelihood of
+their one-step-ahead predictions from the unit's third year. The future state is drawn from
+the mixture (each model's share of the draws its weight), so the intervals carry the shape's
+uncertainty; it runs through the twin (surrogate inside the box, FMU outside) for P(unsafe)
+and the failure year.
+
+Detection (``detected``, ``false_alarm``) tests, under the mixture, whether an input wore
+more over its record (last level minus first, or since a recorded replacement) than normal
+ageing plus tolerance would; ``detected_slope`` and ``false_alarm_slope`` test the last
+slope instead. ``--models llt`` is the local linear trend alone.
 
 This measures whether such a model could replace the joint method's straight line (cost and
 honesty on wear that is not a line); it is not wired into ``twinmon``. Attribution here is
 crude (an input's test alone, no ``ambiguous``), so "wrong" is not comparable with the
 benchmark's.
 
-Usage: ``python benchmarks/trend_statespace.py [--workdir DIR] [--family F] [--seed S]``;
-the fleet is fabricated in ``DIR`` as ``benchmarks/prognosis.py`` makes it (or taken from
-there when that script already made it), about a minute on 2 cores.
+Usage: ``python benchmarks/trend_statespace.py [--workdir DIR] [--family F] [--seed S]
+[--models llt,acc,step]``; the fleet is fabricated in ``DIR`` as ``benchmarks/prognosis.py``
+makes it (or taken from there when that script already made it), about a minute on 2 cores.
 """
 from __future__ import annotations
 
@@ -254,12 +274,25 @@ class TrendModels:
                  "a2": 0.1 * (self.tol / self.width) ** 2, "q3": 0.01 * (self.tol / self.width) ** 2,
                  "j2": 1e-2 * np.ones(d), "js2": (self.tol / self.width) ** 2}
         th0 = np.log(np.concatenate([start[h] for h in self.hyper]))
+        fixed = 0
+        if self.models != ("llt",) and "llt" in self.models:
+            # The straight line's variances first, from its own fit (the special case stays
+            # the local linear trend alone); the other models' then, by the mixture.
+            llt = TrendModels.__new__(TrendModels)
+            llt.__dict__.update(self.__dict__, models=("llt",), hyper=list(HYPER["llt"]))
+            sub = {k: (v[tr["model"] == "llt"] if isinstance(v, np.ndarray) and k in
+                       ("unit", "model", "tau", "n_tau", "logprior") else v) for k, v in tr.items()}
+            sub["logprior"] = np.zeros(int(np.sum(tr["model"] == "llt")))
+            th_llt, _ = llt.fit(sub)
+            fixed = len(th_llt)
+            th0[:fixed] = th_llt
 
-        def nll(theta):
-            return -self.unit_loglik(tr, self.run(tr, np.clip(theta, -40, 5))[0]).sum()
-        res = optimize.minimize(nll, th0, method="Nelder-Mead",
+        def nll(free):
+            theta = np.clip(np.concatenate([th0[:fixed], free]), -40, 5)
+            return -self.unit_loglik(tr, self.run(tr, theta)[0]).sum()
+        res = optimize.minimize(nll, th0[fixed:], method="Nelder-Mead",
                                 options={"maxiter": 300 * len(th0), "xatol": 1e-3, "fatol": 1e-3})
-        return np.clip(res.x, -40, 5), res
+        return np.clip(np.concatenate([th0[:fixed], res.x]), -40, 5), res
 
     def predict(self, x, P, theta, h, tr):
         """Mean [B, h, d] and covariance [B, h, d, d] of the true state 1..h years ahead. A
@@ -395,19 +428,11 @@ def main() -> int:
         n = len(tval)
         lo, hi = r["lo"], r["hi"]
         score["cover_inputs"] += list(((lo[:n] <= r["true_x"]) & (r["true_x"] <= hi[:n])).ravel())
-        import os
-        if os.environ.get("SSDEBUG"):
-            cv = (lo[:n] <= r["true_x"]) & (r["true_x"] <= hi[:n])
-            print("DBG", u, kind, m, "in", "".join("01"[int(c)] for c in cv[:, 0]), "".join("01"[int(c)] for c in cv[:, 1]),
-                  "lo/hi/true last", np.round(lo[n-1], 3), np.round(hi[n-1], 3), np.round(r["true_x"][n-1], 3))
         # As the forecast's indicator quantiles: a failed run is an unreached level (inf),
         # and the empirical quantile never interpolates between two infinities.
         q05, q95 = np.quantile(np.where(np.isnan(val), np.inf, val), [0.05, 0.95], axis=1,
                                method="inverted_cdf")
         score["cover_indicator"] += list((q05[:n] <= tval) & (tval <= q95[:n]))
-        if os.environ.get("SSDEBUG"):
-            ci = (q05[:n] <= tval) & (tval <= q95[:n])
-            print("DBGI", u, "".join("01"[int(c)] for c in ci), np.round(q05[:n], 1), np.round(q95[:n], 1), np.round(tval, 1), r["wm"])
         bad = is_unsafe(ind(tt, clean[u]), cfg.safety, None)
         eol = (int(truth.years[u][np.argmax(bad)]) if bad.any()
                else int(truth.future_years[u][np.argmax(tuns)]) if tuns.any() else None)
