@@ -53,7 +53,7 @@ import yaml
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from twinmon.backtest import calibrate_cut, truncate, ttf_scores  # noqa: E402
+from twinmon.backtest import calibrate_cut, truncate, ttf_scores, wilson_interval  # noqa: E402
 from twinmon.calibrate import Posterior, calibrate, read_posterior  # noqa: E402
 from twinmon.config import load_config  # noqa: E402
 from twinmon.fabricate import fabricate, read_truth  # noqa: E402
@@ -184,6 +184,17 @@ def score(cfg, summary, kinds, truth) -> dict:
                                      len(healthy)),
               "unreliable_faulty": (sum(r[3].status == "unreliable" for r in faulty),
                                     len(faulty))}
+    # Repairs nobody recorded: found (the right year and component) on the units that had
+    # one, and found where there was none.
+    hidden = {u: {(int(y), c) for y, c in truth.unrecorded.get(u, ())} for u in rows}
+    # A finding naming several components (the output cannot tell them apart) is right
+    # when the repaired one is among them.
+    found = {u: {(r["year"], c) for r in rows[u][3].repairs for c in r["components"]}
+             for u in rows}
+    had = [u for u in rows if hidden[u]]
+    counts["repair_found"] = (sum(bool(found[u] & hidden[u]) for u in had), len(had))
+    counts["repair_false"] = (sum(not any(hidden[u] & {(r["year"], c) for c in r["components"]})
+                                  for u in rows for r in rows[u][3].repairs), len(rows))
     out = {key: k / n if n else float("nan") for key, (k, n) in counts.items()}
     return {**out, "counts": counts, "confusion": conf, "labels": labels,
             "n_strong": len(strong),
@@ -193,16 +204,6 @@ def score(cfg, summary, kinds, truth) -> dict:
             "misses": [(u, rows[u][0], round(rows[u][1], 2), rows[u][2]) for u in rows
                        if (rows[u][0] == "healthy") != (rows[u][2] == "healthy")
                        or rows[u][2] not in ("healthy", "ambiguous", rows[u][0])]}
-
-
-def wilson(k: int, n: int, z: float = 1.645) -> tuple[float, float]:
-    """90 % Wilson score interval of a binomial proportion k / n."""
-    if n == 0:
-        return float("nan"), float("nan")
-    p = k / n
-    c = (p + z * z / (2 * n)) / (1 + z * z / n)
-    h = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return c - h, c + h
 
 
 def main() -> int:
@@ -259,7 +260,7 @@ def main() -> int:
                     pooled[key] = (k0 + k, n0 + n)
             print(f"  {tag}:")
             for key, (k, n) in pooled.items():
-                lo, hi = wilson(k, n)
+                lo, hi = wilson_interval(k / n if n else 0.0, n)
                 print(f"    {key:17s} {k:4d}/{n:<4d} {k / max(n, 1):.3f}  [{lo:.3f}, {hi:.3f}]")
     return 0
 
@@ -404,6 +405,9 @@ def report(tag: str, r: dict) -> None:
     (kh, nh), (kf, nf) = r["counts"]["unreliable_healthy"], r["counts"]["unreliable_faulty"]
     print(f"  status unreliable (a twin that did not converge, or a trend that accelerates): "
           f"healthy {kh}/{nh}, faulty {kf}/{nf}")
+    (kr, nr), (kx, nx) = r["counts"]["repair_found"], r["counts"]["repair_false"]
+    print(f"  unrecorded repairs found (year right, the repaired component among those named): "
+          f"{kr}/{nr} repaired units; findings with no such repair: {kx} on {nx} units")
     k, n = r["counts"]["soon_missed"]
     print(f"  failing within 3 years of the record but told ok with max P(unsafe) < 5 %: "
           f"{k} of {n} (target 0){': ' + ', '.join(r['missed_soon']) if k else ''}")

@@ -190,6 +190,16 @@ class BacktestSummary:
         }
 
 
+def wilson_interval(share: float, n: int, z: float = 1.645) -> tuple[float, float]:
+    """Wilson score interval of a binomial proportion ``share`` of ``n`` trials (90 % for the
+    default ``z``); NaNs when ``n`` is 0."""
+    if n == 0:
+        return float("nan"), float("nan")
+    centre = (share + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * np.sqrt(share * (1 - share) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return float(centre - half), float(centre + half)
+
+
 def coverage_verdict(coverage: float, n_pairs: int, confidence: float,
                      band: float) -> tuple[bool, str]:
     """Whether a back-test's coverage is consistent with its intervals' confidence.
@@ -215,11 +225,7 @@ def coverage_verdict(coverage: float, n_pairs: int, confidence: float,
     lo_band, hi_band = confidence - band, confidence + band
     if n_pairs == 0 or not np.isfinite(coverage):
         return True, ""
-    z = 1.645
-    centre = (coverage + z * z / (2 * n_pairs)) / (1 + z * z / n_pairs)
-    half = (z * np.sqrt(coverage * (1 - coverage) / n_pairs + z * z / (4 * n_pairs ** 2))
-            / (1 + z * z / n_pairs))
-    lo, hi = centre - half, centre + half
+    lo, hi = wilson_interval(coverage, n_pairs)
     if hi < lo_band:
         return False, (f"back-test coverage {coverage:.2f} of {n_pairs} later observations "
                        f"(90 % interval {lo:.2f}-{hi:.2f}) is below {lo_band:.2f}-{hi_band:.2f}: "

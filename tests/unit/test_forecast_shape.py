@@ -1,4 +1,5 @@
-"""forecast's trend-shape gate: wear that accelerates makes a prognosis unreliable."""
+"""forecast's trend shapes: wear that accelerates makes a prognosis unreliable, and a jump
+back towards nominal that no event records is found and restarts the trend."""
 from __future__ import annotations
 
 import numpy as np
@@ -8,6 +9,7 @@ from twinmon.calibrate import calibrate
 from twinmon.config import load_config
 from twinmon.fabricate import fabricate
 from twinmon.forecast import forecast
+from twinmon.repairs import fall_test
 from twinmon.forecast.trend import acceleration_test
 from twinmon.reduce import reduce
 from twinmon.simulate import simulate
@@ -29,10 +31,63 @@ def test_acceleration_test_is_one_sided_in_the_degrading_direction():
     assert 0.03 < np.mean(np.array(p) < 0.05) < 0.075
 
 
+def _fall(years, values, direction, sd=0.02):
+    """fall_test on one input whose yearly errors have sd ``sd``."""
+    cov = np.full((len(years), 1, 1), sd ** 2)
+    return fall_test(years, np.asarray(values, float)[:, None], cov, 0, direction)
+
+
+def test_fall_test_finds_a_repair_and_nothing_else():
+    rng = np.random.default_rng(5)
+    years = np.arange(1, 11)
+    wear = lambda age: 1.0 + 0.1 * age                                  # noqa: E731
+    noise = 0.02 * rng.standard_normal(10)
+    repaired = np.where(years < 6, wear(years - 1), wear(years - 6)) + noise
+    p, year, step, tried = _fall(years, repaired, +1)
+    assert p < 1e-4 and year == 6 and step < -0.3 and tried == 7
+    # One-sided: a jump in the degrading direction (a step of wear) is no repair.
+    stepped = wear(years - 1) + 0.5 * (years >= 6) + noise
+    p, _, _, tried = _fall(years, stepped, +1)
+    assert p * tried > 0.5
+    assert _fall(years, -repaired, -1)[1] == 6                         # falling inputs too
+    assert _fall(years[:4], repaired[:4], +1) == (1.0, -1, 0.0, 0)
+    assert _fall(years, repaired, 0)[3] == 0                            # direction unknown
+    # Flat and straight lines and accelerating wear: after Bonferroni over the years tried,
+    # at most alpha of them are read as a repair.
+    for shape in (lambda y: 1.0 + 0.0 * y, lambda y: 1.0 + 0.1 * y,
+                  lambda y: 1.0 + 0.01 * y + 0.01 * y ** 2):
+        hits = 0
+        for _ in range(300):
+            p, _, _, tried = _fall(years, shape(years) + 0.02 * rng.standard_normal(10), +1)
+            hits += p * tried < 0.05
+        assert hits / 300 <= 0.05
+
+
+def test_fall_test_weighs_inputs_that_trade_off():
+    """Two inputs whose yearly errors run along a ridge (correlation -0.95): the second's
+    steady line tells the first's fall from a slide along the ridge."""
+    rng = np.random.default_rng(8)
+    years = np.arange(1, 11)
+    sd = np.array([0.1, 0.1])
+    cov1 = np.diag(sd) @ np.array([[1.0, -0.95], [-0.95, 1.0]]) @ np.diag(sd)
+    cov = np.repeat(cov1[None], 10, axis=0)
+    truth = np.column_stack([np.where(years < 6, 0.06 * (years - 1), 0.06 * (years - 6)),
+                             0.01 * years])
+    found = 0
+    for _ in range(100):
+        est = truth + rng.multivariate_normal([0, 0], cov1, 10)
+        p, year, _, tried = fall_test(years, est, cov, 0, +1)
+        alone = _fall(years, est[:, 0], +1, sd=0.1)
+        found += (p * tried < 0.01 and year == 6) - (alone[0] * alone[3] < 0.01
+                                                    and alone[1] == 6)
+    assert found > 30           # the joint weighting finds many more
+
+
 @pytest.fixture(scope="module")
 def dcdrive_fleet(tmp_path_factory):
     """A DC drive (not the pump) fleet: a bearing whose friction grows exponentially, one
-    that wears at a steady faulty rate, a healthy unit; calibrated year by year."""
+    that wears at a steady faulty rate, a faulty bearing replaced in year 6 with no event
+    recorded, a healthy unit; calibrated year by year."""
     from twinmon.fmu import build_fmu
     from ..conftest import ROOT
     build_fmu(ROOT / "fmus" / "DCDrive")
@@ -50,7 +105,10 @@ def dcdrive_fleet(tmp_path_factory):
             "Lin": {"trajectories": {"bearing_friction": {"start": 0.0009, "slope": 1.5e-4,
                                                           "jitter": 5e-6}, **steady}},
             "Ok": {"trajectories": {"bearing_friction": {"start": 0.0009, "slope": 0.0,
-                                                         "jitter": 5e-6}, **steady}}}}})
+                                                         "jitter": 5e-6}, **steady}},
+            "Rep": {"trajectories": {"bearing_friction": {"start": 0.0009, "slope": 2.5e-4,
+                                                          "jitter": 5e-6}, **steady},
+                    "events": [{"year": 6, "component": "bearing", "recorded": False}]}}}})
     cfg = load_config(cfg_path)
     fabricate(cfg, tmp / "obs.h5", tmp / "truth.h5")
     simulate(cfg, tmp / "sim.h5")
@@ -73,3 +131,52 @@ def test_accelerating_wear_is_unreliable_and_a_line_is_not(dcdrive_fleet):
                    tmp / "sur.h5", tmp / "fc_off.h5")
     assert off.units["Acc"].status == "ok"
     assert off.units["Acc"].failure_year == acc.failure_year
+
+
+def test_an_unrecorded_repair_is_found_and_restarts_the_trend(dcdrive_fleet):
+    cfg_path, tmp = dcdrive_fleet
+    s = forecast(load_config(cfg_path), tmp / "post.h5", tmp / "sur.h5", tmp / "fc_rep.h5",
+                 truth_path=tmp / "truth.h5")
+    rep = s.units["Rep"]
+    assert [(r["year"], r["components"]) for r in rep.repairs] == [(6, ["bearing"])]
+    assert rep.repairs[0]["steps"]["bearing_friction"] < 0
+    assert "--unit Rep --year 6 --component bearing" in rep.plan
+    assert "its trend restarts there" in rep.plan
+    # The new bearing's trend: its five years, wearing at the faulty rate again.
+    t = rep.trends["bearing_friction"]
+    assert t.n == 5 and t.rejects and abs(t.slope - 2.5e-4) < 1e-4
+    assert rep.root_cause == "bearing" and rep.status == "ok"
+    assert rep.failure_year is not None and rep.true_failure_year is not None
+    assert abs(rep.failure_year - rep.true_failure_year) <= 1
+    assert any("Rep (bearing year 6)" in w for w in s.warnings)
+    for u in ("Acc", "Lin", "Ok"):
+        assert s.units[u].repairs == [], u
+    from twinmon.forecast import read_forecast
+    back = read_forecast(tmp / "fc_rep.h5").units["Rep"]
+    assert back.repairs == rep.repairs
+    # Turned off: no finding, and the line through the whole history.
+    off = forecast(load_config(cfg_path, ["forecast.repair_alpha=0"]), tmp / "post.h5",
+                   tmp / "sur.h5", tmp / "fc_rep_off.h5")
+    assert off.units["Rep"].repairs == [] and off.units["Rep"].trends["bearing_friction"].n == 10
+
+
+def test_the_joint_method_starts_a_segment_at_an_unrecorded_repair(dcdrive_fleet):
+    cfg_path, tmp = dcdrive_fleet
+    from twinmon.calibrate import read_posterior
+    cfg = load_config(cfg_path, ["calibrate.method=joint"])
+    calibrate(cfg, tmp / "sur.h5", tmp / "obs.h5", tmp / "post_joint.h5")
+    post = read_posterior(tmp / "post_joint.h5")
+    rep = post.units["Rep"]
+    assert [(r["year"], r["components"]) for r in rep.found_repairs] == [(6, ["bearing"])]
+    i = cfg.model.input_names.index("bearing_friction")
+    assert list(rep.trend["start"][:, i]) == [1, 6]
+    for u in ("Acc", "Lin", "Ok"):
+        assert post.units[u].found_repairs == [], u
+    s = forecast(cfg, tmp / "post_joint.h5", tmp / "sur.h5", tmp / "fc_joint.h5",
+                 truth_path=tmp / "truth.h5")
+    u = s.units["Rep"]
+    assert [(r["year"], r["components"]) for r in u.repairs] == [(6, ["bearing"])]
+    assert "--unit Rep --year 6 --component bearing" in u.plan
+    assert u.root_cause == "bearing" and u.status == "ok"
+    assert abs(u.failure_year - u.true_failure_year) <= 1
+    assert u.trends["bearing_friction"].n == 5

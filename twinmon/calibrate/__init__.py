@@ -41,6 +41,9 @@ The result is ``posterior.h5`` (``twinmon.posterior/2``)::
     /units/<U>.attrs channels      JSON {channel: {std, source}} when further channels were
                                    in the likelihood (the output first)
     /units/<U>.attrs events        JSON [[year, component, action]] (maintenance events)
+    /units/<U>.attrs found_repairs JSON [{year, components, steps, p_value}]: falls back
+                                   towards nominal no event records, where the joint
+                                   method started a trend segment (forecast.repair_alpha)
 
 ``twinmon.posterior/1`` files (a dataset per field) are still read.
 
@@ -358,6 +361,7 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
     for unit, p in posterior.items():
         # Recorded with the posterior: forecast restarts a repaired component's trend.
         p.events = [(e.year, e.component, e.action) for e in obs.units[unit].events]
+        p.found_repairs = [r.as_dict() for r in getattr(runs[unit], "found_repairs", ())]
     for unit, info in channel_info.items():
         posterior[unit].channels = info
 

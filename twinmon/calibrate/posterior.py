@@ -65,6 +65,9 @@ class UnitPosterior:
     channels: dict = field(default_factory=dict)
     #: Maintenance events of the unit, (year, component, action), from the observations.
     events: list = field(default_factory=list)
+    #: Repairs no event records that calibration found in the years' estimates and started
+    #: a trend segment at (the joint method): ``FoundRepair.as_dict()`` each.
+    found_repairs: list = field(default_factory=list)
     #: Posterior variance of all the draws [year, input] and each chain's last state [year,
     #: chain, input]: what ``calibrate --update`` continues from (the next year's prior and
     #: the vectorised sampler's warm start); empty in posteriors written before.
@@ -287,7 +290,9 @@ def _unit_attrs(g: h5py.Group, p: UnitPosterior) -> None:
     g.attrs["noise_source"] = p.noise_source
     for key, value in (("events", json.dumps([[int(y), str(c), str(a)]
                                               for y, c, a in p.events]) if p.events else None),
-                       ("channels", artifacts.json_attr(p.channels) if p.channels else None)):
+                       ("channels", artifacts.json_attr(p.channels) if p.channels else None),
+                       ("found_repairs", artifacts.json_attr(p.found_repairs)
+                        if p.found_repairs else None)):
         if value is not None:
             g.attrs[key] = value
         elif key in g.attrs:
@@ -481,7 +486,8 @@ def _read_unit(f: h5py.File, unit: str, path: Path, names: list[str],
                          noise_source=src.decode() if isinstance(src, bytes) else str(src),
                          fit=fit, channels=json.loads(g.attrs.get("channels", "{}")),
                          trend=_get_trend(g, path), **arrs,
-                         events=[tuple(e) for e in json.loads(g.attrs.get("events", "[]"))])
+                         events=[tuple(e) for e in json.loads(g.attrs.get("events", "[]"))],
+                         found_repairs=json.loads(g.attrs.get("found_repairs", "[]")))
 
 
 #: Per-unit datasets of the first layout (``twinmon.posterior/1``: one dataset per field).

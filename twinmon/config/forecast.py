@@ -46,6 +46,12 @@ class ForecastConfig:
     #: current part's years, at this level, Bonferroni over the inputs tested) makes the
     #: unit's prognosis ``unreliable``: its straight-line trend understates the wear. 0: off.
     shape_alpha: float = 0.01
+    #: Unrecorded repairs: an input's yearly estimates that jump back towards nominal (a
+    #: line plus a one-sided step, at this level, Bonferroni over the years tried and the
+    #: inputs) are reported with the command that records the event; yearly estimates
+    #: refitted here then restart their trend at that year, a joint posterior's prognosis
+    #: is ``unreliable`` until the event is recorded. 0: off.
+    repair_alpha: float = 0.01
 
     def _check(self):
         if self.pool_min_units < 2:
@@ -63,6 +69,8 @@ class ForecastConfig:
             yield "alpha", "must lie in (0, 1)", self.alpha
         if not 0 <= self.shape_alpha < 1:
             yield "shape_alpha", "must lie in [0, 1)", self.shape_alpha
+        if not 0 <= self.repair_alpha < 1:
+            yield "repair_alpha", "must lie in [0, 1)", self.repair_alpha
         if self.observed_samples < 1:
             yield "observed_samples", "must be >= 1", self.observed_samples
         if self.withhold_years < 1:

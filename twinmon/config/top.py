@@ -94,6 +94,10 @@ class Config:
             out["calibrate"]["auto_by"] = {"forecast.pool_sigma": self.forecast.pool_sigma,
                                            "forecast.pool_min_units":
                                                self.forecast.pool_min_units}
+        if "calibrate" in out and self.calibrate.method != "sequential":
+            # The joint method starts a trend segment at each unrecorded repair it finds, at
+            # forecast's level: it decides the posterior too.
+            out["calibrate"]["repairs_by"] = {"forecast.repair_alpha": self.forecast.repair_alpha}
         for section, keys in EXECUTION_ONLY.items():
             if isinstance(out.get(section), dict):
                 for k in keys:

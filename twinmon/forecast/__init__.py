@@ -180,6 +180,12 @@ def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
             _write_unit(f, cfg, unit, uf, names)
             units[unit] = uf.slim()
     warnings = [d.note for d in directions.values() if d.note]
+    fell = [u + " (" + ", ".join(f"{' or '.join(r['components'])} year {r['year']}"
+                                 for r in uf.repairs) + ")"
+            for u, uf in units.items() if uf.repairs]
+    if fell:
+        warnings.append(f"{len(fell)} unit(s) fell back towards nominal as after a repair no "
+                        f"event records: {', '.join(fell)}; their plans say how to record it")
     few = {u: uf.pool_ess for u, uf in units.items() if uf.pool_ess < POOL_MIN_ESS}
     if few:
         worst = min(few, key=few.get)

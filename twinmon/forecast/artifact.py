@@ -115,6 +115,8 @@ def _write_unit(f, cfg: Config, unit: str, u: UnitForecast, names: list) -> None
         "probability of being unsafe per observed year (posterior samples)")
     if np.isfinite(u.pool_ess):
         g.attrs["pool_ess"] = u.pool_ess
+    if u.repairs:
+        g.attrs["unrecorded_repairs"] = artifacts.json_attr(u.repairs)
     if u.has_truth:
         g.attrs["true_failure_year"] = (-1 if u.true_failure_year is None
                                         else u.true_failure_year)
@@ -255,6 +257,8 @@ def _read_unit(f, unit: str, path: Path, names: list, arrays: bool = True) -> Un
         status_reason=str(g.attrs.get("status_reason", "")),
         forced=bool(g.attrs.get("forced", False)),
         pool_ess=float(g.attrs.get("pool_ess", np.nan)),
+        repairs=json.loads(g.attrs["unrecorded_repairs"]) if "unrecorded_repairs" in g.attrs
+        else [],
         drift=_drift_from(json.loads(g.attrs["detection"])) if "detection" in g.attrs else None,
         attribution=(Attribution(**json.loads(g.attrs["attribution"]))
                      if "attribution" in g.attrs else None),

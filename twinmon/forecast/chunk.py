@@ -16,6 +16,7 @@ import numpy as np
 
 from ..config import Config
 from ..errors import ArtifactError, CalibrationError
+from ..repairs import FoundRepair, find_repairs
 from .covariance import estimate_error_covariance
 from .detection import gradient_from, gradient_points, mid_state
 from .judge import STATUS_OK, STATUS_UNRELIABLE, STATUS_WITHHELD, judge, prognosis_status
@@ -119,7 +120,22 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict,
         trend_post, pooled, pool_ess = _pool_unit(cfg, unit, trend_post, samples_post, fleet)
         if pooled is not samples_post:
             samples_post, mean = pooled, pooled.mean(axis=1)
+    post_cov = np.array([np.cov(samples_post[k], rowvar=False).reshape(d, d)
+                         for k in range(years.size)])
     since = repair_years(cfg, up, years)
+    if trend_post:
+        # The joint method looked for unrecorded repairs itself, in the years' likelihoods,
+        # and its trend restarts there (since includes them).
+        repairs = [FoundRepair(**r) for r in getattr(up, "found_repairs", None) or ()]
+    else:
+        # Yearly estimates are refitted here: the component's trend restarts at the jump,
+        # as for a recorded event.
+        repairs = find_repairs(cfg, years, mean, since,
+                               {n: d.sign for n, d in directions.items()}, post_cov)
+        for rep in repairs:
+            for comp in rep.components:
+                for name in cfg.model.components[comp]:
+                    since[name] = max(since[name], rep.year)
     trends = {}
     slope_draws = None
     if trend_post:
@@ -143,8 +159,6 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict,
     # detection's normal-ageing band), evaluated with every other point.
     probe, step = gradient_points(cfg, mid_state(trends, names))
     fut = years[-1] + np.arange(1, fc.horizon + 1)
-    post_cov = np.array([np.cov(samples_post[k], rowvar=False).reshape(d, d)
-                         for k in range(years.size)])
     state = None
     err_cov = estimate_error_covariance(cfg, post_cov, sequential=not trend_post)
     if trend_post:
@@ -167,7 +181,8 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict,
     pick = np.sort(unit_rng(cfg, unit, 1).choice(samples_post.shape[1], n_o, replace=False))
     Xo = samples_post[:, pick, :]
     plan = dict(years=years, mean=mean, trends=trends, fut=fut, X=X, Xo=Xo, corr=corr,
-                resid=resid, step=step, since=max(since.values()), post_cov=post_cov,
+                resid=resid, step=step, since=max(since.values()), since_by_input=since,
+                repairs=repairs, post_cov=post_cov,
                 err_cov=err_cov, state=state, slope_draws=slope_draws, pool_ess=pool_ess)
     return plan, [X.reshape(-1, d), Xo.reshape(-1, d), probe]
 
@@ -217,11 +232,15 @@ def _finish_unit(cfg: Config, unit: str, up, p: dict, twin: TwinResult,
     uf.plan = maintenance_plan(trends, p["fut"], p_unsafe, fyear,
                                int(p["years"][-1]), float(p_obs[-1]), cfg.safety,
                                drift=drift, attribution=attribution, cfg=cfg)
+    uf.repairs = [r.as_dict() for r in p["repairs"]]
+    found = "; ".join(r.describe(cfg, unit) for r in p["repairs"])
+    if found:
+        uf.plan = f"{found[0].upper()}{found[1:]}; its trend restarts there. {uf.plan}"
     uf.status, uf.status_reason = prognosis_status(up, cfg, fit_windows)
     if uf.status == STATUS_OK:
         # The twin fits, but the trend may not: accelerating wear makes the line's
         # failure year late with intervals that look sure.
-        shape = shape_gate(cfg, up, p["years"], p["mean"], trends)
+        shape = shape_gate(cfg, p["since_by_input"], p["years"], p["mean"], trends)
         if shape:
             uf.status, uf.status_reason = STATUS_UNRELIABLE, shape
     if uf.status == STATUS_WITHHELD:

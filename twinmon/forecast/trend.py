@@ -138,9 +138,13 @@ def fit_trend(years: np.ndarray, values: np.ndarray) -> tuple[Trend, np.ndarray]
 
 def repair_years(cfg: Config, up, years: np.ndarray) -> dict:
     """Per input, the first year of its current trend: the year its component was last
-    repaired or replaced (``events`` of the posterior), else the first observed year."""
+    repaired or replaced (``events`` of the posterior, and the repairs calibration found
+    unrecorded, ``found_repairs``), else the first observed year."""
     since = {n: int(years[0]) for n in cfg.model.input_names}
-    for year, component, _action in getattr(up, "events", None) or ():
+    work = [(e[0], e[1]) for e in getattr(up, "events", None) or ()]
+    work += [(r["year"], c) for r in getattr(up, "found_repairs", None) or ()
+             for c in r["components"]]
+    for year, component in work:
         for name in cfg.model.components.get(component, ()):
             if year <= years[-1]:
                 since[name] = max(since[name], int(year))
@@ -288,7 +292,8 @@ def acceleration_test(years: np.ndarray, values: np.ndarray, direction: int) -> 
     return float(min(1.0, 2 * stats.t.sf(abs(t), dof)))
 
 
-def shape_gate(cfg: Config, up, years: np.ndarray, mean: np.ndarray, trends: dict) -> str:
+def shape_gate(cfg: Config, since: dict, years: np.ndarray, mean: np.ndarray,
+               trends: dict) -> str:
     """Why a unit's straight-line trends cannot be trusted, or ``""``.
 
     Only inputs whose slope test found abnormal drift are tested (a sound input's bend does
@@ -298,8 +303,9 @@ def shape_gate(cfg: Config, up, years: np.ndarray, mean: np.ndarray, trends: dic
 
     Parameters
     ----------
-    up : UnitPosterior
-        For its maintenance events (:func:`repair_years`).
+    since : dict input name -> int
+        First year of each input's current part (:func:`repair_years`, and repairs found
+        in the estimates).
     years : ndarray of int, shape [n_y]
     mean : ndarray, shape [n_y, d]
         The yearly estimates the trends were fitted to.
@@ -309,7 +315,6 @@ def shape_gate(cfg: Config, up, years: np.ndarray, mean: np.ndarray, trends: dic
     alpha = cfg.forecast.shape_alpha
     if alpha <= 0:
         return ""
-    since = repair_years(cfg, up, years)
     names = list(trends)
     tested = [i for i, n in enumerate(names)
               if trends[n].rejects and (years >= since[n]).sum() >= SHAPE_MIN_YEARS]

@@ -89,6 +89,8 @@ class UnitForecast:
     #: Effective number of the unit's posterior draws once reweighted to the fleet's prior
     #: of the year-to-year sd (of ``calibrate.keep_draws``); NaN when not pooled.
     pool_ess: float = float("nan")
+    #: Jumps back towards nominal no event explains (:meth:`~twinmon.repairs.FoundRepair.as_dict`).
+    repairs: list = field(default_factory=list)
 
     #: Set by :meth:`slim`: the figures kept when the Monte Carlo arrays are dropped.
     _slim: Optional[dict] = field(default=None, repr=False)
@@ -165,6 +167,7 @@ class UnitForecast:
         }
         if np.isfinite(self.pool_ess):
             d["pool_ess"] = round(self.pool_ess, 1)
+        d["unrecorded_repairs"] = list(self.repairs)
         if self.has_truth:
             d["true_failure_year"] = self.true_failure_year
             d["truth_source"] = self.truth_source

@@ -62,6 +62,7 @@ import numpy as np
 
 from ...config import Config
 from ...errors import CalibrationError
+from ...repairs import find_repairs
 from ..base import Method
 from ..density import Prior, find_map, make_log_density
 from ..diagnostics import ess, split_rhat
@@ -238,16 +239,39 @@ class JointRun:
         n_ch = len(getattr(surrogate, "blocks", ()))
         self.noise = np.broadcast_to(np.asarray(noise_std, float),
                                      (n_y, n_ch) if n_ch else (n_y,)).copy()
-        self.starts = segment_starts(cfg, self.years, events)
-        designs = [design_matrix(self.years, s) for s in self.starts]
-        self.X = [x for x, _ in designs]
-        self.centres = [c for _, c in designs]
-        self.lay = Layout(n_y, len(cfg.model.input_names), [x.shape[1] for x in self.X])
-        self.M = self.lay.mean_map(self.X)
+        self.events = list(events)
+        #: Repairs no event records, found in the years' estimates (:meth:`_prepare`).
+        self.found_repairs: list = []
+        self._design(segment_starts(cfg, self.years, self.events))
         self.k = 0
         self.ext = 0
         self._setup: Optional[dict] = None
         self._result: Optional[UnitPosterior] = None
+
+    def _design(self, starts: list) -> None:
+        """The trend's segments (``starts`` per input), design matrices and state layout."""
+        self.starts = starts
+        designs = [design_matrix(self.years, s) for s in self.starts]
+        self.X = [x for x, _ in designs]
+        self.centres = [c for _, c in designs]
+        self.lay = Layout(len(self.years), len(self.cfg.model.input_names),
+                          [x.shape[1] for x in self.X])
+        self.M = self.lay.mean_map(self.X)
+
+    def _restart_at_repairs(self, x_ml: np.ndarray, cov: np.ndarray) -> None:
+        """Start a segment where the years' maximum-likelihood points jump back towards
+        nominal with no event recorded (:func:`~twinmon.repairs.find_repairs`, each year's
+        Laplace variance as its error): a straight line across a repair would describe
+        neither part, and the unit's fault would be missed."""
+        cfg = self.cfg
+        names = cfg.model.input_names
+        since = {n: int(self.starts[i][-1]) for i, n in enumerate(names)}
+        signs = {n: {"up": 1, "down": -1}.get(cfg.model.inputs[n].degrading, 0)
+                 for n in names}
+        self.found_repairs = find_repairs(cfg, self.years, x_ml, since, signs, cov)
+        if self.found_repairs:
+            self._design(segment_starts(cfg, self.years, self.events + [
+                (r.year, c) for r in self.found_repairs for c in r.components]))
 
     @property
     def done(self) -> bool:
@@ -283,6 +307,8 @@ class JointRun:
             total.append(noise_var + s_var)
             ratio[k] = float(np.mean(s_var / noise_var))
             x_ml[k], cov[k] = find_map(make_log_density(sur, self.flows[k], total[k], uniform))
+        self._restart_at_repairs(x_ml, cov)
+        lay = self.lay
         H = np.linalg.inv(cov)                                          # [K, d, d]
         A = sigma_prior_scale(cfg)
         slope_mean = np.array([s.normal_rate for s in cfg.model.inputs.values()], float)
