@@ -154,6 +154,15 @@ def test_an_unrecorded_repair_is_found_and_restarts_the_trend(dcdrive_fleet):
     from twinmon.forecast import read_forecast
     back = read_forecast(tmp / "fc_rep.h5").units["Rep"]
     assert back.repairs == rep.repairs
+    # The report says it where a user looks: the unit's action and what it rests on.
+    import json
+
+    from twinmon.report import report
+    report(load_config(cfg_path), tmp / "report", posterior=tmp / "post.h5",
+           forecast=tmp / "fc_rep.h5")
+    text = json.dumps(json.loads((tmp / "report" / "summary.json").read_text())["units"]["Rep"])
+    assert "record the year-6 repair of the bearing" in text
+    assert "fell back towards nominal in year 6" in text
     # Turned off: no finding, and the line through the whole history.
     off = forecast(load_config(cfg_path, ["forecast.repair_alpha=0"]), tmp / "post.h5",
                    tmp / "sur.h5", tmp / "fc_rep_off.h5")
