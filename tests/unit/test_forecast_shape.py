@@ -173,7 +173,8 @@ def test_the_joint_method_starts_a_segment_at_an_unrecorded_repair(dcdrive_fleet
     cfg_path, tmp = dcdrive_fleet
     from twinmon.calibrate import read_posterior
     cfg = load_config(cfg_path, ["calibrate.method=joint"])
-    calibrate(cfg, tmp / "sur.h5", tmp / "obs.h5", tmp / "post_joint.h5")
+    summary = calibrate(cfg, tmp / "sur.h5", tmp / "obs.h5", tmp / "post_joint.h5")
+    assert summary.as_dict()["units"]["Rep"]["found_repairs"][0]["year"] == 6
     post = read_posterior(tmp / "post_joint.h5")
     rep = post.units["Rep"]
     assert [(r["year"], r["components"]) for r in rep.found_repairs] == [(6, ["bearing"])]

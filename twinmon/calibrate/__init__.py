@@ -149,7 +149,8 @@ class CalibrateSummary:
             if f and "channel_rms" in f:
                 fit["channel_rms"] = {ch: np.round(f["channel_rms"][:, i], 3).tolist()
                                       for i, ch in enumerate(p.channels)}
-            units[u] = {"years": p.years.tolist(), "params": params, "fit": fit}
+            units[u] = {"years": p.years.tolist(), "params": params, "fit": fit,
+                        "found_repairs": list(p.found_repairs)}
         out = {
             "units": units,
             "noise": {u: {"std": float(p.noise_std[0]), "source": p.noise_source,

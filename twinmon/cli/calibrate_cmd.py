@@ -64,6 +64,10 @@ def calibrate(config_path, overrides, surrogate, observations, truth, output, up
             say("  channels: " + ", ".join(
                 f"{ch} (noise std {c['std']:.3g} {units.get(ch, '')}, {c['source']})"
                 for ch, c in p.channels.items()))
+        for r in p.found_repairs:
+            say(f"  the {' or the '.join(r['components'])} fell back towards nominal in year "
+                f"{r['year']} (p = {r['p_value']:.2g}), as after a repair nobody recorded: a "
+                "trend segment starts there (forecast's plan says how to record it)")
         last = {n: p.mean[-1, j] for j, n in enumerate(s.input_names)}
         say("  last year: " + ", ".join(
             f"{n} {v:.4g} [{p.q05[-1, j]:.4g}, {p.q95[-1, j]:.4g}]"
