@@ -57,6 +57,11 @@ class FoundRepair:
     steps: dict = field(default_factory=dict)
     p_value: float = 1.0
 
+    def headline(self) -> str:
+        """What was found, in a few words (calibrate's lines, the report)."""
+        return (f"the {' or the '.join(self.components)} fell back towards nominal in year "
+                f"{self.year} (p = {self.p_value:.2g}), as after a repair nobody recorded")
+
     def describe(self, cfg: Config, unit: str) -> str:
         """One sentence for the user, with the command that records the event."""
         falls = " and ".join(f"{n} by {v:+.3g} {cfg.model.inputs[n].units}".rstrip()

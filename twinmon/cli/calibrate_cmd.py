@@ -28,6 +28,7 @@ MAX_WARNINGS = 12
 def calibrate(config_path, overrides, surrogate, observations, truth, output, update, as_json):
     """Bayesian calibration (MCMC) of each unit's inputs, year by year."""
     from ..calibrate import calibrate as run
+    from ..repairs import FoundRepair
     refuse_overwrite({"-o": output}, {"--surrogate": surrogate, "--observations": observations,
                                       "--truth": truth, "-c": config_path})
     cfg = load(config_path, overrides)
@@ -65,9 +66,8 @@ def calibrate(config_path, overrides, surrogate, observations, truth, output, up
                 f"{ch} (noise std {c['std']:.3g} {units.get(ch, '')}, {c['source']})"
                 for ch, c in p.channels.items()))
         for r in p.found_repairs:
-            say(f"  the {' or the '.join(r['components'])} fell back towards nominal in year "
-                f"{r['year']} (p = {r['p_value']:.2g}), as after a repair nobody recorded: a "
-                "trend segment starts there (forecast's plan says how to record it)")
+            say(f"  {FoundRepair(**r).headline()}: a trend segment starts there (forecast's "
+                "plan says how to record it)")
         last = {n: p.mean[-1, j] for j, n in enumerate(s.input_names)}
         say("  last year: " + ", ".join(
             f"{n} {v:.4g} [{p.q05[-1, j]:.4g}, {p.q95[-1, j]:.4g}]"

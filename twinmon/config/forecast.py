@@ -46,11 +46,11 @@ class ForecastConfig:
     #: current part's years, at this level, Bonferroni over the inputs tested) makes the
     #: unit's prognosis ``unreliable``: its straight-line trend understates the wear. 0: off.
     shape_alpha: float = 0.01
-    #: Unrecorded repairs: an input's yearly estimates that jump back towards nominal (a
-    #: line plus a one-sided step, at this level, Bonferroni over the years tried and the
-    #: inputs) are reported with the command that records the event; yearly estimates
-    #: refitted here then restart their trend at that year, a joint posterior's prognosis
-    #: is ``unreliable`` until the event is recorded. 0: off.
+    #: Unrecorded repairs: yearly estimates that fall back towards nominal (twinmon/repairs.py,
+    #: at this level, Bonferroni over the years tried and the inputs) are reported with the
+    #: command that records the event, and the component's trend restarts there: in
+    #: calibrate for the joint method (which therefore records this level), in forecast for
+    #: yearly estimates calibrated one year at a time. 0: off.
     repair_alpha: float = 0.01
 
     def _check(self):

@@ -132,10 +132,7 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict,
         # as for a recorded event.
         repairs = find_repairs(cfg, years, mean, since,
                                {n: d.sign for n, d in directions.items()}, post_cov)
-        for rep in repairs:
-            for comp in rep.components:
-                for name in cfg.model.components[comp]:
-                    since[name] = max(since[name], rep.year)
+        since = repair_years(cfg, up, years, repairs)
     trends = {}
     slope_draws = None
     if trend_post:

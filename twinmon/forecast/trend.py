@@ -136,14 +136,16 @@ def fit_trend(years: np.ndarray, values: np.ndarray) -> tuple[Trend, np.ndarray]
     return trend, resid
 
 
-def repair_years(cfg: Config, up, years: np.ndarray) -> dict:
+def repair_years(cfg: Config, up, years: np.ndarray, found=()) -> dict:
     """Per input, the first year of its current trend: the year its component was last
-    repaired or replaced (``events`` of the posterior, and the repairs calibration found
-    unrecorded, ``found_repairs``), else the first observed year."""
+    repaired or replaced (``events`` of the posterior, the repairs calibration found
+    unrecorded, ``found_repairs``, and ``found``: :class:`~twinmon.repairs.FoundRepair`
+    found here), else the first observed year."""
     since = {n: int(years[0]) for n in cfg.model.input_names}
     work = [(e[0], e[1]) for e in getattr(up, "events", None) or ()]
     work += [(r["year"], c) for r in getattr(up, "found_repairs", None) or ()
              for c in r["components"]]
+    work += [(r.year, c) for r in found for c in r.components]
     for year, component in work:
         for name in cfg.model.components.get(component, ()):
             if year <= years[-1]:

@@ -8,6 +8,7 @@ from typing import Optional
 import numpy as np
 
 from ..config import Config
+from ..repairs import FoundRepair
 from .common import plain
 from .fleet import FleetView, overview_lines
 from .load import Inputs
@@ -219,14 +220,11 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
             s.p_unsafe = float(np.max(uf.p_unsafe)) if uf.p_unsafe.size else 0.0
             s.action = (f"inspect the {what} at the next planned stop" if what
                         else "no action; re-check at next year's recorded transient")
-        for r in uf.repairs:
+        for r in (FoundRepair(**d) for d in uf.repairs):
             # A repair nobody recorded: the trend restarts there, and the record should say so.
-            parts = " or the ".join(r["components"])
-            why.append(f"the {parts} fell back towards nominal in year {r['year']} (p = "
-                       f"{r['p_value']:.2g}), as after a repair nobody recorded: the trend "
-                       "restarts there")
-            s.action += (f"; record the year-{r['year']} repair of the {parts} if it was done "
-                         "(twinmon events add)")
+            why.append(f"{r.headline()}: the trend restarts there")
+            s.action += (f"; record the year-{r.year} repair of the "
+                         f"{' or the '.join(r.components)} if it was done (twinmon events add)")
         for name, t in uf.trends.items():
             if t.rejects:
                 lo, hi = t.slope_ci
