@@ -101,7 +101,7 @@ def alpha_lambda(cfg, post, sur, truth_eol: dict, cuts, work: Path | None = None
     scored = [u for u, eol in truth_eol.items() if eol is not None and eol > min(cuts)]
     preds = {u: {} for u in scored}
     for k in cuts:
-        if cfg.calibrate.method == "joint" and scored:
+        if cfg.calibrate.method in ("joint", "laplace") and scored:
             cut = recalibrate_cut(cfg, work, scored, k, name)
             sub = {u: cut[u] for u in scored}
         else:
@@ -131,7 +131,7 @@ def recalibrate_cut(cfg, work: Path, units: list, k: int, name: str) -> dict:
         return dict(read_posterior(out).units)
     cuts.mkdir(exist_ok=True)
     obs = read_observations(work / "obs.h5", cfg.model.output.name)
-    return calibrate_cut(cfg, work / "sur.h5", obs, units, k, cuts)
+    return calibrate_cut(cfg, work / "sur.h5", obs, units, k, cuts, cfg.calibrate.method)
 
 
 truth_clean, truth_time = {}, None

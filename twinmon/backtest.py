@@ -292,14 +292,13 @@ def check_calibrated_from(cfg: Config, posterior_path, observations_path, units:
 
 
 def calibrate_cut(cfg: Config, surrogate_path, obs, units: list, last_year: int,
-                  workdir) -> dict:
+                  workdir, method: str = "joint") -> dict:
     """Posteriors of ``units`` calibrated from their records up to ``last_year`` only.
 
     Parameters
     ----------
     cfg : Config
-        Its ``calibrate`` section (sampler, seed) as for the full history; the method is
-        the joint one (only a joint posterior's cuts are calibrated again).
+        Its ``calibrate`` section (sampler, seed) as for the full history.
     surrogate_path : path-like
     obs : Observations
         The unit's whole records (``read_observations``).
@@ -307,6 +306,9 @@ def calibrate_cut(cfg: Config, surrogate_path, obs, units: list, last_year: int,
     last_year : int
     workdir : path-like
         Where the cut's observations and posterior are written.
+    method : str
+        The method of the full history's posterior, one whose years know the later ones
+        (``joint`` or ``laplace``; only those posteriors' cuts are calibrated again).
 
     Returns
     -------
@@ -315,8 +317,8 @@ def calibrate_cut(cfg: Config, surrogate_path, obs, units: list, last_year: int,
     from .calibrate import calibrate, read_posterior
     from .observations import write_observations
     # The cut's units are fewer than the fleet's: ``calibrate.method: auto`` would pick by
-    # their count, where the cut must be calibrated as the full history was (jointly).
-    cfg = dataclasses.replace(cfg, calibrate=dataclasses.replace(cfg.calibrate, method="joint"))
+    # their count, where the cut must be calibrated as the full history was.
+    cfg = dataclasses.replace(cfg, calibrate=dataclasses.replace(cfg.calibrate, method=method))
     workdir = Path(workdir)
     cut_obs = workdir / f"observations_to_{last_year}.h5"
     write_observations(cut_obs, obs.up_to(last_year, units))
@@ -374,6 +376,9 @@ def backtest(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
         raise ArtifactError(f"{posterior_path}: no unit has more than backtest.min_years = "
                             f"{bt.min_years} years: nothing to back-test")
     joint = any(getattr(p, "trend", None) for p in post.units.values())
+    # The method that drew the trend (a posterior written before it was recorded: joint).
+    method = artifacts.read_provenance(posterior_path).get("method") or "joint"
+    method = method if method in ("joint", "laplace") else "joint"
     recalibrate = joint and observations_path is not None
     if recalibrate:
         obs = check_calibrated_from(cfg, posterior_path, observations_path, list(post.units))
@@ -386,7 +391,7 @@ def backtest(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
     with tempfile.TemporaryDirectory(prefix="twinmon-backtest-") as tmp:
         for n, k in enumerate(all_cuts):
             at = [u for u in post.units if k in cuts_of[u]]
-            sub = (calibrate_cut(cfg, surrogate_path, obs, at, k, tmp)
+            sub = (calibrate_cut(cfg, surrogate_path, obs, at, k, tmp, method)
                    if recalibrate else {u: truncate(post.units[u], k) for u in at})
             cut_post = Posterior(post.input_names, sub, post.path, post.fit_windows)
             res, _, _ = forecast_units(cfg, cut_post, sur, posterior_path=posterior_path,

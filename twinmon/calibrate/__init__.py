@@ -34,16 +34,17 @@ The result is ``posterior.h5`` (``twinmon.posterior/2``)::
                             fit_channel_rms [n_ch] when further channels were in the likelihood
     /units/<U>/samples      float64 [n_y, n_s, d] pooled post-burn-in draws (input units),
                             evenly thinned to calibrate.keep_draws (statistics use them all)
-    /units/<U>/trend/<field>                   calibrate.method joint only: the trend's
+    /units/<U>/trend/<field>                   methods joint and laplace only: the trend's
                             posterior (joint.TREND_FIELDS): start [S, d]; intercept, slope
                             [draw, S, d]; sigma [draw, d]; rhat, ess [3, d]; acceptance [chain]
+                            (NaN for laplace's weighted draws, as the years' acceptance)
     /units/<U>.attrs noise_source  "file" | "config" | "estimated"
     /units/<U>.attrs channels      JSON {channel: {std, source}} when further channels were
                                    in the likelihood (the output first)
     /units/<U>.attrs events        JSON [[year, component, action]] (maintenance events)
     /units/<U>.attrs found_repairs JSON [{year, components, steps, p_value}]: falls back
                                    towards nominal no event records, where the joint
-                                   method started a trend segment (forecast.repair_alpha)
+                                   or laplace method started a trend segment (forecast.repair_alpha)
 
 ``twinmon.posterior/1`` files (a dataset per field) are still read.
 
@@ -58,7 +59,8 @@ Further recorded channels (``model.channels``) that ``reduce`` learnt enter the 
 with their own noise (``calibrate.channels`` restricts them; see ``channels``).
 
 Modules: ``base`` (the method and sampler interfaces), ``methods`` (one module per method:
-``sequential``, the paper's year by year; ``joint``, a unit's history with its trend),
+``sequential``, the paper's year by year; ``joint``, a unit's history with its trend;
+``laplace``, the joint model on each year's Laplace approximation, drawn without a chain),
 ``samplers`` (``openturns``, the reference; ``vectorised`` and ``joint_vectorised``, numpy,
 through ``gpbatch``), ``shared`` (what methods and samplers share: priors, starting points,
 tasks, worker state), ``density`` (prior, log-posterior, MAP, noise estimate),

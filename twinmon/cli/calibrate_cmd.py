@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import click
+import numpy as np
 
 from .app import main
 from .common import (config_options, emit_json, json_option, load, progress_bar,
@@ -59,7 +60,8 @@ def calibrate(config_path, overrides, surrogate, observations, truth, output, up
         say(f"calibrate: {unit}: {len(p.years)} years, noise std {nz['std']:.3g} "
             f"{cfg.model.output.units} "
             f"({_SOURCE[nz['source']]}), R-hat <= {p.rhat.max():.3f}, ESS >= {p.ess.min():.0f}, "
-            f"acceptance {p.acceptance.min():.2f}-{p.acceptance.max():.2f}")
+            + (f"acceptance {np.nanmin(p.acceptance):.2f}-{np.nanmax(p.acceptance):.2f}"
+               if np.isfinite(p.acceptance).any() else "weighted independent draws"))
         if p.channels:
             units = cfg.model.channel_units
             say("  channels: " + ", ".join(

@@ -69,7 +69,7 @@ class CalibrateConfig:
     #: units), else ``sequential``: on benchmarks/prognosis.py the pooled joint method is
     #: the better calibrated one, the unpooled one is not (docs/forecast.md, "The default
     #: method").
-    method: Literal["auto", "sequential", "joint"] = "auto"
+    method: Literal["auto", "sequential", "joint", "laplace"] = "auto"
     #: ``joint`` only: moves of the whole trend (levels, slopes, scatter) per Gibbs sweep,
     #: each one surrogate call over the unit's years; the years' own moves are one each.
     joint_trend_moves: int = 5

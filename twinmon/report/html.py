@@ -6,6 +6,8 @@ import base64
 import html
 from typing import Any, Optional
 
+import numpy as np
+
 from .. import artifacts
 from ..config import Config
 from .common import SECTION_TITLES, SECTIONS, Words, input_label, pct, qty
@@ -90,8 +92,8 @@ def calibration_table(cfg: Config, diag: dict, fleet=None) -> list[str]:
         bad = d["max_rhat"] > cfg.calibrate.rhat_warn or d["min_ess"] < cfg.calibrate.ess_warn
         rows.append(f"<tr><td class='unit'>{e(u)}</td><td>{d['years'][0]}-{d['years'][-1]}</td>"
                     f"<td class='{'warn' if bad else 'ok'}'>{d['max_rhat']:.3f}</td>"
-                    f"<td>{d['min_ess']:.0f}</td><td>{d['acceptance'][0]:.2f}-"
-                    f"{d['acceptance'][1]:.2f}</td><td>{d['noise_std']:.3g} "
+                    f"<td>{d['min_ess']:.0f}</td><td>{_acceptance(d['acceptance'])}</td>"
+                    f"<td>{d['noise_std']:.3g} "
                     f"({e(d['noise_source'])})</td></tr>")
     rows.append("</table>")
     if diag["warnings"]:
@@ -262,3 +264,12 @@ def page(cfg: Config, words: Words, summary: ReportSummary, figs: list[dict],
                    "</td></tr>")
     out.append("</table></body></html>")
     return "\n".join(out)
+
+
+def _acceptance(rng: list) -> str:
+    """An acceptance range as the table shows it; a method of independent draws has none
+    (NaN, null in summary.json)."""
+    lo, hi = rng
+    if lo is None or hi is None or not (np.isfinite(lo) and np.isfinite(hi)):
+        return "- (weighted independent draws)"
+    return f"{lo:.2f}-{hi:.2f}"

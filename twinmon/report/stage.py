@@ -373,6 +373,10 @@ def _method_note(posterior_provenance: dict, n_units: int) -> str:
     if method == "joint":
         return (f"Calibrated with the joint method: each of the {n_units} units' whole "
                 "history in one posterior, its trend inside.")
+    if method == "laplace":
+        return (f"Calibrated with the laplace method: each of the {n_units} units' whole "
+                "history in one posterior, its trend inside, each year's likelihood "
+                "summarised once and the draws weighted to the exact one.")
     if method == "sequential":
         return ("Calibrated with the sequential (paper's) method: each year in turn, its "
                 "prior centred on the year before.")

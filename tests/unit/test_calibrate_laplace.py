@@ -1,0 +1,215 @@
+"""calibrate, laplace method: the joint model on each year's Laplace approximation, drawn
+exactly. Its Gaussian posterior against a dense quadrature and on data drawn from the model;
+through a real surrogate: the known trend, the artifact, determinism, workers, agreement
+with the joint method's sampler, and a forecast on it."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from twinmon import artifacts
+from twinmon.calibrate import calibrate, read_posterior
+from twinmon.calibrate.methods.joint import calibrate_unit_joint
+from twinmon.calibrate.methods.laplace import GaussianTrend
+from twinmon.calibrate.trend import TREND_FIELDS
+from twinmon.config import load_config
+from twinmon.observations import Observations, UnitObservations, write_observations
+from twinmon.reduce import read_surrogate, reduce
+from twinmon.simulate import simulate
+
+from ..conftest import CONFIGS, write_yaml
+
+NOISE = 4.0  # kg/s, 1 % of the nominal flow as in the shipped fleet
+WIDE = np.array([[-1e9, 1e9]])
+
+
+def _line_model(years, c, A, slope_sd, d=1):
+    """A one-segment GaussianTrend per input over ``years`` with covariances ``c``
+    [K, d, d] and slope priors N(0, slope_sd^2) (levels flat); the design is centred as
+    the methods centre it."""
+    K = len(years)
+    t = years - years.mean()
+    Mk = np.zeros((K, d, 2 * d))
+    for i in range(d):
+        Mk[:, i, 2 * i], Mk[:, i, 2 * i + 1] = 1.0, t
+    prec = np.ravel([[0.0, sd ** -2.0] for sd in np.broadcast_to(slope_sd, d)])
+    return lambda x: GaussianTrend(np.asarray(x, float), c, Mk, prec, np.zeros(2 * d),
+                                   np.asarray(A, float))
+
+
+def test_posterior_matches_a_dense_quadrature_over_sigma():
+    """One input, eight years with unequal errors: the draws' slope and sigma moments equal
+    those of a brute-force posterior (the years' joint Gaussian written out whole, a nearly
+    flat level prior, sigma on a fine grid under its half-Cauchy prior)."""
+    rng = np.random.default_rng(4)
+    years = np.arange(1.0, 9.0)
+    err = rng.uniform(0.05, 0.2, len(years))
+    x = 1.0 + 0.3 * (years - years.mean()) + rng.normal(0, 0.15, len(years)) + \
+        err * rng.standard_normal(len(years))
+    A = 0.2
+    model = _line_model(years, (err ** 2)[:, None, None], [A], 10.0)(x[:, None])
+    beta, sigma, _, n_eff = model.draw(40000, np.random.default_rng(1), WIDE)
+    assert n_eff >= 100
+
+    # Brute force: x ~ N(X mu0, V + X P0^-1 X') for each sigma on a fine grid.
+    X = np.column_stack([np.ones_like(years), years - years.mean()])
+    P0inv = np.diag([1e6, 10.0 ** 2])
+    grid = np.linspace(1e-5, 3.0, 30001)
+    lw, m_slope, v_slope = [], [], []
+    for s in grid:
+        V = np.diag(err ** 2 + s * s)
+        lw.append(stats.multivariate_normal(np.zeros(8), V + X @ P0inv @ X.T).logpdf(x)
+                  + np.log(2 / (np.pi * A * (1 + (s / A) ** 2))))
+        Vi = np.linalg.inv(V)
+        C = np.linalg.inv(X.T @ Vi @ X + np.linalg.inv(P0inv))
+        mb = C @ (X.T @ Vi @ x)
+        m_slope.append(mb[1])
+        v_slope.append(C[1, 1])
+    w = np.exp(np.array(lw) - max(lw))
+    w /= w.sum()
+    m_slope, v_slope = np.array(m_slope), np.array(v_slope)
+    mean = float(w @ m_slope)
+    sd = float(np.sqrt(w @ (v_slope + m_slope ** 2) - mean ** 2))
+    s_mean = float(w @ grid)
+    assert abs(beta[:, 1].mean() - mean) < 0.02 * sd + 4 * sd / np.sqrt(40000), (
+        beta[:, 1].mean(), mean)
+    assert abs(beta[:, 1].std() - sd) < 0.03 * sd
+    assert abs(sigma[:, 0].mean() - s_mean) < 0.05 * s_mean, (sigma[:, 0].mean(), s_mean)
+
+
+def test_intervals_cover_on_data_drawn_from_the_model():
+    """Two inputs with correlated yearly errors, 300 units whose trends and sigma are drawn
+    from the priors: the 90 % intervals of the last level and of the slopes cover the truth
+    about 90 % of the time (a Bayesian posterior is calibrated on its own prior)."""
+    rng = np.random.default_rng(7)
+    years = np.arange(1.0, 11.0)
+    K, d = len(years), 2
+    A = np.array([0.3, 0.05])
+    hits, n = np.zeros(3), 300
+    for _ in range(n):
+        sigma = A * np.abs(np.tan(0.5 * np.pi * rng.uniform(0, 0.8, d)))
+        slope = rng.normal(0.0, [0.5, 0.05])
+        level = rng.normal(0.0, [1.0, 0.1])
+        t = years - years.mean()
+        theta = level + np.outer(t, slope) + sigma * rng.standard_normal((K, d))
+        sd = np.array([0.2, 0.03]) * rng.uniform(0.5, 1.5, (K, 1))
+        r = rng.uniform(-0.8, 0.8, K)
+        c = np.einsum("ki,kj->kij", sd, sd) * np.where(np.eye(d, dtype=bool), 1.0,
+                                                       r[:, None, None])
+        x = theta + np.einsum("kij,kj->ki", np.linalg.cholesky(c), rng.standard_normal((K, d)))
+        model = _line_model(years, c, A, [0.5, 0.05], d=2)(x)
+        beta, _, th, _ = model.draw(2000, rng, np.array([[-1e9, 1e9]] * 2))
+        truths = [slope[0], slope[1], theta[-1, 0]]
+        for j, (v, truth) in enumerate(zip([beta[:, 1], beta[:, 3], th[:, -1, 0]], truths)):
+            lo, hi = np.quantile(v, [0.05, 0.95])
+            hits[j] += lo <= truth <= hi
+    cover = hits / n
+    # 90 % +- 3 binomial sd (0.052 for 300 units).
+    assert np.all(np.abs(cover - 0.90) < 0.052), cover
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory, fmu_path):
+    """A real surrogate (FMU runs + reduce) and a config for the laplace method."""
+    tmp = tmp_path_factory.mktemp("laplace")
+    cfg_path = write_yaml(tmp / "c.yaml", {
+        "extends": str(CONFIGS / "pump.yaml"),
+        "simulate": {"train_size": 64, "test_size": 8},
+        "calibrate": {"method": "laplace", "chains": 3, "samples": 400, "burn_in": 150,
+                      "workers": 1, "ess_warn": 100, "max_extensions": 1}})
+    cfg = load_config(cfg_path)
+    simulate(cfg, tmp / "sims.h5")
+    reduce(cfg, tmp / "sims.h5", tmp / "sur.h5")
+    return cfg, cfg_path, tmp, read_surrogate(tmp / "sur.h5")
+
+
+def _observe(surrogate, X, seed=0):
+    rng = np.random.default_rng(seed)
+    clean = surrogate.predict(np.atleast_2d(X))
+    return clean + NOISE * rng.standard_normal(clean.shape)
+
+
+YEARS = np.arange(1, 7)
+SLOPES = np.array([0.8, -0.06])
+
+
+def _trend_unit(seed=2):
+    rng = np.random.default_rng(seed)
+    X = np.array([10.0, 3.75]) + np.outer(YEARS - 1, SLOPES)
+    return X + rng.normal(0.0, [0.1, 0.005], X.shape)
+
+
+def _fleet(path, sur, seeds):
+    write_observations(path, Observations(sur.time, {
+        f"U{s}": UnitObservations(YEARS, {"m_flow": _observe(sur, _trend_unit(seed=s),
+                                                              seed=s + 50)}, {"m_flow": NOISE})
+        for s in seeds}, path))
+
+
+def test_the_stage_recovers_the_trend_and_agrees_with_the_joint_sampler(setup, tmp_path):
+    """Through the real surrogate: the known slopes inside the posterior, the years and
+    trend shaped as the joint method's (the artifact round trip), the same arrays with the
+    same seed and with two worker processes; and on the same unit the joint method's Gibbs
+    sampler gives the same slopes and years within their posterior sd."""
+    cfg, cfg_path, tmp, sur = setup
+    obs = tmp_path / "obs.h5"
+    _fleet(obs, sur, [2, 3])
+    s = calibrate(cfg, tmp / "sur.h5", obs, tmp_path / "post.h5")
+    assert s.method == "laplace"
+    p = s.posterior["U2"]
+    K = len(YEARS)
+    n_s = p.samples.shape[1]
+    assert p.samples.shape == (K, n_s, 2) and n_s >= 2 * cfg.calibrate.keep_draws
+    assert list(p.status) == ["ok"] * K and np.all(p.fit["converged"])
+    # The weighted draws' effective number, not their count, is the ESS.
+    assert np.all(p.ess >= cfg.calibrate.ess_warn) and np.all(p.ess < n_s)
+    assert np.all(np.isnan(p.acceptance))
+    t = p.trend
+    assert set(t) == set(TREND_FIELDS) and t["start"].tolist() == [[1, 1]]
+    assert t["slope"].shape == (n_s, 1, 2) and np.all(t["sigma"] >= 0)
+    assert np.all(t["rhat"] < 1.01) and np.all(p.rhat < 1.01)
+    slope = t["slope"][:, 0, :]
+    lo, hi = np.quantile(slope, [0.01, 0.99], axis=0)
+    assert np.all((lo < SLOPES) & (SLOPES < hi)), (lo, hi)
+    assert lo[0] > 0
+    # The years stay inside the box.
+    b = cfg.model.bounds
+    assert np.all((p.samples >= b[:, 0]) & (p.samples <= b[:, 1]))
+
+    q = read_posterior(tmp_path / "post.h5").units["U2"]
+    assert np.array_equal(q.trend["start"], t["start"]) and np.array_equal(q.mean, p.mean)
+    assert "method: laplace" in artifacts.read_provenance(tmp_path / "post.h5")["config"]
+
+    again = calibrate(cfg, tmp / "sur.h5", obs, tmp_path / "again.h5").posterior
+    two = calibrate(load_config(cfg_path, ["calibrate.workers=2"]), tmp / "sur.h5", obs,
+                    tmp_path / "two.h5").posterior
+    for u in ("U2", "U3"):
+        for other in (again, two):
+            assert np.array_equal(other[u].samples, s.posterior[u].samples)
+            assert np.array_equal(other[u].trend["slope"], s.posterior[u].trend["slope"])
+
+    joint_cfg = load_config(cfg_path, ["calibrate.method=joint"])
+    flows = _observe(sur, _trend_unit(seed=2), seed=52)
+    j = calibrate_unit_joint(sur, joint_cfg, YEARS, flows, NOISE, rng_seed=11)
+    js = j.trend["slope"][:, 0, :]
+    assert np.all(np.abs(np.median(slope, 0) - np.median(js, 0)) < 0.5 * js.std(0)), (
+        np.median(slope, 0), np.median(js, 0), js.std(0))
+    assert np.all(np.abs(slope.std(0) / js.std(0) - 1) < 0.3), (slope.std(0), js.std(0))
+    assert np.all(np.abs(p.mean - j.mean) < 0.5 * np.sqrt(j.var)), (p.mean, j.mean)
+
+
+def test_forecast_runs_on_a_laplace_fleet_and_pools_its_sigma(setup, tmp_path):
+    """Five units: forecast pools sigma over them as for the joint method and gives each
+    unit a verdict."""
+    from twinmon.forecast import forecast
+    cfg, cfg_path, tmp, sur = setup
+    obs = tmp_path / "obs.h5"
+    _fleet(obs, sur, range(5))
+    quick = load_config(cfg_path, ["calibrate.keep_draws=200", "forecast.samples=200",
+                                   "forecast.horizon=3", "forecast.observed_samples=50"])
+    calibrate(quick, tmp / "sur.h5", obs, tmp_path / "post.h5")
+    s = forecast(quick, tmp_path / "post.h5", tmp / "sur.h5", tmp_path / "fc.h5")
+    d = s.as_dict()
+    assert d["sigma_pooling"]["pooled"] and d["sigma_pooling"]["units"] == 5
+    assert set(d["units"]) == {f"U{i}" for i in range(5)}

@@ -1,0 +1,241 @@
+"""A unit's trend on Gaussian summaries of its years: the joint method's model with each
+year's likelihood replaced by a Gaussian *site*, its posterior in closed form but for
+sigma, the sites refined by expectation propagation, and the draws weighted back to the exact
+likelihood (used by :mod:`.methods.laplace`, whose docstring gives the model)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import CalibrationError
+
+#: Quasi-random sigma points per round, and the effective number of them the weights must
+#: reach before the zooming stops (at most :data:`SIGMA_ROUNDS` rounds).
+SIGMA_POINTS = 512
+SIGMA_ESS = 100.0
+SIGMA_ROUNDS = 5
+#: Points with a weight below this share of the largest do not hold the next round's box.
+SIGMA_KEEP = 1e-4
+#: A year's draw outside the design box is drawn again this many times, then clipped.
+BOX_TRIES = 20
+#: Expectation propagation of the years' sites (GaussianTrend.refine): sweeps, draws of the
+#: model per sweep, likelihood points per year, and the fewest effective points an update
+#: rests on.
+EP_SWEEPS = 2
+EP_DRAWS = 1000
+EP_POINTS = 256
+EP_MIN_ESS = 30.0
+#: No box: the Gaussian model's own draws (the box enters through the weights).
+WIDE_BOX = np.tile([-np.inf, np.inf], (64, 1))
+
+
+@dataclass
+class GaussianTrend:
+    """One unit's trend model on its years' summaries.
+
+    Attributes
+    ----------
+    x : ndarray, shape [K, d]
+        The years' maximum-likelihood points (input units).
+    cov : ndarray, shape [K, d, d]
+        Their Laplace covariances.
+    Mk : ndarray, shape [K, d, n_beta]
+        The trend's design per year (``theta_k = Mk[k] @ beta``).
+    prior_prec, prior_mean : ndarray, shape [n_beta]
+        Gaussian prior of beta per coefficient (precision 0: flat, the levels).
+    A : ndarray, shape [d]
+        Scale of sigma's half-Cauchy prior (input units).
+    """
+
+    x: np.ndarray
+    cov: np.ndarray
+    Mk: np.ndarray
+    prior_prec: np.ndarray
+    prior_mean: np.ndarray
+    A: np.ndarray
+
+    def _conditional(self, sigma: np.ndarray):
+        """beta's Gaussian conditional and sigma's log marginal likelihood at sigma points
+        ``sigma`` [P, d]: (precision [P, nb, nb], its Cholesky factor, mean [P, nb],
+        log-likelihood [P])."""
+        K, d = self.x.shape
+        V = self.cov[None] + (sigma ** 2)[:, None, :, None] * np.eye(d)        # [P, K, d, d]
+        Lv = np.linalg.cholesky(V)
+        logdet_v = 2.0 * np.log(np.diagonal(Lv, axis1=2, axis2=3)).sum(axis=(1, 2))
+        W = np.linalg.inv(V)
+        # Stacked matrix products (matmul is far faster than einsum on many small blocks).
+        MtW = np.swapaxes(self.Mk, 1, 2)[None] @ W                          # [P, K, nb, d]
+        Pb = (MtW @ self.Mk[None]).sum(axis=1) + np.diag(self.prior_prec)
+        Wx = (W @ self.x[None, :, :, None])[..., 0]                          # [P, K, d]
+        b = (MtW @ self.x[None, :, :, None])[..., 0].sum(axis=1) + \
+            self.prior_prec * self.prior_mean
+        quad = np.sum(Wx * self.x[None], axis=(1, 2))
+        Lb = np.linalg.cholesky(Pb)
+        mean = np.linalg.solve(Pb, b[:, :, None])[:, :, 0]
+        logdet_b = 2.0 * np.log(np.einsum("pii->pi", Lb)).sum(axis=1)
+        ll = -0.5 * (logdet_v + quad - np.einsum("pa,pa->p", b, mean) + logdet_b)
+        return Pb, Lb, mean, ll
+
+    def _sigma(self, u: np.ndarray) -> np.ndarray:
+        return self.A * np.tan(0.5 * np.pi * u)
+
+    def sigma_points(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, float]:
+        """Weighted sigma points of sigma's posterior (the module docstring): points [P, d],
+        normalised weights [P] and their effective number."""
+        from scipy.stats import qmc
+        d = self.x.shape[1]
+        lo, hi = np.zeros(d), np.ones(d)
+        for _ in range(SIGMA_ROUNDS):
+            seed = int(rng.integers(2 ** 31))
+            u = lo + (hi - lo) * qmc.Sobol(d, scramble=True, seed=seed).random(SIGMA_POINTS)
+            u = np.minimum(u, 1.0 - 1e-12)
+            sigma = self._sigma(u)
+            ll = self._conditional(sigma)[3]
+            w = np.exp(ll - ll.max())
+            w /= w.sum()
+            n_eff = 1.0 / float(np.sum(w * w))
+            if n_eff >= SIGMA_ESS:
+                break
+            # Zoom in on the mass: the box of the points that carry weight, one point
+            # spacing wider on each side (the prior is uniform in u, so each round is
+            # importance sampling on its own box).
+            keep = u[w >= SIGMA_KEEP * w.max()]
+            pad = (hi - lo) * SIGMA_POINTS ** (-1.0 / d)
+            lo = np.maximum(keep.min(axis=0) - pad, 0.0)
+            hi = np.minimum(keep.max(axis=0) + pad, 1.0)
+        return sigma, w, n_eff
+
+    def draw(self, n: int, rng: np.random.Generator, bounds: np.ndarray, points=None
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """``n`` independent posterior draws (sigma from ``points``, an earlier
+        :meth:`sigma_points`' result, when given).
+
+        Returns
+        -------
+        beta : ndarray, shape [n, n_beta]
+        sigma : ndarray, shape [n, d]
+        theta : ndarray, shape [n, K, d]
+            The years' inputs, inside ``bounds`` (module docstring).
+        sigma_ess : float
+            Effective number of the sigma points behind the draws.
+        """
+        K, d = self.x.shape
+        pts, w, n_eff = self.sigma_points(rng) if points is None else points
+        pick = rng.choice(len(w), size=n, p=w)
+        uniq, inv = np.unique(pick, return_inverse=True)
+        sigma_u = pts[uniq]
+        Pb, Lb, mean, _ = self._conditional(sigma_u)
+        # beta = mean + Lb^-T z: covariance Pb^-1.
+        z = rng.standard_normal((n, mean.shape[1]))
+        beta = mean[inv] + np.linalg.solve(np.swapaxes(Lb, 1, 2)[inv], z[:, :, None])[:, :, 0]
+        sigma = sigma_u[inv]
+        H = np.linalg.inv(self.cov)                                           # [K, d, d]
+        S_inv = 1.0 / sigma ** 2                                              # [n, d]
+        G = np.linalg.inv(H[None] + S_inv[:, None, :, None] * np.eye(d))      # [n, K, d, d]
+        m = np.einsum("kia,na->nki", self.Mk, beta)                           # [n, K, d]
+        hx = np.einsum("kij,kj->ki", H, self.x)
+        mu = np.einsum("nkij,nkj->nki", G, hx[None] + S_inv[:, None, :] * m)
+        Lg = np.linalg.cholesky(G)
+        lo, hi = bounds[:, 0], bounds[:, 1]
+        theta = np.empty_like(mu)
+        todo = np.ones((n, K), bool)
+        for _ in range(BOX_TRIES):
+            e = rng.standard_normal(mu.shape)
+            t = mu + np.einsum("nkij,nkj->nki", Lg, e)
+            take = todo & np.all((t >= lo) & (t <= hi), axis=2)
+            theta[take] = t[take]
+            todo &= ~take
+            if not todo.any():
+                break
+        if todo.any():
+            theta[todo] = np.clip(t[todo], lo, hi)
+        return beta, sigma, theta, n_eff
+
+
+    def refine(self, loglik, rng: np.random.Generator, bounds: np.ndarray,
+               sweeps: int = EP_SWEEPS) -> None:
+        """Move each year's Gaussian site towards the year's exact likelihood where the
+        trend puts the year (expectation propagation, damped by half).
+
+        Per sweep: each year's current posterior marginal ``q_k`` (moments of
+        :data:`EP_DRAWS` draws) less its site is the *cavity*; the *tilted* distribution,
+        cavity times the exact likelihood in the box, has its moments estimated from
+        :data:`EP_POINTS` points of ``q_k`` weighted by likelihood / site; the new site is
+        tilted / cavity. A year whose cavity or new site is not positive definite, or whose
+        weights are too few (effective number < :data:`EP_MIN_ESS`), keeps its site.
+
+        Parameters
+        ----------
+        loglik : callable, theta [m, K, d] -> [m, K]
+            Each year's exact log-likelihood at its own points.
+        """
+        K, d = self.x.shape
+        lo, hi = bounds[:, 0], bounds[:, 1]
+        eye = np.eye(d)
+        # sigma's posterior moves little with the sites: its points are found once here
+        # (the final weights correct what is left).
+        points = self.sigma_points(rng)
+        for _ in range(sweeps):
+            theta = self.draw(EP_DRAWS, rng, WIDE_BOX[:d], points)[2]          # [n, K, d]
+            mu = theta.mean(axis=0)
+            dev = theta - mu
+            S = np.einsum("nki,nkj->kij", dev, dev) / (len(theta) - 1) + 1e-12 * eye
+            S_inv = np.linalg.inv(S)
+            H = np.linalg.inv(self.cov)
+            lam_c = S_inv - H
+            eta_c = np.einsum("kij,kj->ki", S_inv, mu) - np.einsum("kij,kj->ki", H, self.x)
+            z = mu + np.einsum("kij,mkj->mki", np.linalg.cholesky(S),
+                               rng.standard_normal((EP_POINTS, K, d)))
+            dz = z - self.x
+            lw = loglik(z) + 0.5 * np.einsum("mki,kij,mkj->mk", dz, H, dz)
+            lw[~np.all((z >= lo) & (z <= hi), axis=2)] = -np.inf
+            new_x, new_cov = self.x.copy(), self.cov.copy()
+            for k in range(K):
+                if not np.isfinite(lw[:, k]).any() or \
+                        np.linalg.eigvalsh(lam_c[k]).min() <= 0:
+                    continue
+                w = np.exp(lw[:, k] - lw[:, k].max())
+                w /= w.sum()
+                if 1.0 / float(w @ w) < EP_MIN_ESS:
+                    continue
+                m = w @ z[:, k]
+                e = z[:, k] - m
+                St_inv = np.linalg.inv(e.T @ (e * w[:, None]))
+                H_new = 0.5 * (St_inv - lam_c[k]) + 0.5 * H[k]
+                if np.linalg.eigvalsh(H_new).min() <= 0:
+                    continue
+                eta = 0.5 * (St_inv @ m - eta_c[k]) + 0.5 * H[k] @ self.x[k]
+                new_cov[k] = np.linalg.inv(H_new)
+                new_x[k] = new_cov[k] @ eta
+            self.x, self.cov = new_x, 0.5 * (new_cov + np.swapaxes(new_cov, 1, 2))
+
+    def importance(self, loglik, n: int, rng: np.random.Generator, bounds: np.ndarray):
+        """Draws of the exact joint posterior: ``n`` draws of this Gaussian model weighted
+        by each year's exact likelihood over its site (0 outside the box), then ``n``
+        resampled by their weights (systematic resampling).
+
+        Returns
+        -------
+        beta, sigma, theta
+            As :meth:`draw`'s, resampled.
+        ess : float
+            Effective number of the weighted draws (Kish).
+        """
+        d = self.x.shape[1]
+        beta, sigma, theta, _ = self.draw(n, rng, WIDE_BOX[:d])
+        dx = theta - self.x
+        H = np.linalg.inv(self.cov)
+        lw = np.sum(loglik(theta) + 0.5 * np.einsum("nki,kij,nkj->nk", dx, H, dx), axis=1)
+        lw[~np.all((theta >= bounds[:, 0]) & (theta <= bounds[:, 1]), axis=(1, 2))] = -np.inf
+        if not np.isfinite(lw).any():
+            raise CalibrationError("every draw of the trend left the design box")
+        w = np.exp(lw - lw.max())
+        w /= w.sum()
+        # Systematic resampling, then a shuffle: the kept draws carry no order.
+        idx = np.minimum(np.searchsorted(np.cumsum(w), (rng.random() + np.arange(n)) / n),
+                         n - 1)
+        idx = rng.permutation(idx)
+        return beta[idx], sigma[idx], theta[idx], 1.0 / float(w @ w)
+
+

@@ -1,0 +1,360 @@
+"""The joint model drawn without a Markov chain: each year's likelihood summarised by a
+Gaussian, the trend's posterior in closed form on those summaries, and the draws weighted
+back to the exact likelihood.
+
+The model is the joint method's (:mod:`.joint`: a straight line per input and segment,
+year-to-year scatter ``sigma`` with a half-Cauchy prior, weak Gaussian priors on the slopes,
+flat levels, the design box holding the years, segments restarted at recorded events and at
+repairs found in the years). Only the way its posterior is drawn differs
+(:class:`~twinmon.calibrate.gaussian_trend.GaussianTrend`):
+
+1. **Sites.** Each year's likelihood is approximated by a Gaussian ``N(x_k; theta_k, C_k)``
+   at its maximum-likelihood point with the Gauss-Newton covariance (the Laplace
+   approximation; the surrogate variance held there, as the joint method holds it), for
+   every unit-year of a batch at once (:func:`summarise`).
+2. **Closed form.** On those sites ``x_k ~ N(M_k beta, C_k + diag(sigma^2))``: the trend
+   coefficients integrate out (generalised least squares), sigma's posterior is evaluated on
+   quasi-random points under its prior, and each draw takes a sigma point by its weight,
+   ``beta`` from its Gaussian conditional and the years from theirs.
+3. **Expectation propagation.** Where the trend puts a year, its likelihood may not be the
+   Laplace Gaussian (two inputs trading off along a curved ridge, a box edge): each site is
+   moved, damped, towards the moments of the exact likelihood times the rest of the model
+   (``EP_SWEEPS`` sweeps of ``EP_POINTS`` surrogate evaluations per year).
+4. **Importance weights.** ``IMPORTANCE_DRAWS_PER_KEPT x calibrate.keep_draws`` draws of
+   the Gaussian model are weighted by each year's exact likelihood over its site (0 outside
+   the box) and resampled: the result is the joint posterior up to Monte Carlo error, not an
+   approximation of it. Fewer than ``calibrate.ess_warn`` effective draws: twice as many,
+   at most ``calibrate.max_extensions`` times; still fewer, the unit's years are
+   "unconverged", as an unconverged chain's.
+
+The draws are independent, so there is no burn-in or acceptance rate (NaN); ``ess`` is the
+weights' effective number (Kish), and split R-hat is computed on the draws cut into
+``calibrate.chains`` groups. On the joint method's test unit the slopes agree with its Gibbs
+sampler's within half a posterior sd (tests/unit/test_calibrate_laplace.py);
+``benchmarks/prognosis.py --methods joint,laplace`` compares them on fleets.
+
+The cost is a few thousand surrogate evaluations per unit-year (the EP points and the weighted
+draws, in batches), against the Gibbs sampler's tens of thousands per chain.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional, Sequence
+
+import numpy as np
+
+from ...config import Config
+from ...errors import CalibrationError
+from ...repairs import find_repairs
+from ..base import Method, Sampler, Work
+from ..diagnostics import split_rhat
+from ..fit import FIT_FIELDS, STATUS_OK, STATUS_UNCONVERGED, year_fit
+from ..posterior import UnitPosterior
+from ..samplers.batch_map import Batch, batch_map
+from ..shared import sampling_pool, unit_groups
+from ..gaussian_trend import GaussianTrend
+from ..trend import Layout, design_matrix, segment_starts, sigma_prior_scale
+
+#: Draws of the Gaussian model weighted to the exact posterior, per kept draw
+#: (``calibrate.keep_draws``).
+IMPORTANCE_DRAWS_PER_KEPT = 2
+
+# ---------------------------------------------------------------------------------------
+# The years' summaries
+# ---------------------------------------------------------------------------------------
+@dataclass
+class LaplaceTask:
+    """One unit's data for :func:`summarise` (picklable, for a worker).
+
+    Attributes
+    ----------
+    y : ndarray, shape [K, n_out]
+        Observations (output units), NaN = missing.
+    noise_var : ndarray, shape [K, n_out]
+        Noise variance per sample (output units squared).
+    """
+
+    y: np.ndarray
+    noise_var: np.ndarray
+
+
+def summarise(surrogate, predict, tasks: list[LaplaceTask], bounds: np.ndarray
+              ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """Each year's maximum-likelihood point and Laplace covariance, for many units at once.
+
+    As the joint method does year by year: a fit under the noise alone gives the point where
+    the surrogate variance is held; the likelihood's variance is then noise + surrogate
+    variance, and the fit is made again under it (from the first point).
+
+    Parameters
+    ----------
+    surrogate : Surrogate or StackedSurrogate
+        For the surrogate variance.
+    predict : callable, X [m, d] -> [m, n_out]
+        The batched predictor (:func:`~twinmon.calibrate.samplers.gpbatch.make_predictor`).
+    tasks : list of LaplaceTask
+    bounds : ndarray, shape [d, 2]
+
+    Returns
+    -------
+    list of (x [K, d], cov [K, d, d], total_var [K, n_out], ratio [K]), one per task
+        ``ratio`` is the mean surrogate-to-noise variance ratio of each year.
+    """
+    y = np.concatenate([t.y for t in tasks])
+    nv = np.concatenate([t.noise_var for t in tasks])
+    miss = ~np.isfinite(y)
+    rows, d = len(y), len(bounds)
+    centre = np.repeat(bounds.mean(axis=1)[None, :], rows, axis=0)
+    uniform = np.ones(rows, bool)
+    lo, hi = bounds[:, 0], bounds[:, 1]
+    yz = np.where(miss, 0.0, y)
+    x0, _ = batch_map(predict, Batch(yz, np.where(miss, 0.0, 1.0 / nv), centre,
+                                     np.zeros((rows, d)), lo, hi), uniform)
+    s_var = surrogate.predict_with_var(x0)[1]
+    total = nv + s_var
+    x, cov = batch_map(predict, Batch(yz, np.where(miss, 0.0, 1.0 / total), centre,
+                                      np.zeros((rows, d)), lo, hi), uniform, start=x0)
+    ratio = np.mean(s_var / nv, axis=1)
+    out, i = [], 0
+    for t in tasks:
+        k = len(t.y)
+        out.append((x[i:i + k], cov[i:i + k], total[i:i + k], ratio[i:i + k]))
+        i += k
+    return out
+
+
+# ---------------------------------------------------------------------------------------
+# One unit
+# ---------------------------------------------------------------------------------------
+class LaplaceRun:
+    """One unit's calibration with this method, with
+    :class:`~twinmon.calibrate.base.UnitRun`'s interface: :meth:`plan` gives one
+    :class:`LaplaceTask`, :meth:`finish` takes its summary (:func:`summarise`). It holds no
+    surrogate, so that it travels to a worker as it is."""
+
+    def __init__(self, surrogate, cfg: Config, years, flows, noise_std, rng_seed: int,
+                 noise_source: str, events: Sequence = ()):
+        self.cfg, self.seed, self.source = cfg, rng_seed, noise_source
+        self.years = np.asarray(years, dtype=np.int64)
+        self.flows = np.atleast_2d(np.asarray(flows, float))
+        n_y = len(self.years)
+        n_ch = len(getattr(surrogate, "blocks", ()))
+        self.noise = np.broadcast_to(np.asarray(noise_std, float),
+                                     (n_y, n_ch) if n_ch else (n_y,)).copy()
+        # Noise variance per year and sample (a stacked surrogate: per channel's samples).
+        self.noise_var = np.array([
+            surrogate.noise_var(self.noise[k]) if self.noise.ndim == 2
+            else np.full(self.flows.shape[1], float(self.noise[k]) ** 2) for k in range(n_y)])
+        self.events = list(events)
+        self.found_repairs: list = []
+        self.k = 0
+        self._result: Optional[UnitPosterior] = None
+
+    @property
+    def done(self) -> bool:
+        return self._result is not None
+
+    def resume(self, p: UnitPosterior) -> None:
+        raise CalibrationError("calibrate --update continues the sequential method only: the "
+                               "laplace method draws every year again when one is added (a "
+                               "few milliseconds per unit-year); run without --update")
+
+    def plan(self) -> list[LaplaceTask]:
+        return [LaplaceTask(self.flows, self.noise_var)]
+
+    def finish(self, results: list) -> None:
+        """Take the unit's posterior and the repairs it found (:func:`_group`)."""
+        self._result, self.found_repairs = results[0]
+        self.k = len(self.years)
+
+    def _trend_model(self, x: np.ndarray, cov: np.ndarray):
+        """Segments (recorded events, then repairs found in the years), the layout and the
+        Gaussian model of the trend."""
+        cfg = self.cfg
+        names = cfg.model.input_names
+        starts = segment_starts(cfg, self.years, self.events)
+        since = {n: int(starts[i][-1]) for i, n in enumerate(names)}
+        signs = {n: {"up": 1, "down": -1}.get(cfg.model.inputs[n].degrading, 0) for n in names}
+        self.found_repairs = find_repairs(cfg, self.years, x, since, signs, cov)
+        if self.found_repairs:
+            starts = segment_starts(cfg, self.years, self.events + [
+                (r.year, c) for r in self.found_repairs for c in r.components])
+        designs = [design_matrix(self.years, s) for s in starts]
+        X = [dm for dm, _ in designs]
+        centres = [c for _, c in designs]
+        K, d = x.shape
+        lay = Layout(K, d, [dm.shape[1] for dm in X])
+        Mk = lay.mean_map(X).reshape(K, d, -1)
+        span = np.diff(cfg.model.bounds, axis=1).ravel()
+        prec, mean = [], []
+        for i, dm in enumerate(X):
+            n_seg = dm.shape[1] // 2
+            # Levels flat; slopes N(normal_rate, range^2) per year, as the joint method's.
+            prec += [0.0, span[i] ** -2.0] * n_seg
+            mean += [0.0, cfg.model.inputs[names[i]].normal_rate] * n_seg
+        model = GaussianTrend(x, cov, Mk, np.array(prec), np.array(mean),
+                              sigma_prior_scale(cfg))
+        return starts, centres, lay, model
+
+    def posterior(self, surrogate, predict, x, cov, total, ratio) -> UnitPosterior:
+        """The unit's posterior from its years' summaries (:func:`summarise`): the Gaussian
+        model, its sites refined, then weighted to the exact likelihood (module
+        docstring); ``predict`` is the batched surrogate, ``surrogate`` checks the fit."""
+        cfg, cc = self.cfg, self.cfg.calibrate
+        bounds = cfg.model.bounds
+        starts, centres, lay, model = self._trend_model(x, cov)
+        K, d = x.shape
+        ok = np.isfinite(self.flows)
+        yz, wz = np.where(ok, self.flows, 0.0), np.where(ok, 1.0 / total, 0.0)
+
+        def loglik(theta: np.ndarray) -> np.ndarray:
+            m = theta.shape[0]
+            r = yz - predict(theta.reshape(-1, d)).reshape(m, K, -1)
+            return -0.5 * np.einsum("mkt,mkt,kt->mk", r, r, wz)
+
+        rng = np.random.default_rng(self.seed)
+        model.refine(loglik, rng, bounds)
+        n_c = cc.chains
+        n_s = -(-IMPORTANCE_DRAWS_PER_KEPT * cc.keep_draws // n_c)
+        ext = 0
+        while True:
+            beta, sigma, theta, n_eff = model.importance(loglik, n_c * n_s, rng, bounds)
+            if n_eff >= cc.ess_warn or ext >= cc.max_extensions:
+                break
+            ext += 1           # too few effective draws: twice as many, as a chain is lengthened
+            n_s *= 2
+        converged = n_eff >= cc.ess_warn
+        pooled = np.ascontiguousarray(theta.transpose(1, 0, 2))              # [K, n, d]
+        chains = pooled.reshape(K, n_c, n_s, d)
+        rhat = np.array([[split_rhat(chains[k, :, :, j]) for j in range(d)] for k in range(K)])
+        # Resampled draws repeat: their number overstates them, the weights' does not.
+        n_eff_years = np.full((K, d), n_eff)
+        fits = []
+        for k in range(K):
+            fit = year_fit(surrogate, cfg, self.flows[k], total[k], pooled[k], bounds)
+            fit.update(extensions=ext, converged=converged)
+            if fit["status"] == STATUS_OK and not converged:
+                fit["status"] = STATUS_UNCONVERGED
+            fits.append(fit)
+        fit = {key: np.array([f[key] for f in fits]) for key in FIT_FIELDS}
+        if fits and "channel_rms" in fits[0]:
+            fit["channel_rms"] = np.array([f["channel_rms"] for f in fits])
+        noise = self.noise[:, 0] if self.noise.ndim == 2 else self.noise
+        stats = {"mean": pooled.mean(axis=1), "median": np.median(pooled, axis=1),
+                 "q05": np.quantile(pooled, 0.05, axis=1),
+                 "q95": np.quantile(pooled, 0.95, axis=1), "rhat": rhat, "ess": n_eff_years}
+        return UnitPosterior(
+            years=self.years, samples=pooled, acceptance=np.full((K, n_c), np.nan),
+            noise_std=noise, noise_source=self.source, surrogate_var_ratio=ratio,
+            fit=fit, trend=self._trend(starts, centres, lay, beta, sigma, n_c, n_s, n_eff),
+            var=pooled.var(axis=1), chain_end=chains[:, :, -1].copy(), **stats)
+
+    def _trend(self, starts, centres, lay: Layout, beta, sigma, n_c: int, n_s: int,
+               n_eff: float) -> dict:
+        """:data:`~twinmon.calibrate.trend.TREND_FIELDS` from the draws."""
+        d = lay.d
+        n = len(beta)
+        S = max(len(s) for s in starts)
+        start = np.full((S, d), -1, dtype=np.int64)
+        a, b = np.full((n, S, d), np.nan), np.full((n, S, d), np.nan)
+        col = 0
+        for i in range(d):
+            m = len(starts[i])
+            start[:m, i] = starts[i]
+            coef = beta[:, col:col + 2 * m]
+            col += 2 * m
+            # The level is at the segment's centre; stored at its start year.
+            b[:, :m, i] = coef[:, 1::2]
+            a[:, :m, i] = coef[:, 0::2] - b[:, :m, i] * (centres[i] - starts[i])
+        rhat = np.empty((3, d))
+        for i in range(d):
+            last = len(starts[i]) - 1
+            for r, v in enumerate((a[:, last, i], b[:, last, i], sigma[:, i])):
+                rhat[r, i] = split_rhat(v.reshape(n_c, n_s))
+        return {"start": start, "intercept": a, "slope": b, "sigma": sigma,
+                "sigma_scale": np.asarray(sigma_prior_scale(self.cfg), float),
+                "rhat": rhat, "ess": np.full((3, d), n_eff), "acceptance": np.full(n_c, np.nan)}
+
+    def result(self) -> UnitPosterior:
+        return self._result
+
+
+# ---------------------------------------------------------------------------------------
+# The sampler: summaries of a group of units at once, then each unit's draws
+# ---------------------------------------------------------------------------------------
+def _group(surrogate, predict, runs: list) -> list:
+    """The results of ``runs`` (LaplaceRun) from one batched summary of all their years:
+    (posterior, found repairs) per run, in order."""
+    bounds = runs[0].cfg.model.bounds
+    summaries = summarise(surrogate, predict, [r.plan()[0] for r in runs], bounds)
+    out = []
+    for r, (x, cov, total, ratio) in zip(runs, summaries):
+        post = r.posterior(surrogate, predict, x, cov, total, ratio)
+        out.append((post, list(r.found_repairs)))
+    return out
+
+
+def _work(runs: list) -> list:
+    """One group of units in a worker process (its surrogate from the pool's initializer)."""
+    from ..samplers.gpbatch import worker_predict
+    from ..shared import worker
+    return _group(worker["surrogate"], worker_predict(), runs)
+
+
+class LaplaceSampler(Sampler):
+    """The laplace method's sampler (``calibrate.sampler: vectorised``): the units are split
+    into groups (:func:`~twinmon.calibrate.shared.unit_groups`); each group's unit-years are
+    summarised in one batch and its units drawn, in a worker (``calibrate.workers``: 0 = one
+    per core, 1 = in this process). A unit's result depends only on its own data and seed."""
+
+    name = "vectorised"
+
+    def finish(self, work: Work) -> None:
+        import os
+
+        cfg, runs = work.cfg, work.runs
+        pending = [u for u, r in runs.items() if not r.done]
+        if not pending:
+            return
+        workers = min(cfg.calibrate.workers or len(os.sched_getaffinity(0)), len(pending))
+        groups = unit_groups(pending, max(workers, 1))
+
+        def take(group: list, results: list) -> None:
+            for u, res in zip(group, results):
+                runs[u].finish([res])
+            work.tick()
+
+        if workers <= 1 and not (cfg.calibrate.executor == "dask" and cfg.dask.address):
+            from ..samplers.gpbatch import make_predictor
+            predict = make_predictor(work.model)[0]
+            for g in groups:
+                take(g, _group(work.model, predict, [runs[u] for u in g]))
+            return
+        from concurrent.futures import wait
+
+        from ...executors import InterruptGuard, open_pool
+        pool = open_pool(cfg, "calibrate", max(workers, 1), *work.pool_args)
+        with sampling_pool(pool, work.output), InterruptGuard() as guard:
+            futures = [pool.submit(_work, [runs[u] for u in g]) for g in groups]
+            # Poll, so that a Ctrl-C stops the work within a fraction of a second.
+            while wait(futures, timeout=0.2).not_done:
+                guard.check()
+            guard.check()
+            for g, f in zip(groups, futures):
+                take(g, f.result())
+
+
+class LaplaceMethod(Method):
+    """The joint model on each year's Laplace approximation, drawn exactly
+    (``calibrate.method: laplace``)."""
+
+    name = "laplace"
+    continues_years = False
+
+    @property
+    def samplers(self):
+        return {"vectorised": LaplaceSampler()}
+
+    def start(self, model, cfg: Config, years, flows, noise, seed: int, source: str,
+              events: Sequence = ()) -> LaplaceRun:
+        return LaplaceRun(model, cfg, years, flows, noise, seed, source, events)
