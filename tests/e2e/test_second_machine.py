@@ -90,7 +90,7 @@ def test_every_stage_runs_on_the_dc_drive(drive):
 
 def test_auto_samples_a_pooling_fleet_jointly_on_the_dc_drive(drive):
     """calibrate.method auto on another machine: with forecast.pool_min_units 3 the drive's
-    three units are a fleet, sampled jointly; forecast pools their year-to-year sd, in the
+    three units are a fleet, calibrated with the joint model (the laplace method); forecast pools their year-to-year sd, in the
     config's names, and finds the faults the sequential method finds."""
     tmp, cfg, _ = drive
     obs, truth, sur = tmp / "fleet.h5", tmp / "fleet_truth.h5", tmp / "surrogate.h5"
@@ -102,11 +102,11 @@ def test_auto_samples_a_pooling_fleet_jointly_on_the_dc_drive(drive):
     pool = ("--set", "forecast.pool_min_units=3")
     cal = run_json("calibrate", "-c", cfg, *pool, "--surrogate", sur, "--observations", obs,
                    "-o", tmp / "joint.h5")
-    assert cal["method"] == "joint"
-    assert cal["method_reason"] == ("calibrate.method auto: joint, 3 units >= "
+    assert cal["method"] == "laplace"
+    assert cal["method_reason"] == ("calibrate.method auto: laplace, 3 units >= "
                                     "forecast.pool_min_units 3 share a pooled year-to-year sd")
     with h5py.File(tmp / "joint.h5") as f:
-        assert f.attrs["method"] == "joint" and "trend" in f["units/Birch"]
+        assert f.attrs["method"] == "laplace" and "trend" in f["units/Birch"]
     fc = run_json("forecast", "-c", cfg, *pool, "--posterior", tmp / "joint.h5",
                   "--surrogate", sur, "-o", tmp / "joint_forecast.h5")
     pooling = fc["sigma_pooling"]

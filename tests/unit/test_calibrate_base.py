@@ -34,10 +34,11 @@ def test_every_configured_method_is_a_module_with_a_sampler_per_choice():
 def test_update_continues_the_sequential_years_only():
     assert methods.method_named("sequential").continues_years
     assert not methods.method_named("joint").continues_years
+    assert not methods.method_named("laplace").continues_years
 
 
 def test_unknown_names_are_refused_with_the_choices():
-    with pytest.raises(ValueError, match="no calibration method 'nope' .*joint, sequential"):
+    with pytest.raises(ValueError, match="no calibration method 'nope' .*joint, laplace, sequential"):
         methods.method_named("nope")
     with pytest.raises(ConfigError, match="'gpu' cannot sample the joint method .*openturns"):
         methods.method_named("joint").sampler("gpu")

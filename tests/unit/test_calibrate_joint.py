@@ -261,16 +261,16 @@ def test_method_is_validated(override, message):
     assert cfg.calibrate.method == "auto"
 
 
-def test_auto_picks_the_joint_method_for_a_fleet_it_can_pool():
-    """``calibrate.method: auto``: joint from forecast.pool_min_units units on (the pooled
-    joint method is the better calibrated one), sequential below or without pooling; a
-    method named in the config is used as it is."""
+def test_auto_picks_the_joint_model_for_a_fleet_it_can_pool():
+    """``calibrate.method: auto``: the joint model (drawn by the laplace method) from
+    forecast.pool_min_units units on (pooled, it is the better calibrated one), sequential
+    below or without pooling; a method named in the config is used as it is."""
     from twinmon.calibrate import resolve_method
     cfg = load_config(CONFIGS / "pump.yaml")
     assert resolve_method(cfg, 3) == ("sequential", "calibrate.method auto: sequential, 3 "
                                       "unit(s) < forecast.pool_min_units 5")
     method, why = resolve_method(cfg, 5)
-    assert method == "joint" and "5 units >= forecast.pool_min_units 5" in why
+    assert method == "laplace" and "5 units >= forecast.pool_min_units 5" in why
     off = load_config(CONFIGS / "pump.yaml", ["forecast.pool_sigma=false"])
     assert resolve_method(off, 500) == ("sequential", "calibrate.method auto: sequential, "
                                         "forecast.pool_sigma is false")
@@ -350,11 +350,12 @@ def test_forecast_pools_the_year_to_year_sd_over_the_fleet(setup, tmp_path):
     quick = ["calibrate.samples=150", "calibrate.burn_in=50", "calibrate.chains=2",
              "calibrate.max_extensions=0", "calibrate.keep_draws=200", "forecast.samples=200",
              "forecast.horizon=3", "forecast.observed_samples=50"]
-    # calibrate.method auto: five units are a fleet to pool over, sampled jointly.
+    # calibrate.method auto: five units are a fleet to pool over, drawn by the laplace
+    # method (the joint model; its sigma is pooled as the joint sampler's).
     q = load_config(cfg_path, quick + ["calibrate.method=auto"])
     cal = calibrate(q, tmp / "sur.h5", obs, tmp_path / "post.h5")
-    assert cal.method == "joint" and cal.as_dict()["method"] == "joint"
-    assert artifacts.read_provenance(tmp_path / "post.h5")["method"] == "joint"
+    assert cal.method == "laplace" and cal.as_dict()["method"] == "laplace"
+    assert artifacts.read_provenance(tmp_path / "post.h5")["method"] == "laplace"
     # Four units next time: auto picks the sequential method, which cannot continue a
     # joint history. Refused, the posterior untouched.
     from twinmon.errors import ArtifactError
@@ -363,7 +364,7 @@ def test_forecast_pools_the_year_to_year_sd_over_the_fleet(setup, tmp_path):
     write_observations(four, Observations(sur.time, {f"U{s}": whole.units[f"U{s}"]
                                                      for s in range(4)}, four))
     before = (tmp_path / "post.h5").read_bytes()
-    with pytest.raises(ArtifactError, match=r"post.h5: sampled with the joint method, this run "
+    with pytest.raises(ArtifactError, match=r"post.h5: sampled with the laplace method, this run "
                        r"uses the sequential method \(calibrate.method auto, 4 units\); "
                        r"re-run calibrate without --update"):
         calibrate(q, tmp / "sur.h5", four, tmp_path / "post.h5", update=True)

@@ -177,16 +177,17 @@ class CalibrateSummary:
 def resolve_method(cfg: Config, n_units: int) -> tuple[str, str]:
     """The method a calibration of ``n_units`` units uses, and why.
 
-    ``calibrate.method`` when it names one; ``auto`` is ``joint`` when ``forecast`` will
-    pool the year-to-year sd over the fleet (``forecast.pool_sigma`` and ``n_units >=
-    forecast.pool_min_units``), else ``sequential``. The joint method is the better
-    calibrated one only pooled: with each unit's own sd its intervals are too wide, and
-    the paper's method is the one for a unit or a handful (docs/forecast.md, "The
-    default method").
+    ``calibrate.method`` when it names one; ``auto`` is ``laplace`` (the joint model, drawn
+    without a chain) when ``forecast`` will pool the year-to-year sd over the fleet
+    (``forecast.pool_sigma`` and ``n_units >= forecast.pool_min_units``), else
+    ``sequential``. The joint model is the better calibrated one only pooled: with each
+    unit's own sd its intervals are too wide, and the paper's method is the one for a unit
+    or a handful (docs/forecast.md, "The default method"). ``laplace`` draws the joint
+    model's posterior at a fraction of the Gibbs sampler's cost (docs/calibration.md).
 
     Returns
     -------
-    method : {"sequential", "joint"}
+    method : {"sequential", "joint", "laplace"}
     reason : str
         One line for the user ("" when the config named the method).
     """
@@ -195,7 +196,7 @@ def resolve_method(cfg: Config, n_units: int) -> tuple[str, str]:
         return method, ""
     fc = cfg.forecast
     if fc.pool_sigma and n_units >= fc.pool_min_units:
-        return "joint", (f"calibrate.method auto: joint, {n_units} units >= "
+        return "laplace", (f"calibrate.method auto: laplace, {n_units} units >= "
                          f"forecast.pool_min_units {fc.pool_min_units} share a pooled "
                          "year-to-year sd")
     why = ("forecast.pool_sigma is false" if not fc.pool_sigma else

@@ -22,9 +22,9 @@ BOX_TRIES = 20
 #: Expectation propagation of the years' sites (GaussianTrend.refine): sweeps, draws of the
 #: model per sweep, likelihood points per year, and the fewest effective points an update
 #: rests on.
-EP_SWEEPS = 2
+EP_SWEEPS = 3
 EP_DRAWS = 1000
-EP_POINTS = 256
+EP_POINTS = 300
 EP_MIN_ESS = 30.0
 #: No box: the Gaussian model's own draws (the box enters through the weights).
 WIDE_BOX = np.tile([-np.inf, np.inf], (64, 1))

@@ -62,11 +62,15 @@ class CalibrateConfig:
     #: ``sequential``: the paper's method, each year sampled in turn with a prior centred on
     #: the previous year's estimate (calibrate/methods/sequential.py). ``joint``: each
     #: unit's whole history in one posterior with a linear trend per input (restarted at
-    #: maintenance events) and its year-to-year scatter inside (calibrate/methods/joint.py;
-    #: docs/calibration.md).
-    #: ``auto``: ``joint`` when the observations hold a fleet whose year-to-year sd
+    #: maintenance events) and its year-to-year scatter inside, sampled by Gibbs
+    #: (calibrate/methods/joint.py; docs/calibration.md). ``laplace``: the same model drawn
+    #: without a chain -- each year's likelihood summarised by a Gaussian, refined by
+    #: expectation propagation, the draws importance-weighted back to the exact likelihood
+    #: (calibrate/methods/laplace.py); on benchmarks/prognosis.py it gives the joint
+    #: method's figures at a fraction of its cost.
+    #: ``auto``: ``laplace`` when the observations hold a fleet whose year-to-year sd
     #: ``forecast`` can pool (``forecast.pool_sigma`` and at least ``forecast.pool_min_units``
-    #: units), else ``sequential``: on benchmarks/prognosis.py the pooled joint method is
+    #: units), else ``sequential``: on benchmarks/prognosis.py the pooled joint model is
     #: the better calibrated one, the unpooled one is not (docs/forecast.md, "The default
     #: method").
     method: Literal["auto", "sequential", "joint", "laplace"] = "auto"

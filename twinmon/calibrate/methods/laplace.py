@@ -221,8 +221,11 @@ class LaplaceRun:
             beta, sigma, theta, n_eff = model.importance(loglik, n_c * n_s, rng, bounds)
             if n_eff >= cc.ess_warn or ext >= cc.max_extensions:
                 break
-            ext += 1           # too few effective draws: twice as many, as a chain is lengthened
+            # Too few effective draws: one more sweep of the sites and twice as many draws,
+            # as a chain is lengthened.
+            ext += 1
             n_s *= 2
+            model.refine(loglik, rng, bounds, sweeps=1)
         converged = n_eff >= cc.ess_warn
         pooled = np.ascontiguousarray(theta.transpose(1, 0, 2))              # [K, n, d]
         chains = pooled.reshape(K, n_c, n_s, d)
@@ -302,12 +305,16 @@ def _work(runs: list) -> list:
 
 
 class LaplaceSampler(Sampler):
-    """The laplace method's sampler (``calibrate.sampler: vectorised``): the units are split
-    into groups (:func:`~twinmon.calibrate.shared.unit_groups`); each group's unit-years are
+    """The laplace method's sampler. ``vectorised`` (the default): the units are split into
+    groups (:func:`~twinmon.calibrate.shared.unit_groups`); each group's unit-years are
     summarised in one batch and its units drawn, in a worker (``calibrate.workers``: 0 = one
-    per core, 1 = in this process). A unit's result depends only on its own data and seed."""
+    per core, 1 = in this process), through the surrogate's numpy form
+    (:mod:`~twinmon.calibrate.samplers.gpbatch`). ``openturns``: the same, in this process,
+    through OpenTURNS' own prediction (the reference the numpy form is checked against).
+    A unit's result depends only on its own data and seed."""
 
-    name = "vectorised"
+    def __init__(self, name: str = "vectorised"):
+        self.name = name
 
     def finish(self, work: Work) -> None:
         import os
@@ -324,6 +331,10 @@ class LaplaceSampler(Sampler):
                 runs[u].finish([res])
             work.tick()
 
+        if self.name == "openturns":
+            for g in groups:
+                take(g, _group(work.model, work.model.predict, [runs[u] for u in g]))
+            return
         if workers <= 1 and not (cfg.calibrate.executor == "dask" and cfg.dask.address):
             from ..samplers.gpbatch import make_predictor
             predict = make_predictor(work.model)[0]
@@ -353,7 +364,8 @@ class LaplaceMethod(Method):
 
     @property
     def samplers(self):
-        return {"vectorised": LaplaceSampler()}
+        return {"vectorised": LaplaceSampler("vectorised"),
+                "openturns": LaplaceSampler("openturns")}
 
     def start(self, model, cfg: Config, years, flows, noise, seed: int, source: str,
               events: Sequence = ()) -> LaplaceRun:
