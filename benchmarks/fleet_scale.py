@@ -202,12 +202,11 @@ class Row:
 
 
 def sampler_overrides() -> list[str]:
-    """The sequential method's vectorised sampler: the one this benchmark's targets were set
-    for. ``calibrate.method: auto`` (the default) would sample fleets of 5
-    units or more jointly, at about 17x the CPU per unit-year (docs/forecast.md)."""
+    """The vectorised sampler and no method override: ``calibrate.method: auto``, the
+    default a user gets (the laplace method for a fleet of 5 units or more,
+    docs/calibration.md)."""
     names = {f.name for f in dataclasses.fields(CalibrateConfig)}
-    return (["--set", "calibrate.sampler=vectorised"] if "sampler" in names else []) + \
-        (["--set", "calibrate.method=sequential"] if "method" in names else [])
+    return ["--set", "calibrate.sampler=vectorised"] if "sampler" in names else []
 
 
 def dask_overrides() -> list[str]:
