@@ -213,3 +213,17 @@ def test_forecast_runs_on_a_laplace_fleet_and_pools_its_sigma(setup, tmp_path):
     d = s.as_dict()
     assert d["sigma_pooling"]["pooled"] and d["sigma_pooling"]["units"] == 5
     assert set(d["units"]) == {f"U{i}" for i in range(5)}
+
+
+def test_a_trend_beyond_the_box_gets_no_weight_and_stays_in_the_box():
+    """Every draw of the Gaussian model outside the design box (a unit whose inputs lie
+    beyond it): no error, the draws held in the box, an effective number of 0 (which the
+    method reports as unconverged years)."""
+    years = np.arange(1.0, 7.0)
+    model = _line_model(years, np.full((6, 1, 1), 0.01), [0.1], 1.0)(
+        (5.0 + 0.2 * years)[:, None])
+    box = np.array([[0.0, 1.0]])
+    beta, sigma, theta, n_eff = model.importance(lambda t: np.zeros(t.shape[:2]), 400,
+                                                 np.random.default_rng(0), box)
+    assert n_eff == 0.0 and theta.shape == (400, 6, 1)
+    assert np.all((theta >= 0.0) & (theta <= 1.0))

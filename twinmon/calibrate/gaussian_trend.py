@@ -8,8 +8,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import CalibrationError
-
 #: Quasi-random sigma points per round, and the effective number of them the weights must
 #: reach before the zooming stops (at most :data:`SIGMA_ROUNDS` rounds).
 SIGMA_POINTS = 512
@@ -220,7 +218,8 @@ class GaussianTrend:
         beta, sigma, theta
             As :meth:`draw`'s, resampled.
         ess : float
-            Effective number of the weighted draws (Kish).
+            Effective number of the weighted draws (Kish); 0 when every draw left the box
+            (the draws are then the Gaussian model's, held in the box).
         """
         d = self.x.shape[1]
         beta, sigma, theta, _ = self.draw(n, rng, WIDE_BOX[:d])
@@ -229,7 +228,11 @@ class GaussianTrend:
         lw = np.sum(loglik(theta) + 0.5 * np.einsum("nki,kij,nkj->nk", dx, H, dx), axis=1)
         lw[~np.all((theta >= bounds[:, 0]) & (theta <= bounds[:, 1]), axis=(1, 2))] = -np.inf
         if not np.isfinite(lw).any():
-            raise CalibrationError("every draw of the trend left the design box")
+            # Every draw leaves the box (a unit whose inputs lie beyond it): the Gaussian
+            # model's draws held in the box, with no weight behind them (effective number
+            # 0: the caller marks the years unconverged).
+            beta, sigma, theta, _ = self.draw(n, rng, bounds)
+            return beta, sigma, theta, 0.0
         w = np.exp(lw - lw.max())
         w /= w.sum()
         # Systematic resampling, then a shuffle: the kept draws carry no order.
