@@ -19,8 +19,9 @@ from twinmon.reduce import read_surrogate, reduce
 from twinmon.simulate import simulate
 
 from ..conftest import CONFIGS, write_yaml
+# The joint method's test unit, so that the two methods are held to the same one.
+from .test_calibrate_joint import NOISE, SLOPES, YEARS, _observe, _trend_unit
 
-NOISE = 4.0  # kg/s, 1 % of the nominal flow as in the shipped fleet
 WIDE = np.array([[-1e9, 1e9]])
 
 
@@ -122,22 +123,6 @@ def setup(tmp_path_factory, fmu_path):
     simulate(cfg, tmp / "sims.h5")
     reduce(cfg, tmp / "sims.h5", tmp / "sur.h5")
     return cfg, cfg_path, tmp, read_surrogate(tmp / "sur.h5")
-
-
-def _observe(surrogate, X, seed=0):
-    rng = np.random.default_rng(seed)
-    clean = surrogate.predict(np.atleast_2d(X))
-    return clean + NOISE * rng.standard_normal(clean.shape)
-
-
-YEARS = np.arange(1, 7)
-SLOPES = np.array([0.8, -0.06])
-
-
-def _trend_unit(seed=2):
-    rng = np.random.default_rng(seed)
-    X = np.array([10.0, 3.75]) + np.outer(YEARS - 1, SLOPES)
-    return X + rng.normal(0.0, [0.1, 0.005], X.shape)
 
 
 def _fleet(path, sur, seeds):

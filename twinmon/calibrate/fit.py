@@ -94,3 +94,33 @@ def year_fit(surrogate, cfg: Config, y: np.ndarray, total_var: np.ndarray,
         out["channel_rms"] = np.array([np.sqrt(np.mean(z[sl][ok[sl]] ** 2))
                                        if ok[sl].any() else np.nan for _, sl in blocks])
     return out
+
+
+def years_fit(surrogate, cfg: Config, flows: np.ndarray, total_var: np.ndarray,
+              draws: np.ndarray, extensions: int, converged) -> dict:
+    """:func:`year_fit` of each year of a unit whose years were drawn together (a joint
+    posterior), as the posterior stores it: each field of :data:`FIT_FIELDS` [year] (and
+    ``channel_rms`` [year, channel] with several channels). A year that did not converge
+    and fits is ``unconverged``.
+
+    Parameters
+    ----------
+    flows, total_var : ndarray, shape [K, n_out]
+    draws : ndarray, shape [K, n_s, d]
+    extensions : int
+        Times the unit's draws were lengthened.
+    converged : bool or array of bool, shape [K]
+    """
+    K = len(flows)
+    converged = np.broadcast_to(np.asarray(converged, bool), (K,))
+    fits = []
+    for k in range(K):
+        fit = year_fit(surrogate, cfg, flows[k], total_var[k], draws[k], cfg.model.bounds)
+        fit.update(extensions=extensions, converged=bool(converged[k]))
+        if fit["status"] == STATUS_OK and not converged[k]:
+            fit["status"] = STATUS_UNCONVERGED
+        fits.append(fit)
+    out = {key: np.array([f[key] for f in fits]) for key in FIT_FIELDS}
+    if fits and "channel_rms" in fits[0]:
+        out["channel_rms"] = np.array([f["channel_rms"] for f in fits])
+    return out

@@ -126,6 +126,14 @@ _DATASETS = {
 }
 
 
+def draw_statistics(draws: np.ndarray, rhat: np.ndarray, ess: np.ndarray) -> dict:
+    """:class:`UnitPosterior`'s summary fields of draws [K, n_s, d] (``mean``, ``median``,
+    ``q05``, ``q95`` [K, d]) with the diagnostics ``rhat`` and ``ess`` [K, d]."""
+    return {"mean": draws.mean(axis=1), "median": np.median(draws, axis=1),
+            "q05": np.quantile(draws, 0.05, axis=1), "q95": np.quantile(draws, 0.95, axis=1),
+            "rhat": rhat, "ess": ess}
+
+
 #: Optional per-unit datasets (absent from posteriors written before ``--update`` existed).
 _CONTINUATION = {
     "var": ("input units squared", "posterior variance of all the draws [year, input]"),

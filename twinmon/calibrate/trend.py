@@ -9,6 +9,7 @@ from typing import Sequence
 import numpy as np
 
 from ..config import Config
+from ..repairs import find_repairs
 
 #: The trend posterior of a jointly calibrated unit (``UnitPosterior.trend``; the posterior
 #: artifact's ``/units/<U>/trend/<field>``): (units, description). ``S`` is the largest
@@ -71,6 +72,42 @@ def segment_starts(cfg: Config, years: np.ndarray, events: Sequence) -> list[np.
     return out
 
 
+def with_found_repairs(cfg: Config, years: np.ndarray, events: Sequence,
+                       starts: list[np.ndarray], est: np.ndarray, cov: np.ndarray
+                       ) -> tuple[list[np.ndarray], list]:
+    """Segment starts with the repairs no event records added: where the years' estimates
+    fall back towards nominal (:func:`~twinmon.repairs.find_repairs`, each year's covariance
+    as its error). A straight line across a repair would describe neither part, and the
+    unit's fault would be missed.
+
+    Parameters
+    ----------
+    years : array of int, shape [K]
+    events : sequence
+        The recorded events (as :func:`segment_starts` takes them).
+    starts : list of ndarray
+        :func:`segment_starts` of the recorded events.
+    est : ndarray, shape [K, d]
+        The years' estimates (input units).
+    cov : ndarray, shape [K, d, d]
+        Their error covariances.
+
+    Returns
+    -------
+    starts : list of ndarray
+        ``starts`` with a segment from each found repair on (the same list when none).
+    found : list of FoundRepair
+    """
+    names = cfg.model.input_names
+    since = {n: int(starts[i][-1]) for i, n in enumerate(names)}
+    signs = {n: {"up": 1, "down": -1}.get(cfg.model.inputs[n].degrading, 0) for n in names}
+    found = find_repairs(cfg, years, est, since, signs, cov)
+    if found:
+        starts = segment_starts(cfg, years, list(events) + [
+            (r.year, c) for r in found for c in r.components])
+    return starts, found
+
+
 def design_matrix(years: np.ndarray, starts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Piecewise-linear design of one input.
 
@@ -93,6 +130,15 @@ def design_matrix(years: np.ndarray, starts: np.ndarray) -> tuple[np.ndarray, np
     X[rows, 2 * seg] = 1.0
     X[rows, 2 * seg + 1] = years - centres[seg]
     return X, centres
+
+
+def lines_at_start(coef: np.ndarray, starts: np.ndarray, centres: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """The lines of one input's segments as :data:`TREND_FIELDS` stores them (value at the
+    segment's start year, slope) from their coefficients as the design has them (level at
+    the segment's centre, slope): ``coef`` [..., 2 S] -> intercepts, slopes [..., S]."""
+    slope = coef[..., 1::2]
+    return coef[..., 0::2] - slope * (centres - starts), slope
 
 
 @dataclass

@@ -62,17 +62,17 @@ import numpy as np
 
 from ...config import Config
 from ...errors import CalibrationError
-from ...repairs import find_repairs
 from ..base import Method
 from ..density import Prior, find_map, make_log_density
 from ..diagnostics import ess, split_rhat
-from ..fit import FIT_FIELDS, STATUS_OK, STATUS_UNCONVERGED, year_fit
-from ..posterior import UnitPosterior
+from ..fit import years_fit
+from ..posterior import UnitPosterior, draw_statistics
 from ..samplers.gpbatch import make_predictor
 from ..samplers.joint_vectorised import JointVectorisedSampler, run_joint_tasks
 from ..samplers.openturns import OpenTurnsSampler
 from ..shared import JointTask, initial_states
-from ..trend import Layout, design_matrix, segment_starts, sigma_prior_scale, slope_prior
+from ..trend import (Layout, design_matrix, lines_at_start, segment_starts, sigma_prior_scale,
+                     slope_prior, with_found_repairs)
 from ..trend import theta as trend_theta
 
 #: Random-walk MH on a Gaussian target in dimension p: 2.38^2/p times its covariance.
@@ -259,19 +259,13 @@ class JointRun:
         self.M = self.lay.mean_map(self.X)
 
     def _restart_at_repairs(self, x_ml: np.ndarray, cov: np.ndarray) -> None:
-        """Start a segment where the years' maximum-likelihood points jump back towards
-        nominal with no event recorded (:func:`~twinmon.repairs.find_repairs`, each year's
-        Laplace variance as its error): a straight line across a repair would describe
-        neither part, and the unit's fault would be missed."""
-        cfg = self.cfg
-        names = cfg.model.input_names
-        since = {n: int(self.starts[i][-1]) for i, n in enumerate(names)}
-        signs = {n: {"up": 1, "down": -1}.get(cfg.model.inputs[n].degrading, 0)
-                 for n in names}
-        self.found_repairs = find_repairs(cfg, self.years, x_ml, since, signs, cov)
+        """Start a segment where the years' maximum-likelihood points fall back towards
+        nominal with no event recorded, each year's Laplace covariance as its error
+        (:func:`~twinmon.calibrate.trend.with_found_repairs`)."""
+        starts, self.found_repairs = with_found_repairs(self.cfg, self.years, self.events,
+                                                        self.starts, x_ml, cov)
         if self.found_repairs:
-            self._design(segment_starts(cfg, self.years, self.events + [
-                (r.year, c) for r in self.found_repairs for c in r.components]))
+            self._design(starts)
 
     @property
     def done(self) -> bool:
@@ -399,20 +393,9 @@ class JointRun:
             return
         s = self._setup
         pooled = theta.reshape(n_c * n_s, K, d).transpose(1, 0, 2)     # [K, draws, d]
-        stats = {"mean": pooled.mean(axis=1), "median": np.median(pooled, axis=1),
-                 "q05": np.quantile(pooled, 0.05, axis=1),
-                 "q95": np.quantile(pooled, 0.95, axis=1), "rhat": rhat, "ess": n_eff}
-        fits = []
-        for k in range(K):
-            fit = year_fit(self.surrogate, self.cfg, self.flows[k], s["total"][k], pooled[k],
-                           self.cfg.model.bounds)
-            fit.update(extensions=self.ext, converged=bool(ok_year[k]))
-            if fit["status"] == STATUS_OK and not ok_year[k]:
-                fit["status"] = STATUS_UNCONVERGED
-            fits.append(fit)
-        fit = {key: np.array([f[key] for f in fits]) for key in FIT_FIELDS}
-        if fits and "channel_rms" in fits[0]:
-            fit["channel_rms"] = np.array([f["channel_rms"] for f in fits])
+        stats = draw_statistics(pooled, rhat, n_eff)
+        fit = years_fit(self.surrogate, self.cfg, self.flows, s["total"], pooled, self.ext,
+                        ok_year)
         acc = np.array([r[1] for r in results]).T                        # [K, chains]
         noise = self.noise[:, 0] if self.noise.ndim == 2 else self.noise
         self._result = UnitPosterior(
@@ -435,11 +418,8 @@ class JointRun:
         for i in range(d):
             n = len(self.starts[i])
             start[:n, i] = self.starts[i]
-            coef = z[:, :, lay.beta(i)]
-            # Sampled as the level at the segment's centre; stored at its start year.
-            b[:, :, :n, i] = coef[:, :, 1::2]
-            a[:, :, :n, i] = coef[:, :, 0::2] - b[:, :, :n, i] * (self.centres[i]
-                                                                   - self.starts[i])
+            a[:, :, :n, i], b[:, :, :n, i] = lines_at_start(z[:, :, lay.beta(i)],
+                                                            self.starts[i], self.centres[i])
         sigma = np.abs(z[:, :, lay.s])
         rhat, n_eff = np.empty((3, d)), np.empty((3, d))
         for i in range(d):

@@ -45,15 +45,15 @@ import numpy as np
 
 from ...config import Config
 from ...errors import CalibrationError
-from ...repairs import find_repairs
 from ..base import Method, Sampler, Work
 from ..diagnostics import split_rhat
-from ..fit import FIT_FIELDS, STATUS_OK, STATUS_UNCONVERGED, year_fit
-from ..posterior import UnitPosterior
+from ..fit import years_fit
+from ..posterior import UnitPosterior, draw_statistics
 from ..samplers.batch_map import Batch, batch_map
 from ..shared import sampling_pool, unit_groups
 from ..gaussian_trend import GaussianTrend
-from ..trend import Layout, design_matrix, segment_starts, sigma_prior_scale
+from ..trend import (Layout, design_matrix, lines_at_start, segment_starts, sigma_prior_scale,
+                     with_found_repairs)
 
 #: Draws of the Gaussian model weighted to the exact posterior, per kept draw
 #: (``calibrate.keep_draws``).
@@ -172,13 +172,8 @@ class LaplaceRun:
         Gaussian model of the trend."""
         cfg = self.cfg
         names = cfg.model.input_names
-        starts = segment_starts(cfg, self.years, self.events)
-        since = {n: int(starts[i][-1]) for i, n in enumerate(names)}
-        signs = {n: {"up": 1, "down": -1}.get(cfg.model.inputs[n].degrading, 0) for n in names}
-        self.found_repairs = find_repairs(cfg, self.years, x, since, signs, cov)
-        if self.found_repairs:
-            starts = segment_starts(cfg, self.years, self.events + [
-                (r.year, c) for r in self.found_repairs for c in r.components])
+        starts, self.found_repairs = with_found_repairs(
+            cfg, self.years, self.events, segment_starts(cfg, self.years, self.events), x, cov)
         designs = [design_matrix(self.years, s) for s in starts]
         X = [dm for dm, _ in designs]
         centres = [c for _, c in designs]
@@ -232,20 +227,9 @@ class LaplaceRun:
         rhat = np.array([[split_rhat(chains[k, :, :, j]) for j in range(d)] for k in range(K)])
         # Resampled draws repeat: their number overstates them, the weights' does not.
         n_eff_years = np.full((K, d), n_eff)
-        fits = []
-        for k in range(K):
-            fit = year_fit(surrogate, cfg, self.flows[k], total[k], pooled[k], bounds)
-            fit.update(extensions=ext, converged=converged)
-            if fit["status"] == STATUS_OK and not converged:
-                fit["status"] = STATUS_UNCONVERGED
-            fits.append(fit)
-        fit = {key: np.array([f[key] for f in fits]) for key in FIT_FIELDS}
-        if fits and "channel_rms" in fits[0]:
-            fit["channel_rms"] = np.array([f["channel_rms"] for f in fits])
+        fit = years_fit(surrogate, cfg, self.flows, total, pooled, ext, converged)
         noise = self.noise[:, 0] if self.noise.ndim == 2 else self.noise
-        stats = {"mean": pooled.mean(axis=1), "median": np.median(pooled, axis=1),
-                 "q05": np.quantile(pooled, 0.05, axis=1),
-                 "q95": np.quantile(pooled, 0.95, axis=1), "rhat": rhat, "ess": n_eff_years}
+        stats = draw_statistics(pooled, rhat, n_eff_years)
         return UnitPosterior(
             years=self.years, samples=pooled, acceptance=np.full((K, n_c), np.nan),
             noise_std=noise, noise_source=self.source, surrogate_var_ratio=ratio,
@@ -264,11 +248,9 @@ class LaplaceRun:
         for i in range(d):
             m = len(starts[i])
             start[:m, i] = starts[i]
-            coef = beta[:, col:col + 2 * m]
+            a[:, :m, i], b[:, :m, i] = lines_at_start(beta[:, col:col + 2 * m], starts[i],
+                                                      centres[i])
             col += 2 * m
-            # The level is at the segment's centre; stored at its start year.
-            b[:, :m, i] = coef[:, 1::2]
-            a[:, :m, i] = coef[:, 0::2] - b[:, :m, i] * (centres[i] - starts[i])
         rhat = np.empty((3, d))
         for i in range(d):
             last = len(starts[i]) - 1
