@@ -304,6 +304,13 @@ PAIR_MACHINES = {
                                    "slope": float(rng.uniform(0.0, 0.01)), "jitter": 0.005}},
     },
 }
+#: The DC drive's cases (same units, effects, magnitudes and onsets as "dcdrive") with the
+#: plant recording the armature current beside the speed (noise 1 % of its healthy range,
+#: as fabricate draws it). Its plateau-type effects are absorbed by the degradation inputs
+#: on the speed alone; this says whether a second channel makes them visible. The torque
+#: channel the model also offers is Kt times the current: not recorded, it adds nothing.
+PAIR_MACHINES["dcdrive+current"] = {**PAIR_MACHINES["dcdrive"], "cases_of": "dcdrive",
+                                    "record": ("armature.i",)}
 PAIR_KINDS = ("transient+plateau", "transient+transient", "plateau+plateau")
 #: Visible gap (noise sigma, worst window, after refitting the degradation inputs:
 #: :func:`effect_gaps`) below which an effect counts as absorbed by them.
@@ -338,27 +345,40 @@ def build_pairs(machine: dict, rng, n_pairs: int, n_nulls: int, years: int, mags
     return units, labels
 
 
-def effect_gaps(cfg, fmu, truth, sigma: float) -> tuple:
+def effect_gaps(cfg, fmu, truth, sigma: float, recorded: dict | None = None) -> tuple:
     """Gap (noise units, worst window, its years on) of each withheld effect, raw and
     visible: ``({unit: {effect: gap}}, {unit: {effect: visible gap}})``.
 
     The raw gap compares the unit's output with both effects and with this one off, at its
-    true degradation inputs (the single-effect benchmark's gap). The visible gap is what
+    true degradation inputs (the single-effect benchmark's gap; the output alone, whatever
+    else is recorded, so that the cases scored are the same). The visible gap is what
     remains once the twin with this effect off (the other at its true value) has its
-    degradation inputs refitted (least squares, noise-free) to the output with both: the
-    part of the effect no degradation can take up, hence what any diagnosis on the
-    recorded output can see of it."""
+    degradation inputs refitted (least squares, noise-free) to the recorded channels with
+    both: the part of the effect no degradation can take up, hence what any diagnosis on
+    the recorded channels can see of it (the worst channel's gap).
+
+    ``recorded``: further recorded channels ``{FMU variable: noise std (its units)}``."""
     from scipy.optimize import least_squares
     t = cfg.model.output.times.times
     var = cfg.model.output.variable
     ins = list(cfg.model.inputs.values())
+    chans = {var: sigma, **(recorded or {})}
     raw, visible = {}, {}
-    with FMUModel(fmu, [var], t) as model:
-        def out(p):
+    with FMUModel(fmu, list(chans), t) as model:
+        def run(p):
             try:
-                return model.run(p)[var]
+                res = model.run(p)
+                return np.concatenate([res[c] / s for c, s in chans.items()]) * sigma
             except SimulationError:
-                return np.full(t.size, 1e6)
+                return np.full(t.size * len(chans), 1e6)
+
+        def out(p):
+            return run(p)[:t.size]
+
+        def window_gap(delta):
+            # Worst recorded channel; ``delta`` [years, channels * n_t] in output units.
+            return max(_window_gap(cfg, delta[:, i * t.size:(i + 1) * t.size] / sigma)
+                       for i in range(len(chans)))
         for u, eff in truth.effects.items():
             raw[u], visible[u] = {}, {}
             for name, vals in eff.items():
@@ -374,15 +394,17 @@ def effect_gaps(cfg, fmu, truth, sigma: float) -> tuple:
                     deltas.append(target - out(off))
                     x0 = np.array([p[q.variable] for q in ins])
 
-                    def resid(z, off=off, target=target):
+                    target_all = run(both)
+
+                    def resid(z, off=off, target=target_all):
                         x = lo + z * (hi - lo)
-                        return (out({**off, **{q.variable: float(v) for q, v in zip(ins, x)}})
+                        return (run({**off, **{q.variable: float(v) for q, v in zip(ins, x)}})
                                 - target) / sigma
                     fit = least_squares(resid, np.clip((x0 - lo) / (hi - lo), 0, 1),
                                         bounds=(0, 1), diff_step=1e-4, max_nfev=40)
                     vis.append(resid(fit.x) * sigma)
                 raw[u][name] = _window_gap(cfg, np.array(deltas) / sigma) if deltas else 0.0
-                visible[u][name] = _window_gap(cfg, np.array(vis) / sigma) if vis else 0.0
+                visible[u][name] = window_gap(np.array(vis)) if vis else 0.0
     return raw, visible
 
 
@@ -395,21 +417,41 @@ def run_pairs(name: str, machine: dict, args) -> dict:
     t = base.model.output.times.times
     with FMUModel(fmu, [base.model.output.variable], t) as model:
         mags = min_magnitudes(base, model, sigma)
-    rng = np.random.default_rng([args.seed, list(PAIR_MACHINES).index(name)])
+    # A variant of another machine's cases draws the same ones.
+    rng = np.random.default_rng([args.seed, list(PAIR_MACHINES).index(
+        machine.get("cases_of", name))])
     units, labels = build_pairs(machine, rng, args.pairs, args.nulls, args.years, mags)
-    raw["fabricate"] = {"years": args.years, "noise_std": sigma,
+    record = tuple(machine.get("record", ()))
+    raw["fabricate"] = {"years": args.years, "noise_std": sigma, "record_channels": bool(record),
                         "seed": int(rng.integers(1 << 30)), "units": units}
     cfg = config_from_mapping(raw, Path(machine["config"]))
     with tempfile.TemporaryDirectory(prefix="gap-pairs-") as tmp:
         obs, truth_path = Path(tmp) / "obs.h5", Path(tmp) / "truth.h5"
         fabricate(cfg, obs, truth_path)
+        ch_noise = _keep_channels(cfg, obs, record) if record else {}
         t0 = time.perf_counter()
         summary = diagnose(cfg, obs, Path(tmp) / "gap.h5", workers=args.workers)
         wall = time.perf_counter() - t0
         truth = read_truth(truth_path)           # only the scorer reads it
-        gaps, visible = effect_gaps(cfg, fmu, truth, sigma)
+        gaps, visible = effect_gaps(cfg, fmu, truth, sigma, ch_noise)
     return {"summary": summary, "labels": labels, "gaps": gaps, "visible": visible,
             "wall": wall, "cfg": cfg}
+
+
+def _keep_channels(cfg, path: Path, record: tuple) -> dict:
+    """Leave only the output and the channels ``record`` in the observations at ``path``
+    (fabricate records every ``model.channels`` entry); their noise std ``{channel: std}``."""
+    import dataclasses
+    from twinmon.observations import read_observations, write_observations
+    obs = read_observations(path)
+    keep = {cfg.model.output.name, *record}
+    units = {u: dataclasses.replace(
+        uo, channels={c: v for c, v in uo.channels.items() if c in keep},
+        noise_std={c: v for c, v in uo.noise_std.items() if c in keep})
+        for u, uo in obs.units.items()}
+    write_observations(path, dataclasses.replace(obs, units=units),
+                       units=cfg.model.channel_units)
+    return {c: next(iter(units.values())).noise_std[c] for c in record}
 
 
 def pair_scores(runs: dict, verbose: int = 0, absorbed: float = 0.0) -> dict:
@@ -449,10 +491,10 @@ def pair_scores(runs: dict, verbose: int = 0, absorbed: float = 0.0) -> dict:
                 sc["spread"] += int(grp["failure_year_spread"])
             if verbose and (g.verdict != "effect" or not found or not ok90 or verbose > 1):
                 print(f"  {machine} {u} {kind}: truth "
-                      + ", ".join(f"{n} {v:.3g} from {on}" for n, (v, on) in truth.items())
-                      + " (gaps " + ", ".join(f"{x:.1f}" for x in r["gaps"][u].values())
-                      + "; visible " + ", ".join(f"{x:.1f}" for x in r["visible"][u].values())
-                      + f"); {g.verdict}, closed {g.closed_percent:.1f} %, groups "
+                      + ", ".join(f"{n} {v:.3g} from {on} (gap {r['gaps'][u][n]:.1f}, "
+                                  f"visible {r['visible'][u][n]:.1f})"
+                                  for n, (v, on) in truth.items())
+                      + f"; {g.verdict}, closed {g.closed_percent:.1f} %, groups "
                       + "; ".join("[" + ", ".join(f"{m['effect']} {m['weight']:.2f}"
                                                   for m in grp["members"]) + f"] from "
                                   f"{grp['onset']}" for grp in g.groups))
@@ -500,20 +542,39 @@ def pair_main(argv) -> None:
     ap.add_argument("--seed", type=int, default=3,
                     help="1 and 2: tuning seeds; 3 and 4: held out")
     ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--machines", default="pump,dcdrive")
+    ap.add_argument("--machines", default="pump,dcdrive,dcdrive+current",
+                    help="of " + ", ".join(PAIR_MACHINES))
     ap.add_argument("-v", "--verbose", action="count", default=0,
                     help="list the cases missed (-vv: every case)")
     args = ap.parse_args(argv)
     runs = {m: run_pairs(m, PAIR_MACHINES[m], args) for m in args.machines.split(",")}
     print(f"gap_blind --pairs: seed {args.seed}, {args.pairs} pair units + {args.nulls} clean "
           f"units per machine ({', '.join(runs)}), {args.years} years, noise 1 % of nominal")
-    # Every case with a 3-sigma gap, as for one effect; then those whose effects the
-    # degradation inputs do not absorb (an absorbed effect is invisible to any diagnosis on
-    # the recorded channel: the DC drive's plateau effects, a load torque looking like
-    # friction, a supply ratio like a winding resistance).
-    for absorbed in (0.0, ABSORBED):
-        pair_report(runs, pair_scores(runs, args.verbose if not absorbed else 0, absorbed),
-                    None, args)
+    # Two set-ups, each scored on its own: every machine recording its output alone, then
+    # with the further channels of the "+" variants in place of their output-only runs
+    # (the same cases; the pump records its flow alone in both).
+    variants = {m for m in runs if PAIR_MACHINES[m].get("record")}
+    replaced = {PAIR_MACHINES[m]["cases_of"] for m in variants}
+    setups = {"output only": {m: r for m, r in runs.items() if m not in variants}}
+    if variants:
+        setups["with " + ", ".join(sorted({c for m in variants
+                                             for c in PAIR_MACHINES[m]["record"]}))
+               + " recorded"] = {m: r for m, r in runs.items() if m not in replaced}
+    if args.verbose:
+        # The misses of each machine once (-vv: every case), whatever set-ups it is in.
+        for m, r in runs.items():
+            pair_scores({m: r}, args.verbose, 0.0)
+    for label, sub in setups.items():
+        if not sub:
+            continue
+        print(f"\n== {label}: {', '.join(sub)} ==")
+        # Every case with a 3-sigma gap, as for one effect; then those whose effects the
+        # degradation inputs do not absorb (an absorbed effect is invisible to any
+        # diagnosis on the recorded channels: on the DC drive's speed alone its plateau
+        # effects, a load torque looking like friction, a supply ratio like a winding
+        # resistance).
+        for absorbed in (0.0, ABSORBED):
+            pair_report(sub, pair_scores(sub, 0, absorbed), None, args)
 
 
 if __name__ == "__main__":
