@@ -34,8 +34,12 @@ Layout: each step has its file, over one small state object.
 ``state.py``       :class:`~.state.UnitState`: one unit's data, twin and base twin
 ``locate.py``      step 1: base fit, per-year and pooled tests, residual maps, window RMS,
                    significant windows, absorbed share
-``identify.py``    step 2: screening, confirmation by the augmented fit, BIC, group,
-                   separating channel, further effects, ranking
+``identify.py``    step 2: screening and confirming every candidate, the final model, its
+                   groups, the ranking table
+``screen.py``      the linearised screening of a candidate (grid of values x onsets)
+``confirm.py``     confirmation by the augmented fit through the FMU, BIC
+``several.py``     further effects on top of the current model; each effect's group by swaps
+``groups.py``      :class:`~.groups.EffectGroup`, evidence shares, separating channel
 ``shrink.py``      step 3: RMS before/after, % of the excess closed, verdict, estimates and
                    intervals, before/after twins, projected failure year
 ``twin.py``        :class:`Twin`: the FMU with normalised parameters, whitened outputs

@@ -19,7 +19,9 @@ import numpy as np
 from scipy import stats
 
 from ..errors import SimulationError
-from .identify import Identification, bic
+from .confirm import bic
+from .groups import group_separation
+from .identify import Identification
 from .locate import year_tests
 from .state import UnitState
 
@@ -228,7 +230,6 @@ def group_records(s: UnitState, sh: Shrink, idn: Identification) -> list:
     """
     if sh.verdict != "effect":
         return []
-    from .identify import group_separation
     k_aff = np.flatnonzero(sh.aff)
     n_aff = int(s.n_rows[sh.aff].sum())
     dof_b = max(n_aff - s.d * int(sh.aff.sum()), 1)

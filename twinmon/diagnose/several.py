@@ -1,0 +1,177 @@
+"""Models of several effects: a further effect on top of the current model
+(:func:`further`), and the group of each effect of a several-effect model, found by swapping
+it for every other candidate (:func:`swap_groups`).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import SimulationError
+from .confirm import bic, fit_with
+from .fit import JointFit
+from .groups import EffectGroup, Member, _weighted
+from .screen import screen
+from .state import UnitState
+
+
+def _fixed(s: UnitState, effects: list, values: list) -> dict:
+    """Years index -> the effects of ``effects`` [(name, onset)] active that year."""
+    return {k: {n: v for (n, on), v in zip(effects, values) if s.years[k] >= on}
+            for k in range(s.n_y)}
+
+
+def _current(s: UnitState, final, model_effects, model_values, held: int | None = None) -> tuple:
+    """The current model as the screening needs it: normalised inputs [n_y, d], whitened
+    residual rows, the effects per year, and per year an orthonormal basis of the
+    sensitivities of its inputs and of the effects active that year.
+
+    The effects' sensitivities are in the basis so that a new effect is screened with the
+    effects already in the twin re-adjusted too (linearly, each year on its own: a
+    relaxation the confirming fit removes): a delay-type effect fitted alone takes up part
+    of a lag-type one, and held at that value it would hide the lag from the screening.
+    ``held``: the index of an effect left out of the basis (the one being swapped: its
+    alternatives must not be projected onto it)."""
+    chi2_cur, fit, k0 = final
+    _, ut = fit.problem.unpack(fit.x)
+    u_now = s.base_u.copy()
+    u_now[k0:] = ut
+    rows = list(s.base_rows[:k0]) + list(fit.rows)
+    fixed = _fixed(s, model_effects, model_values)
+    Qs = []
+    for k in range(s.n_y):
+        prob = JointFit(s.twin, s.Y[k:k + 1], s.years[k:k + 1],
+                        [(n, on) for n, on in model_effects])
+        # Sensitivities of this year's inputs at the current model (effects held).
+        x = np.concatenate([[s.twin.effect_u(n, v) for (n, _), v in
+                             zip(model_effects, model_values)], u_now[k]])
+        J = prob.jacobian(x)
+        cols = [j for j in prob.active[0] if j != held] + list(range(len(model_effects),
+                                                                      J.shape[1]))
+        Qs.append(np.linalg.qr(J[:, cols])[0])
+    return u_now, rows, fixed, Qs
+
+
+def further(s: UnitState, final, model_effects, model_values, candidates):
+    """Try one more effect on top of the current model; None unless the BIC gain is
+    above ``bic_gain``."""
+    chi2_cur = final[0]
+    u_now, rows, fixed, Qs = _current(s, final, model_effects, model_values)
+    used = {n for n, _ in model_effects}
+    scores = []
+    for name in candidates:
+        if name in used:
+            continue
+        sc, v, on, _ = screen(s, name, u_now, rows, Qs, fixed)
+        scores.append((sc, name, v, on))
+    scores.sort(reverse=True)
+    best = None
+    for sc, name, v, on in scores[:s.dc.confirm_further]:
+        effs = model_effects + [(name, on)]
+        vals = model_values + [v]
+        chi2, fit2, k02 = fit_with(s, effs, vals, u_now)
+        if fit2 is not None and (best is None or chi2 < best[0][0]):
+            ue, _ = fit2.problem.unpack(fit2.x)
+            best = ((chi2, fit2, k02), effs,
+                    [s.twin.effect_of(n, ue[j]) for j, (n, _) in enumerate(effs)])
+    if best is None:
+        return None
+    gain = bic(s, chi2_cur, len(model_effects)) - bic(s, best[0][0], len(best[1]))
+    return best if gain > s.dc.bic_gain else None
+
+
+def swap_groups(s: UnitState, final, model_effects: list, model_values: list,
+                candidates: list) -> tuple:
+    """The group of each effect of a several-effect model, found by swapping it.
+
+    For each place ``j`` of the model, every other candidate is screened in its place (the
+    other effects held at their fitted values, the degradation inputs re-adjusted
+    linearly); the ``confirm_further`` best, and any screening at least half as well as the
+    effect in place, are fitted with the other effects through the FMU. Those whose BIC lies
+    within ``group_bic`` of the best form the place's group: alike on the observed channels
+    *given* the other effects, which the single-effect fits cannot tell (a plateau-type
+    partner of a transient effect looks different alone than beside it). A member fitting
+    better than the effect in place takes its place, so the named effect is the best.
+
+    Returns ``(final, model_effects, model_values, groups)``: the model with any swap made
+    and one :class:`EffectGroup` per place.
+    """
+    for _ in range(2):
+        # A swap changes what the other places are screened beside: once more if any.
+        final, model_effects, model_values, groups, swapped = _swap_pass(
+            s, final, model_effects, model_values, candidates)
+        if not swapped:
+            break
+    return final, model_effects, model_values, groups
+
+
+def _swap_pass(s: UnitState, final, model_effects: list, model_values: list,
+               candidates: list) -> tuple:
+    """One pass of :func:`swap_groups` over the places of the model; also whether a place
+    changed effect."""
+    groups, swapped = [], False
+    for j, (name_j, on_j) in enumerate(model_effects):
+        u_now, rows, fixed, Qs = _current(s, final, model_effects, model_values, held=j)
+        others = [e for i, e in enumerate(model_effects) if i != j]
+        o_vals = [v for i, v in enumerate(model_values) if i != j]
+        # The residual with effect j taken out of the twin (inputs as fitted).
+        fixed_o = _fixed(s, others, o_vals)
+        rows_o = []
+        for k in range(s.n_y):
+            mask = np.isfinite(s.Y[k])
+            theta = s.twin.theta_of(u_now[k])
+            try:
+                df = (s.twin.predict(theta, fixed[k]) - s.twin.predict(theta, fixed_o[k]))[mask]
+            except SimulationError:
+                df = 0.0
+            rows_o.append(rows[k] + df)
+        used = {n for n, _ in others}
+        scored = []
+        for name in candidates:
+            if name in used:
+                continue
+            sc, v, on, _ = screen(s, name, u_now, rows_o, Qs, fixed_o)
+            scored.append((sc, name, v, on))
+        scored.sort(reverse=True)
+        own = next((sc for sc, n, _, _ in scored if n == name_j), 0.0)
+        # The effect in place is tried again around its screened onset (beside a new
+        # partner its onset may move).
+        tries = [t for i, t in enumerate(scored) if t[1] == name_j or (
+            i < s.dc.confirm_further or (own > 0 and t[0] >= 0.5 * own))]
+        fits = [(name_j, on_j, final, list(model_effects), list(model_values))]
+        for sc, name, v, on_s in tries:
+            best = None
+            # The screened onset and onset_search years either side, as for one effect.
+            for on in range(on_s - s.dc.onset_search, on_s + s.dc.onset_search + 1):
+                if on < s.years[0] or on > s.years[-1] or (name, on) == (name_j, on_j):
+                    continue
+                effs = list(model_effects)
+                effs[j] = (name, on)
+                vals = list(model_values)
+                vals[j] = v
+                chi2, fit2, k02 = fit_with(s, effs, vals, u_now)
+                if fit2 is not None and (best is None or chi2 < best[2][0]):
+                    ue, _ = fit2.problem.unpack(fit2.x)
+                    best = (name, on, (chi2, fit2, k02), effs,
+                            [s.twin.effect_of(n, ue[i]) for i, (n, _) in enumerate(effs)])
+            if best is not None:
+                fits.append(best)
+        # One model per candidate: its best onset.
+        by_name = {}
+        for f in fits:
+            if f[0] not in by_name or f[2][0] < by_name[f[0]][2][0]:
+                by_name[f[0]] = f
+        fits = list(by_name.values())
+        # Every model here has the same number of effects: BIC differences are chi-square's.
+        best_chi2 = min(f[2][0] for f in fits)
+        members = [Member(n, int(on), vals[j], j, float(fit_[0] - best_chi2), 0.0, fit_, effs,
+                          vals)
+                   for n, on, fit_, effs, vals in fits if fit_[0] - best_chi2 <= s.dc.group_bic]
+        members = _weighted(members)
+        groups.append(EffectGroup(members))
+        top = members[0]
+        if top.name != name_j or top.onset != on_j:
+            # A better partner than the effect in place: it takes the place (and the next
+            # place is screened against it).
+            final, model_effects, model_values = top.fit, list(top.effects), list(top.values)
+            swapped = True
+    return final, model_effects, model_values, groups, swapped
