@@ -22,14 +22,15 @@ def _fixed(s: UnitState, effects: list, values: list) -> dict:
 
 def _current(s: UnitState, final, model_effects, model_values, held: int | None = None) -> tuple:
     """The current model as the screening needs it: normalised inputs [n_y, d], whitened
-    residual rows, the effects per year, and per year an orthonormal basis of the
-    sensitivities of its inputs and of the effects active that year.
+    residual rows, the effects per year, per year an orthonormal basis of the sensitivities
+    of its inputs [n_k, d], and per year the sensitivities of the model's effects
+    [n_k, n_e] (zero columns before an effect's onset).
 
-    The effects' sensitivities are in the basis so that a new effect is screened with the
-    effects already in the twin re-adjusted too (linearly, each year on its own: a
-    relaxation the confirming fit removes): a delay-type effect fitted alone takes up part
-    of a lag-type one, and held at that value it would hide the lag from the screening.
-    ``held``: the index of an effect left out of the basis (the one being swapped: its
+    The effects' sensitivities go to the screening so that a new effect is screened with
+    the effects already in the twin re-adjusted too (linearly, one change of each value
+    shared by its years, as the confirming fit has it): a delay-type effect fitted alone
+    takes up part of a lag-type one, and held at that value it would hide the lag from the
+    screening. ``held``: the index of an effect left out (the one being swapped: its
     alternatives must not be projected onto it)."""
     chi2_cur, fit, k0 = final
     _, ut = fit.problem.unpack(fit.x)
@@ -37,31 +38,32 @@ def _current(s: UnitState, final, model_effects, model_values, held: int | None 
     u_now[k0:] = ut
     rows = list(s.base_rows[:k0]) + list(fit.rows)
     fixed = _fixed(s, model_effects, model_values)
-    Qs = []
+    n_e = len(model_effects)
+    keep = [j for j in range(n_e) if j != held]
+    Qs, Gs = [], []
     for k in range(s.n_y):
         prob = JointFit(s.twin, s.Y[k:k + 1], s.years[k:k + 1],
                         [(n, on) for n, on in model_effects])
-        # Sensitivities of this year's inputs at the current model (effects held).
+        # Sensitivities of this year's inputs and effects at the current model.
         x = np.concatenate([[s.twin.effect_u(n, v) for (n, _), v in
                              zip(model_effects, model_values)], u_now[k]])
         J = prob.jacobian(x)
-        cols = [j for j in prob.active[0] if j != held] + list(range(len(model_effects),
-                                                                      J.shape[1]))
-        Qs.append(np.linalg.qr(J[:, cols])[0])
-    return u_now, rows, fixed, Qs
+        Qs.append(np.linalg.qr(J[:, n_e:])[0])
+        Gs.append(J[:, keep])        # an inactive effect's column is zero
+    return u_now, rows, fixed, Qs, (Gs if Gs and keep else None)
 
 
 def further(s: UnitState, final, model_effects, model_values, candidates):
     """Try one more effect on top of the current model; None unless the BIC gain is
     above ``bic_gain``."""
     chi2_cur = final[0]
-    u_now, rows, fixed, Qs = _current(s, final, model_effects, model_values)
+    u_now, rows, fixed, Qs, Gs = _current(s, final, model_effects, model_values)
     used = {n for n, _ in model_effects}
     scores = []
     for name in candidates:
         if name in used:
             continue
-        sc, v, on, _ = screen(s, name, u_now, rows, Qs, fixed)
+        sc, v, on, _ = screen(s, name, u_now, rows, Qs, fixed, Gs=Gs)
         scores.append((sc, name, v, on))
     scores.sort(reverse=True)
     best = None
@@ -110,7 +112,7 @@ def _swap_pass(s: UnitState, final, model_effects: list, model_values: list,
     changed effect."""
     groups, swapped = [], False
     for j, (name_j, on_j) in enumerate(model_effects):
-        u_now, rows, fixed, Qs = _current(s, final, model_effects, model_values, held=j)
+        u_now, rows, fixed, Qs, Gs = _current(s, final, model_effects, model_values, held=j)
         others = [e for i, e in enumerate(model_effects) if i != j]
         o_vals = [v for i, v in enumerate(model_values) if i != j]
         # The residual with effect j taken out of the twin (inputs as fitted).
@@ -129,7 +131,7 @@ def _swap_pass(s: UnitState, final, model_effects: list, model_values: list,
         for name in candidates:
             if name in used:
                 continue
-            sc, v, on, _ = screen(s, name, u_now, rows_o, Qs, fixed_o)
+            sc, v, on, _ = screen(s, name, u_now, rows_o, Qs, fixed_o, Gs=Gs)
             scored.append((sc, name, v, on))
         scored.sort(reverse=True)
         own = next((sc for sc, n, _, _ in scored if n == name_j), 0.0)
