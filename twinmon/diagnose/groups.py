@@ -4,7 +4,7 @@ evidence shares of their members, and the unobserved channel that would separate
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -36,6 +36,9 @@ class Member:
         The model's effects with their onsets.
     values : list of float
         Their values (effect units).
+    together : list of str
+        For a member that is the named effect *together with* this candidate (see
+        :func:`~twinmon.diagnose.several.alike_members`): the named effect; else empty.
     """
 
     name: str
@@ -47,12 +50,14 @@ class Member:
     fit: tuple
     effects: list
     values: list
+    together: list = field(default_factory=list)
 
 
 @dataclass
 class EffectGroup:
     """The effects the data cannot tell apart in one place of the final model: the named one
-    (the best) first, then the others by BIC (each within ``group_bic`` of the best)."""
+    (the best) first, then the others by BIC (each within ``group_bic`` of the best), then
+    those alike to the named one that explain the gap only together with it."""
 
     members: list
 
@@ -61,9 +66,10 @@ class EffectGroup:
         return self.members[0].name
 
 
-def _weighted(members: list) -> list:
-    """``members`` sorted by ``dbic`` with their evidence shares set."""
-    members = sorted(members, key=lambda m: m.dbic)
+def _weighted(members: list, keep_first: bool = False) -> list:
+    """``members`` sorted by ``dbic`` (the first left first with ``keep_first``) with their
+    evidence shares set."""
+    members = members[:1] * keep_first + sorted(members[keep_first:], key=lambda m: m.dbic)
     w = np.exp(-0.5 * np.array([m.dbic for m in members]))
     for m, wi in zip(members, w / w.sum()):
         m.weight = float(wi)

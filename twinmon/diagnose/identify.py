@@ -28,9 +28,9 @@ import numpy as np
 from scipy import stats
 
 from .confirm import bic, confirm
-from .groups import EffectGroup, single_group
+from .groups import EffectGroup, _weighted, single_group
 from .screen import screen, to_confirm
-from .several import further, swap_groups
+from .several import alike_members, further, swap_groups
 from .state import UnitState
 
 __all__ = ["Identification", "identify", "ranking", "bic", "EffectGroup"]
@@ -140,6 +140,10 @@ def identify(s: UnitState, candidates: list) -> Identification:
     elif final is not None:
         final, model_effects, model_values, groups = swap_groups(
             s, final, model_effects, model_values, candidates)
+    # Candidates alike to a named effect that explain its gap only together with it.
+    for j, g in enumerate(groups):
+        g.members = _weighted(g.members + alike_members(s, g, j, candidates), keep_first=True)
+    if groups:
         group = [m.name for m in groups[0].members]
     return Identification(screened, confirmed, dbic, order, best, bic_base, significant,
                           p_gap, model_effects, model_values, final, group, groups)

@@ -45,7 +45,8 @@ def _grid(s: UnitState, name: str) -> np.ndarray:
 
 
 def screen(s: UnitState, name: str, u_inputs, rows, Qs, fixed: dict,
-           known: np.ndarray | None = None, Gs: list | None = None) -> tuple:
+           known: np.ndarray | None = None, Gs: list | None = None,
+           onset: int | None = None) -> tuple:
     """Chi-square reduction of adding effect ``name`` (value on a grid, onset any year),
     the degradation inputs re-adjusted linearly.
 
@@ -69,6 +70,8 @@ def screen(s: UnitState, name: str, u_inputs, rows, Qs, fixed: dict,
         of each effect's value shared by all years, as the confirming fit does. A further
         effect alike to one in the twin then explains only what that one cannot: a change
         from a later onset (a second plateau shift), or a shape its value cannot take up.
+    onset : int, optional
+        Only this onset year (default: every year).
 
     Returns
     -------
@@ -129,5 +132,7 @@ def screen(s: UnitState, name: str, u_inputs, rows, Qs, fixed: dict,
         Ap = np.linalg.pinv(A)
         cum = cum - 2 * (W @ (Ap @ b0)) + np.einsum("vke,ef,vkf->vk", W, Ap, W)
     cum = np.where(np.isfinite(cum), cum, -np.inf)
+    if onset is not None:
+        cum = np.where(s.years[None, :] == onset, cum, -np.inf)
     i, o = np.unravel_index(int(np.argmax(cum)), cum.shape)
     return float(cum[i, o]), float(grid[i]), int(s.years[o]), gains

@@ -1,6 +1,7 @@
 """Models of several effects: a further effect on top of the current model
-(:func:`further`), and the group of each effect of a several-effect model, found by swapping
-it for every other candidate (:func:`swap_groups`).
+(:func:`further`), the group of each effect of a several-effect model, found by swapping
+it for every other candidate (:func:`swap_groups`), and the candidates that explain a
+group's gap together with its named effect (:func:`alike_members`).
 """
 from __future__ import annotations
 
@@ -177,3 +178,105 @@ def _swap_pass(s: UnitState, final, model_effects: list, model_values: list,
             final, model_effects, model_values = top.fit, list(top.effects), list(top.values)
             swapped = True
     return final, model_effects, model_values, groups, swapped
+
+
+# -- alike effects: the gap explained together -----------------------------------------------------
+#: |correlation| of two effects' estimates in one fit (linearised) above which the data see
+#: only their sum: 0.999-1.000 between any two of the pump's plateau-type effects from one
+#: year, 0.2-0.45 between a transient-type effect and one of them.
+ALIKE_RHO = 0.99
+#: A candidate is fitted beside the named effect (the test above) only if its signature,
+#: out of the span of the degradation inputs, points within this cosine of the named
+#: effect's (a cheap first look: one FMU run per candidate and side), and at the end of its
+#: range explains at least ``bic_gain`` of the last year's chi-square there: an effect the
+#: degradation inputs absorb (the DC drive's supply ratio on its speed alone) correlates
+#: with anything in a fit, but is no part of what the data see.
+ALIKE_COS = 0.9
+
+
+def alike_members(s: UnitState, group: EffectGroup, j: int, candidates: list) -> list:
+    """Candidates that explain the gap of place ``j`` *together with* the group's named
+    effect: members of the form "named effect + candidate", both from the named one's onset.
+
+    Two routes lead into the group:
+
+    - *alike*: two plateau-type effects from the same year shift the output as one; the
+      data see their sum, never the split. A candidate alike to the named effect but unable
+      to reach the sum alone within its range (so outside the group by BIC) is as good an
+      explanation together with it: a member when, fitted beside the named effect (the
+      model's other effects in the fit too), their estimates correlate beyond
+      ``ALIKE_RHO`` and the fit is within ``group_bic`` in chi-square of the named one's;
+    - *evidence*: a candidate that, beside the named effect from its onset, lowers the
+      chi-square by at least ``ln n`` (one more value; the onset is shared), so that the
+      pair's BIC is at least as good as the named effect's alone, though short of the
+      ``bic_gain`` (value and onset) that accepts a further effect: a small transient
+      inside a larger one from the same year, which the larger one's value takes up.
+
+    A member's ``dbic`` is its model's BIC minus the named member's, one more value counted,
+    so its evidence share is the BIC weight of a two-effect explanation (larger than the
+    named effect's by the evidence route).
+
+    Returns the new :class:`~twinmon.diagnose.groups.Member` records (``together`` set).
+    """
+    top = group.members[0]
+    chi2_top, fit_top, k0_top = top.fit
+    effs, vals = list(top.effects), list(top.values)
+    name_j, on_j = effs[j]
+    inside = {m.name for m in group.members} | {n for n, _ in effs}
+    u_now, rows, fixed, Qs, Gs = _current(s, top.fit, effs, vals)
+    out = []
+    for c in candidates:
+        if c in inside:
+            continue
+        start = _alike_start(s, u_now[-1], dict(zip([n for n, _ in effs], vals)), name_j, c)
+        if start is None:
+            # Worth a fit only if its screening beside the model, from the same onset,
+            # gains what one more value costs.
+            score, start, _, _ = screen(s, c, u_now, rows, Qs, fixed, Gs=Gs, onset=on_j)
+            if score < s.ln_n:
+                continue
+        chi2, fit, k0 = fit_with(s, effs + [(c, on_j)], vals + [start], u_now)
+        if fit is None:
+            continue
+        cov = fit.covariance()
+        i = len(effs)
+        rho = abs(cov[j, i]) / np.sqrt(max(cov[j, j] * cov[i, i], 1e-300))
+        gain = chi2_top - chi2
+        if not ((rho >= ALIKE_RHO and gain >= -s.dc.group_bic) or gain >= s.ln_n):
+            continue
+        ue, _ = fit.problem.unpack(fit.x)
+        values = [s.twin.effect_of(n, ue[q]) for q, (n, _) in enumerate(effs + [(c, on_j)])]
+        dbic = top.dbic - gain + s.ln_n
+        out.append(Member(c, int(on_j), values[i], i, float(dbic), 0.0, (chi2, fit, k0),
+                          effs + [(c, on_j)], values, [name_j]))
+    return out
+
+
+def _alike_start(s: UnitState, u_last: np.ndarray, effects: dict, name: str, cand: str):
+    """A start value of ``cand`` for its fit beside ``name`` (half-way to the end of its
+    range on the side whose signature at that end, at the last year and out of the span of
+    the degradation inputs, points like ``name``'s and is large enough to be seen: see
+    ``ALIKE_COS``), or None if neither side does."""
+    theta = s.twin.theta_of(u_last)
+    k = s.n_y - 1
+    mask = np.isfinite(s.Y[k])
+    Q = s.base_Q[k]
+    try:
+        f = s.twin.predict(theta, effects)[mask]
+        sig = f - s.twin.predict(theta, {n: v for n, v in effects.items() if n != name})[mask]
+    except SimulationError:
+        return None
+    sig = sig - Q @ (Q.T @ sig)
+    e = s.twin.effects[cand]
+    for end in (e.high, e.low):
+        if end == e.baseline:
+            continue
+        try:
+            d = s.twin.predict(theta, {**effects, cand: end})[mask] - f
+        except SimulationError:
+            continue
+        d = d - Q @ (Q.T @ d)
+        den = float(np.linalg.norm(sig) * np.linalg.norm(d))
+        if float(d @ d) >= s.dc.bic_gain and float(sig @ d) / den >= ALIKE_COS:
+            return e.baseline + 0.5 * (end - e.baseline)
+    return None

@@ -223,7 +223,7 @@ def group_records(s: UnitState, sh: Shrink, idn: Identification) -> list:
 
         {"effect": named effect, "onset": year,
          "members": [{"effect", "onset", "value", "q05", "q95", "weight", "delta_bic",
-                      "closed_percent", "failure_year"}, ...],
+                      "together_with", "closed_percent", "failure_year"}, ...],
          "failure_year_range": [earliest, latest]   (null: no failure within the horizon),
          "failure_year_spread": bool, "separating_channel": str or null,
          "separation_scores": {channel: score}}
@@ -256,6 +256,7 @@ def group_records(s: UnitState, sh: Shrink, idn: Identification) -> list:
             members.append({"effect": m.name, "onset": int(m.onset), "value": float(m.value),
                             "q05": float(est[1]), "q95": float(est[2]),
                             "weight": float(m.weight), "delta_bic": float(m.dbic),
+                            "together_with": list(m.together),
                             "closed_percent": float(np.clip(closed, 0.0, 100.0)),
                             "failure_year": fy})
         years = [horizon_end if r["failure_year"] is None else r["failure_year"]
