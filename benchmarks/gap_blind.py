@@ -459,7 +459,8 @@ def pair_scores(runs: dict, verbose: int = 0, absorbed: float = 0.0) -> dict:
     and a visible gap (:func:`effect_gaps`) of at least ``absorbed`` sigma."""
     sc = {"n": 0, "below": 0, "detected": 0, "all_in": 0, "closed90": 0, "closed": [],
           "sizes": [], "two_named": 0, "clean": 0, "false": 0, "spread": 0,
-          "multi": 0, "sep": 0, "by_kind": {}, "absorbed": absorbed}
+          "multi": 0, "sep": 0, "by_kind": {}, "absorbed": absorbed,
+          "hidden_n": 0, "hidden_said": 0, "hidden_channel": 0}
     for machine, r in runs.items():
         for u, (kind, truth) in r["labels"].items():
             g = r["summary"].units[u]
@@ -471,6 +472,13 @@ def pair_scores(runs: dict, verbose: int = 0, absorbed: float = 0.0) -> dict:
                 sc["below"] += 1
                 continue
             sc["n"] += 1
+            # A true effect the degradation inputs take up: does diagnose say it cannot see
+            # it, and name a channel that would?
+            for n in truth:
+                if r["visible"][u][n] < ABSORBED:
+                    sc["hidden_n"] += 1
+                    sc["hidden_said"] += int(n in g.hidden)
+                    sc["hidden_channel"] += int(bool(g.hidden.get(n, {}).get("channel")))
             k = sc["by_kind"].setdefault(f"{machine}: {kind}", [0, 0, 0])
             k[0] += 1
             members = [set(m["effect"] for m in grp["members"]) for grp in g.groups]
@@ -520,6 +528,9 @@ def pair_report(runs: dict, sc: dict, singles, args) -> None:
           f"{np.median(sc['closed']) if sc['closed'] else float('nan'):.1f} %   —")
     print(f"groups of 2+ with a separating channel    : {pct(sc['sep'], sc['multi'])}   —")
     print(f"groups whose failure years spread > 1 year: {sc['spread']}   —")
+    print(f"true effects absorbed (visible < {ABSORBED:g} sigma) stated as unseen: "
+          f"{pct(sc['hidden_said'], sc['hidden_n'])}, with a channel to record "
+          f"{pct(sc['hidden_channel'], sc['hidden_n'])}   —")
     print("by machine and kind (cases, all true effects in groups, >= 90 % closed):")
     for k, (c, a, cl) in sorted(sc["by_kind"].items()):
         print(f"    {k:<48s} {c:>3d} {a:>3d} {cl:>3d}")
@@ -529,7 +540,9 @@ def pair_report(runs: dict, sc: dict, singles, args) -> None:
         print(f"    {m + ', all kinds':<48s} {c:>3d} {a:>3d} {cl:>3d}   "
               f"(in groups {pct(a, c)}, >= 90 % closed {pct(cl, c)})")
     print("wall time: " + ", ".join(f"{m} {r['wall']:.1f} s" for m, r in runs.items())
-          + f" on {args.workers} workers")
+          + f" on {args.workers} workers; FMU runs per unit: " + ", ".join(
+              f"{m} {np.mean([g.fmu_runs for g in r['summary'].units.values()]):.0f}"
+              for m, r in runs.items()))
 
 
 def pair_main(argv) -> None:

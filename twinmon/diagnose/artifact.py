@@ -56,9 +56,9 @@ _ATTRS = ("verdict", "onset", "rms_before", "rms_after", "closed_percent", "delt
           "separating_channel", "absorbed_share", "p_gap", "noise_std", "failure_year_before",
           "failure_year_after", "fmu_runs", "wall_time")
 _JSON_ATTRS = ("effects", "group", "where_windows", "where_years", "estimate",
-               "separation_scores", "candidates", "effect_onsets", "groups")
+               "separation_scores", "candidates", "effect_onsets", "groups", "hidden")
 #: Values a file written before them lacks, and what they are then.
-_OPTIONAL = {"groups": []}
+_OPTIONAL = {"groups": [], "hidden": {}}
 
 
 #: Arrays of ``_ARRAYS`` indexed by candidate (ranking order); the others by year.
@@ -105,10 +105,14 @@ def write_gap(path, results: dict, cfg: Config, time: np.ndarray, inputs) -> Non
                                        q05, q95]}), separation_scores, candidates,
                                        effect_onsets ({name: onset year}), groups (one per
                                        effect of the final twin: its members with weight,
-                                       value, q05, q95, delta_bic, closed_percent,
-                                       failure_year; failure_year_range, failure_year_spread,
-                                       separating_channel, separation_scores; absent in
-                                       files written before it: read as [])
+                                       value, q05, q95, delta_bic, together_with,
+                                       closed_percent, failure_year; failure_year_range,
+                                       failure_year_spread, separating_channel,
+                                       separation_scores; absent in files written before
+                                       it: read as []), hidden ({effect: {value, gap,
+                                       visible, channel, channel_score}}: candidates the
+                                       degradation inputs take up on the recorded
+                                       channels; absent in older files: read as {})
         /units/<U>/cache               compound [n_y], gzip: per-year records for diagnose
                                        --update (:func:`.update.write_cache`): digest,
                                        base_u [d], base_rows [m], base_jac [m, d], base_lev [m]

@@ -97,6 +97,10 @@ class UnitGap:
     #: would separate them (:func:`~twinmon.diagnose.shrink.group_records`; empty unless the
     #: verdict is ``"effect"``).
     groups: list = field(default_factory=list)
+    #: Candidates the recorded channels cannot see (the degradation inputs take them up),
+    #: with the unrecorded channel that would show them
+    #: (:func:`~twinmon.diagnose.hidden.hidden_effects`; ``{}`` if none).
+    hidden: dict = field(default_factory=dict)
     #: Per-year records for ``diagnose --update`` (:class:`~twinmon.diagnose.update.YearCache`;
     #: None when read by ``read_gap`` without ``cache=True`` or from a gap.h5 without them).
     cache: Optional[object] = None
@@ -119,6 +123,7 @@ class UnitGap:
             "onsets": dict(self.effect_onsets),
             "group": list(self.group),
             "groups": [_plain(g) for g in self.groups],
+            "hidden": _plain(self.hidden),
             "separating_channel": self.separating_channel or None,
             "bic_gain": _num(self.delta_bic_final),
             "absorbed_share": _num(self.absorbed_share),

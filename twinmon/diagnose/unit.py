@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import time as _time
 
-from . import identify, locate, shrink
+from . import hidden, identify, locate, shrink
 from .result import UnitGap
 from .state import UnitState
 from .update import YearCache
@@ -44,6 +44,9 @@ def run_unit(s: UnitState, candidates: list) -> UnitGap:
         sep_channel = groups[0]["separating_channel"] or ""
         sep_scores = groups[0]["separation_scores"]
     fy_b, fy_a = shrink.failure_years(s, sh)
+    # What no diagnosis on these channels could name, and the channel that would show it.
+    in_groups = {m["effect"] for g in groups for m in g["members"]}
+    blind = hidden.hidden_effects(s, [c for c in candidates if c not in in_groups])
     table = identify.ranking(s, idn)
     return UnitGap(
         unit=s.unit, years=s.years, verdict=verdict, effects=sh.effects,
@@ -66,6 +69,6 @@ def run_unit(s: UnitState, candidates: list) -> UnitGap:
         failure_year_before=fy_b, failure_year_after=fy_a,
         effect_onsets=({n: int(on) for n, on in idn.model_effects} if verdict == "effect"
                        else {}),
-        groups=groups,
+        groups=groups, hidden=blind,
         cache=YearCache.of(s, idn.screened),
         fmu_runs=s.twin.runs - runs0, wall_time=_time.perf_counter() - t0)
