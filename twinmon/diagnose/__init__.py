@@ -40,6 +40,7 @@ Layout: each step has its file, over one small state object.
 ``confirm.py``     confirmation by the augmented fit through the FMU, BIC
 ``several.py``     further effects on top of the current model; each effect's group by swaps
 ``groups.py``      :class:`~.groups.EffectGroup`, evidence shares, separating channel
+``hidden.py``      candidates the recorded channels cannot see, and the channel that would
 ``shrink.py``      step 3: RMS before/after, % of the excess closed, verdict, estimates and
                    intervals, before/after twins, projected failure year
 ``twin.py``        :class:`Twin`: the FMU with normalised parameters, whitened outputs
