@@ -528,9 +528,10 @@ def pair_report(runs: dict, sc: dict, singles, args) -> None:
           f"{np.median(sc['closed']) if sc['closed'] else float('nan'):.1f} %   —")
     print(f"groups of 2+ with a separating channel    : {pct(sc['sep'], sc['multi'])}   —")
     print(f"groups whose failure years spread > 1 year: {sc['spread']}   —")
-    print(f"true effects absorbed (visible < {ABSORBED:g} sigma) stated as unseen: "
-          f"{pct(sc['hidden_said'], sc['hidden_n'])}, with a channel to record "
-          f"{pct(sc['hidden_channel'], sc['hidden_n'])}   —")
+    if sc["hidden_n"]:
+        print(f"true effects absorbed (visible < {ABSORBED:g} sigma) stated as unseen: "
+              f"{pct(sc['hidden_said'], sc['hidden_n'])}, with a channel to record "
+              f"{pct(sc['hidden_channel'], sc['hidden_n'])}   —")
     print("by machine and kind (cases, all true effects in groups, >= 90 % closed):")
     for k, (c, a, cl) in sorted(sc["by_kind"].items()):
         print(f"    {k:<48s} {c:>3d} {a:>3d} {cl:>3d}")

@@ -135,4 +135,7 @@ def separating_channel(s: UnitState, sims: list) -> tuple:
                 diff = (sims[i][c] - sims[j][c]) / noise[c]
                 best = max(best, float(np.sqrt(np.mean(diff ** 2))))
         scores[c] = best
-    return max(scores, key=scores.get), scores
+    # Channels equal in all but rounding (the DC drive's torque is Kt times its current):
+    # the first in the config's order, so the answer does not flip between runs.
+    top = max(scores.values())
+    return next(c for c in chans if scores[c] >= top * (1 - 1e-9)), scores

@@ -32,64 +32,83 @@ def _window_gap(s: UnitState, z: np.ndarray) -> float:
                default=0.0)
 
 
-def hidden_effects(s: UnitState, candidates: list) -> dict:
-    """The candidates the degradation inputs take up on the recorded channels (needs step 1).
+def hidden_effects(s: UnitState, candidates: list, u_last: np.ndarray | None = None,
+                   effects: dict | None = None) -> dict:
+    """The candidates the degradation inputs take up on the recorded channels.
 
-    Each candidate is set to each end of its range at the unit's last year's base fit; where
-    that moves the recorded channels by a gap of at least ``HIDDEN_GAP`` (noise standard
-    deviations, worst window), the year's degradation inputs are refitted to the result
-    through the FMU (noise-free). A candidate whose every such end leaves less than
-    ``HIDDEN_VISIBLE`` is hidden.
+    Each candidate is set to each end of its range at the unit's last year (normalised
+    inputs ``u_last`` [d], default the base fit's, and the ``effects`` already in its final
+    twin, ``{fmu parameter: value}``); where that moves the recorded channels by a gap of at
+    least ``HIDDEN_GAP`` (noise standard deviations, worst window), the year's degradation
+    inputs are refitted to the result through the FMU (noise-free). A candidate is hidden
+    when at an end the refit leaves less than ``HIDDEN_VISIBLE``: in that direction no
+    diagnosis on these channels can see it.
 
     Returns
     -------
     dict
-        ``{effect: {"value": the end tried (effect units), "gap": its gap (sigma),
-        "visible": what the refit leaves (sigma), "channel": the unrecorded channel on
-        which the effect and its refitted stand-in differ most (None: every channel is
-        recorded), "channel_score": that difference (RMS over the channel's noise)}}``
-        for the hidden candidates; the end with the larger gap is reported.
+        ``{effect: {"value": the end (effect units), "gap": its gap (sigma), "visible": what
+        the refit leaves (sigma), "channel": the unrecorded channel on which the effect and
+        its refitted stand-in differ most (None: every channel is recorded),
+        "channel_score": that difference (RMS over the channel's noise)}}`` for the hidden
+        candidates, at the hidden end with the larger gap.
     """
     k = s.n_y - 1
-    u0 = s.base_u[k]
+    u0 = s.base_u[k] if u_last is None else np.asarray(u_last, float)
+    eff0 = dict(effects or {})
     theta = s.twin.theta_of(u0)
     try:
-        base = s.twin.predict(theta)
+        base = s.twin.predict(theta, eff0)
     except SimulationError:
         return {}
-    Q = np.linalg.qr(s.base_J[k])[0] if np.isfinite(s.Y[k]).all() else None
+    # The span of the inputs' sensitivities there, for a cheap first look.
+    J = JointFit(s.twin, base[None], s.years[k:k + 1], [(n, 0) for n in eff0])
+    x = np.concatenate([[s.twin.effect_u(n, v) for n, v in eff0.items()], u0])
+    Q = np.linalg.qr(J.jacobian(x)[:, len(eff0):])[0]
     out = {}
     for name in candidates:
         e = s.twin.effects[name]
-        ends, hidden = [], True
+        ends = []
         for end in (e.high, e.low):
             if end == e.baseline:
                 continue
             try:
-                y = s.twin.predict(theta, {name: end})
+                y = s.twin.predict(theta, {**eff0, name: end})
             except SimulationError:
                 continue
-            gap = _window_gap(s, y - base)
-            if gap < HIDDEN_GAP:
+            d = y - base
+            gap = _window_gap(s, d)
+            # Too small to matter, or far outside the inputs' span (linearised): the sensor
+            # lags, the delays.
+            if gap < HIDDEN_GAP or _window_gap(s, d - Q @ (Q.T @ d)) > 3 * HIDDEN_VISIBLE:
                 continue
-            if Q is not None:
-                # A first look, linearised: an effect far outside the inputs' span is
-                # visible without a refit (the sensor lags, the delays).
-                d = y - base
-                if _window_gap(s, d - Q @ (Q.T @ d)) > 3 * HIDDEN_VISIBLE:
-                    hidden = False
-                    break
-            fit = JointFit(s.twin, y[None], s.years[k:k + 1]).solve(u0)
-            visible = _window_gap(s, fit.rows[0])
-            if visible >= HIDDEN_VISIBLE:
-                hidden = False
-                break
-            ends.append((gap, end, visible, fit.x))
-        if not hidden or not ends:
+            prob = JointFit(s.twin, y[None], s.years[k:k + 1], [(n, 0) for n in eff0])
+            # The effects in the twin stay at their values: only the inputs move.
+            fit = _refit_inputs(prob, x, len(eff0))
+            visible = _window_gap(s, fit[0])
+            if visible < HIDDEN_VISIBLE:
+                ends.append((gap, end, visible, fit[1]))
+        if not ends:
             continue
         gap, end, visible, u_fit = max(ends, key=lambda t: t[0])
-        channel, scores = separating_channel(s, [(u0, {name: end}), (u_fit, {})])
+        channel, scores = separating_channel(s, [(u0, {**eff0, name: end}), (u_fit, eff0)])
         out[name] = {"value": float(end), "gap": float(gap), "visible": float(visible),
                      "channel": channel or None,
                      "channel_score": float(scores[channel]) if channel else None}
     return out
+
+
+def _refit_inputs(prob: JointFit, x0: np.ndarray, n_e: int) -> tuple:
+    """Least squares of the degradation inputs alone of a one-year ``prob`` whose effects
+    are held at ``x0[:n_e]``: ``(whitened residual [m], normalised inputs [d])``."""
+    from scipy.optimize import least_squares
+    fixed = x0[:n_e]
+
+    def resid(u):
+        return prob.residuals(np.concatenate([fixed, u]))
+
+    def jac(u):
+        return prob.jacobian(np.concatenate([fixed, u]))[:, n_e:]
+    res = least_squares(resid, np.clip(x0[n_e:], 1e-9, 1 - 1e-9), jac=jac, bounds=(0.0, 1.0),
+                        method="trf", x_scale="jac", max_nfev=100)
+    return resid(res.x), res.x

@@ -46,7 +46,8 @@ def run_unit(s: UnitState, candidates: list) -> UnitGap:
     fy_b, fy_a = shrink.failure_years(s, sh)
     # What no diagnosis on these channels could name, and the channel that would show it.
     in_groups = {m["effect"] for g in groups for m in g["members"]}
-    blind = hidden.hidden_effects(s, [c for c in candidates if c not in in_groups])
+    blind = hidden.hidden_effects(s, [c for c in candidates if c not in in_groups],
+                                  sh.after_u[-1], sh.eff_year[-1])
     table = identify.ranking(s, idn)
     return UnitGap(
         unit=s.unit, years=s.years, verdict=verdict, effects=sh.effects,
