@@ -245,7 +245,19 @@ def alike_members(s: UnitState, group: EffectGroup, j: int, candidates: list) ->
     so its evidence share is the BIC weight of a two-effect explanation (larger than the
     named effect's by the evidence route).
 
-    Returns the new :class:`~twinmon.diagnose.groups.Member` records (``together`` set).
+    Parameters
+    ----------
+    group : EffectGroup
+        The place's group so far; its first member's model is the final one.
+    j : int
+        The place: the index of the group's effect among that model's effects.
+    candidates : list of str
+        Every candidate effect (those already in the group or the model are skipped).
+
+    Returns
+    -------
+    list of Member
+        The new members (``together`` set to the named effect), unsorted.
     """
     top = group.members[0]
     chi2_top, fit_top, k0_top = top.fit
@@ -306,6 +318,6 @@ def _alike_start(s: UnitState, u_last: np.ndarray, effects: dict, name: str, can
             continue
         d = d - Q @ (Q.T @ d)
         den = float(np.linalg.norm(sig) * np.linalg.norm(d))
-        if float(d @ d) >= s.dc.bic_gain and float(sig @ d) / den >= ALIKE_COS:
+        if den > 0 and float(d @ d) >= s.dc.bic_gain and float(sig @ d) / den >= ALIKE_COS:
             return e.baseline + 0.5 * (end - e.baseline)
     return None
