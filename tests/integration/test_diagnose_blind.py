@@ -254,6 +254,11 @@ def test_same_year_plateau_shifts_are_one_group(tmp_path):
     assert g.effects == [m["effect"] for m in grp["members"]]
     assert g.closed_percent >= 90.0
     assert g.hidden == {}      # the pump's candidates all show on the flow
+    # A weak supply makes the twin unsafe at once; the plant had it from its onset only, so
+    # no projected failure year comes before it (the healthy years before stay healthy).
+    assert g.failure_year_after is not None and g.failure_year_after >= g.onset
+    assert all(m["failure_year"] is None or m["failure_year"] >= grp["onset"]
+               for m in grp["members"])
 
 
 #: The pump's plateau-type effects: alike on the flow alone.

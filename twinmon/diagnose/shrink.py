@@ -248,7 +248,7 @@ def group_records(s: UnitState, sh: Shrink, idn: Identification) -> list:
             u = s.base_u.copy()
             u[k0:] = ut
             fy = failure_year(s, s.twin.theta_of(u), dict(zip([n for n, _ in m.effects],
-                                                             m.values)))
+                                                             m.values)), dict(m.effects))
             # From the member's own fit: an effect may sit in two groups, beside different
             # partners, with two values.
             est = interval(s, m.name, m.value,
@@ -278,21 +278,28 @@ def group_records(s: UnitState, sh: Shrink, idn: Identification) -> list:
 def failure_years(s: UnitState, sh: Shrink) -> tuple:
     """Projected failure year of the base and of the final twin (see :func:`failure_year`)."""
     fy_b = failure_year(s, s.twin.theta_of(s.base_u), {})
-    fy_a = (failure_year(s, s.twin.theta_of(sh.after_u), sh.eff_year[-1])
-            if sh.verdict == "effect" else fy_b)
-    return fy_b, fy_a
+    if sh.verdict != "effect":
+        return fy_b, fy_b
+    # Each effect from the first year the final twin has it.
+    onsets = {n: int(s.years[next(k for k in range(s.n_y) if n in sh.eff_year[k])])
+              for n in sh.eff_year[-1]}
+    return fy_b, failure_year(s, s.twin.theta_of(sh.after_u), sh.eff_year[-1], onsets)
 
 
-def failure_year(s: UnitState, thetas: np.ndarray, effects: dict) -> Optional[int]:
+def failure_year(s: UnitState, thetas: np.ndarray, effects: dict,
+                 onsets: Optional[dict] = None) -> Optional[int]:
     """First year (observed or projected over ``forecast.horizon`` years by a straight
     line through the yearly estimates ``thetas`` [n_y, d]) in which the twin fails the safety
-    criterion; None if none within the horizon. Effects that alter only the measurement
+    criterion; None if none within the horizon. Each of ``effects`` ({fmu parameter: value})
+    is in the twin from its year in ``onsets`` ({fmu parameter: year}; every year if not
+    given): before it the plant did not have it. Effects that alter only the measurement
     (``measurement_only``) are left out: a lagging sensor does not make the machine
     unsafe."""
     from ..safety import Indicator
     ind = Indicator.from_config(s.cfg)
     effects = {k: v for k, v in (effects or {}).items()
                if not s.cfg.model.effects[k].measurement_only}
+    onsets = onsets or {}
     yrs = s.years.astype(float)
     if len(yrs) >= 2:
         coef = np.polyfit(yrs, thetas, 1)                   # [2, d]
@@ -305,7 +312,8 @@ def failure_year(s: UnitState, thetas: np.ndarray, effects: dict) -> Optional[in
         theta = thetas[i] if i < s.n_y else coef[0] * yr + coef[1]
         theta = np.clip(theta, s.twin.in_lo, s.twin.in_hi)
         try:
-            out = s.twin.run(theta, effects)
+            out = s.twin.run(theta, {k: v for k, v in effects.items()
+                                     if yr >= onsets.get(k, yr)})
         except SimulationError:
             return int(yr)
         value = ind(s.twin.time, out[ind.variable])
