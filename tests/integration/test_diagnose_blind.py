@@ -202,12 +202,18 @@ def test_pair_gets_a_group_per_effect(tmp_path):
     back = read_gap(tmp_path / "gap.h5").units["P"]
     assert [[m["effect"] for m in grp["members"]] for grp in back.groups] == members
     assert back.groups[0]["failure_year_range"] == g.groups[0]["failure_year_range"]
-    # The command's human line names both groups, the plateau group with each member's share.
-    from twinmon.cli.diagnose_cmd import summary_line
-    line = summary_line("P", g)
-    assert "sensor.tau = " in line and " + " in line and "(" in line
-    assert all(f"{e} = " in line for e in plateau)
-    assert f"{sep['separating_channel']} would separate the groups" in line
+    # What the command prints: both named effects on the unit's line, then the plateau
+    # group on a line of its own, each member with its share, and the separating channel.
+    from twinmon.diagnose.text import INDENT, summary_line, weight_text
+    first, *rest = summary_line("P", g).splitlines()
+    assert "sensor.tau = " in first and " + " in first
+    assert f"{sep['effect']} = " in first and f"(group of {len(plateau)})" in first
+    assert len(rest) == 1                  # one group of several; nothing hidden on the pump
+    line = rest[0]
+    assert line.startswith(f"{INDENT}{sep['effect']}'s group")
+    for m in sep["members"]:
+        assert m["effect"] in line and weight_text(m["weight"]) in line
+    assert f"recording {sep['separating_channel']} would separate them" in line
 
 
 def test_plateau_shifts_from_two_years_are_both_found(tmp_path):
@@ -259,6 +265,16 @@ def test_same_year_plateau_shifts_are_one_group(tmp_path):
     assert g.failure_year_after is not None and g.failure_year_after >= g.onset
     assert all(m["failure_year"] is None or m["failure_year"] >= grp["onset"]
                for m in grp["members"])
+    # What the command prints: the unit's line, then the group's with every member.
+    from twinmon.diagnose.text import INDENT, summary_line, weight_text
+    first, line = summary_line("W", g).splitlines()
+    assert first.startswith(f"W: {grp['effect']} = ") and f"(group of {len(members)})" in first
+    assert line.startswith(f"{INDENT}{grp['effect']}'s group")
+    for m in grp["members"][1:]:
+        said = (f"{grp['effect']} with " if m["together_with"] else "") + f"{m['effect']} = "
+        assert said in line and weight_text(m["weight"]) in line, (said, line)
+    assert f"recording {grp['separating_channel']} would separate them" in line
+    assert ("across the group" in line) == grp["failure_year_spread"]
 
 
 #: The pump's plateau-type effects: alike on the flow alone.

@@ -28,6 +28,7 @@ def diagnose(config_path, overrides, observations, posterior, output, workers, u
              as_json):
     """Locate the sim-to-real gap, name the unmodelled effect, show how far it shrinks."""
     from ..diagnose import candidate_names, diagnose as run, no_candidates_hint
+    from ..diagnose.text import hidden_line, summary_line
     from ..errors import TwinmonError
     from ..observations import read_observations
     from ..executors import check_workers
@@ -56,9 +57,16 @@ def diagnose(config_path, overrides, observations, posterior, output, workers, u
         emit_json(out)
     if s.update is not None:
         say(update_line(s.update))
+    # Candidates hidden alike on every unit (a fleet recording the same channels) are said
+    # once, after the units.
+    hidden = {hidden_line(g.hidden) if g.hidden else "" for g in s.units.values()}
+    shared = next(iter(hidden)) if len(s.units) > 1 and len(hidden) == 1 else ""
     for u, g in s.units.items():
-        say(summary_line(u, g, hint))
-    say(f"diagnose: {len(s.units)} units in {s.wall_time:.1f} s on {s.workers} workers "
+        say(summary_line(u, g, hint, hidden=not shared))
+    if shared:
+        say(f"every unit: {shared}")
+    say(f"diagnose: {len(s.units)} unit{'s' if len(s.units) != 1 else ''} in "
+        f"{s.wall_time:.1f} s on {s.workers} worker{'s' if s.workers != 1 else ''} "
         f"-> {output}")
 
 
@@ -70,63 +78,3 @@ def update_line(u: dict) -> str:
             + "".join(f"; {what}: {', '.join(u[key])}" for key, what in
                       (("new_units", "new units"), ("redone_units", "redone (data changed)"),
                        ("dropped_units", "no longer observed")) if u[key]))
-
-
-def summary_line(unit: str, g, no_candidates: str = "") -> str:
-    """One human line per unit: verdict, effect (group) with its estimate, where, shrink;
-    ``no_candidates``: what to do when the config lists no candidate effect."""
-    if g.verdict == "none":
-        return (f"{unit}: no significant gap (p = {g.p_gap:.2g}, residual RMS "
-                f"{g.rms_before:.2f} x noise)")
-    where = (f"years {g.where_years[0]}-{g.where_years[-1]}" if g.where_years else "")
-    if g.where_windows:
-        where += f", {', '.join(g.where_windows)}"
-    if g.verdict == "unexplained" and not g.candidates:
-        return (f"{unit}: UNEXPLAINED gap from year {g.onset} ({where}); residual RMS "
-                f"{g.rms_before:.2f} x noise; "
-                + (no_candidates or "no candidate effects to test (model.effects)"))
-    if g.verdict == "unexplained":
-        best = g.candidates[0]
-        return (f"{unit}: UNEXPLAINED gap from year {g.onset} ({where}); residual RMS "
-                f"{g.rms_before:.2f} x noise; best candidate {best} would close only "
-                f"{g.closed_percent:.0f} %")
-    if len(g.groups) > 1:
-        # Several effects: each with the effects the data cannot tell from it.
-        text = " + ".join(group_text(grp) for grp in g.groups)
-        seps = sorted({grp["separating_channel"] for grp in g.groups
-                       if len(grp["members"]) > 1 and grp["separating_channel"]})
-        sep = f"; {', '.join(seps)} would separate the groups" if seps else ""
-    else:
-        parts = []
-        for e in g.effects:
-            est = g.estimate.get(e)
-            parts.append(f"{e} = {est[0]:.4g} [{est[1]:.4g}, {est[2]:.4g}]" if est else e)
-        text = " or ".join(parts[:len(g.group)]) if len(g.group) > 1 else parts[0]
-        extra = [p for p, e in zip(parts, g.effects) if e not in g.group]
-        if extra:
-            text += " + " + " + ".join(extra)
-        sep = (f"; {g.separating_channel} would separate the group" if g.separating_channel
-               else "")
-    fy = ""
-    if g.failure_year_before != g.failure_year_after:
-        fy = (f"; projected failure year {g.failure_year_before or 'none'} -> "
-              f"{g.failure_year_after or 'none'}")
-    return (f"{unit}: {text} from year {g.onset} ({where}); residual RMS "
-            f"{g.rms_before:.2f} -> {g.rms_after:.2f} x noise, {g.closed_percent:.0f} % of "
-            f"the excess gap closed, BIC gain {g.delta_bic_final:.0f}{sep}{fy}")
-
-
-def group_text(grp: dict) -> str:
-    """One effect's group of a several-effect twin: ``a = v [q05, q95]`` alone, or
-    ``(a = v 62 % or b = w 38 %)`` with each member's evidence share; a failure-year spread
-    is named."""
-    ms = grp["members"]
-    if len(ms) == 1:
-        m = ms[0]
-        return f"{m['effect']} = {m['value']:.4g} [{m['q05']:.4g}, {m['q95']:.4g}]"
-    text = "(" + " or ".join(f"{m['effect']} = {m['value']:.4g} {100 * m['weight']:.0f} %"
-                             for m in ms) + ")"
-    if grp.get("failure_year_spread"):
-        lo, hi = grp["failure_year_range"]
-        text += f" [failure year {lo or 'none'}-{hi or 'none'} across the group]"
-    return text
