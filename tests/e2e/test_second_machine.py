@@ -94,6 +94,13 @@ def test_every_stage_runs_on_the_dc_drive(drive):
     html = (tmp / "report" / "index.html").read_text()
     html = re.sub(r"data:image/png;base64,[A-Za-z0-9+/=]+", "", html)   # words only
     assert "rad/s" in html and "settled speed" in html
+    # The diagnose section's table: each unit of the gap fleet with its hidden candidates.
+    table = html[html.index("Its group (posterior weight)"):]
+    table = table[:table.index("</table>")]
+    for u in gap["units"]:
+        assert f">{u}</td>" in table
+    assert table.count("<code>load.extra</code>") == len(gap["units"])
+    assert "recording <code>armature.i</code> would show them" in table
     for pump_word in ("kg/s", "mass flow", "t90", "m_flow"):
         assert pump_word not in html, pump_word
 

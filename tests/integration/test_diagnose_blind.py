@@ -265,8 +265,9 @@ def test_same_year_plateau_shifts_are_one_group(tmp_path):
     assert g.failure_year_after is not None and g.failure_year_after >= g.onset
     assert all(m["failure_year"] is None or m["failure_year"] >= grp["onset"]
                for m in grp["members"])
-    # What the command prints: the unit's line, then the group's with every member.
+    # What a user sees: the command's lines, and the report's terminal, table and summary.
     from twinmon.diagnose.text import INDENT, summary_line, weight_text
+    from twinmon.report import report
     first, line = summary_line("W", g).splitlines()
     assert first.startswith(f"W: {grp['effect']} = ") and f"(group of {len(members)})" in first
     assert line.startswith(f"{INDENT}{grp['effect']}'s group")
@@ -275,6 +276,21 @@ def test_same_year_plateau_shifts_are_one_group(tmp_path):
         assert said in line and weight_text(m["weight"]) in line, (said, line)
     assert f"recording {grp['separating_channel']} would separate them" in line
     assert ("across the group" in line) == grp["failure_year_spread"]
+    s = report(cfg, tmp_path / "report", observations=tmp_path / "obs.h5",
+               gap=tmp_path / "gap.h5")
+    assert line in s.terminal().splitlines()
+    assert s.units["W"].diagnose["groups"] == json.loads(json.dumps(g.groups))
+    html = (tmp_path / "report" / "index.html").read_text()
+    table = html[html.index("Its group (posterior weight)"):]
+    table = table[:table.index("</table>")]
+    for m in grp["members"]:
+        assert f"<code>{m['effect']}</code> = " in table
+        assert f"<b>{weight_text(m['weight'])}</b>" in table
+    assert f"<code>{grp['separating_channel']}</code>" in table
+    if grp["failure_year_spread"]:
+        assert "differs across the group" in table
+        assert all(f"(failure year {m['failure_year']})" in table for m in grp["members"]
+                   if m["failure_year"] is not None)
 
 
 #: The pump's plateau-type effects: alike on the flow alone.

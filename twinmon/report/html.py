@@ -273,3 +273,93 @@ def _acceptance(rng: list) -> str:
     if lo is None or hi is None or not (np.isfinite(lo) and np.isfinite(hi)):
         return "- (weighted independent draws)"
     return f"{lo:.2f}-{hi:.2f}"
+
+
+def diagnose_table(cfg: Config, units: dict) -> list[str]:
+    """Per unit of ``units`` ({unit: UnitGap}): each named effect with its group (the
+    effects the data cannot tell apart, by posterior weight, a member that explains the gap
+    together with the named effect marked so), the projected failure year (each member's
+    when they differ by more than a year), the channel that would separate the group, and
+    the candidates the recorded channels cannot see."""
+    from ..diagnose.text import failure_range_text, hidden_by_channel, weight_text
+    if not units:
+        return []
+
+    def unit_of(name: str) -> str:
+        spec = cfg.model.effects.get(name)
+        return "" if spec is None or spec.units in ("", "1") else f" {spec.units}"
+
+    def value(m: dict) -> str:
+        return (f"{m['value']:.4g} [{m['q05']:.4g}, {m['q95']:.4g}]{unit_of(m['effect'])}")
+
+    def fy(y) -> str:
+        return "none within the horizon" if y is None else f"year {y}"
+
+    def hidden_cell(hidden: dict) -> str:
+        if not hidden:
+            return "none"
+        parts = []
+        for ch, names in hidden_by_channel(hidden).items():
+            items = ", ".join(
+                f"<code>{e(n)}</code> (at {hidden[n]['value']:.4g}{e(unit_of(n))}: "
+                f"{hidden[n]['gap']:.1f} σ, {hidden[n]['visible']:.1f} σ left)" for n in names)
+            it = "them" if len(names) > 1 else "it"
+            parts.append(f"{items}: " + (f"recording <code>{e(ch)}</code> would show {it}"
+                                         if ch else f"no unrecorded channel would show {it}"))
+        return "<br>".join(parts)
+
+    out = ["<p>What diagnose names per unit. A group holds the effects the data cannot tell "
+           "apart in one place of the twin, each with its posterior weight (the BIC "
+           "approximation, equal prior weights); a member marked <i>with</i> explains the gap "
+           "together with the named effect. Hidden: candidates the recorded channels cannot "
+           "see, since the degradation inputs take them up (the effect at the end of its "
+           "range: its gap on the recorded channels, and what is left of it once the inputs "
+           "are refitted, in noise σ); they are not tested for and may bias the "
+           "estimates.</p>",
+           "<table><tr><th>Unit</th><th>Named effect</th><th>Its group (posterior "
+           "weight)</th><th>Projected failure year (the twin with the effect)</th><th>Recording "
+           "this would separate the group</th><th>Hidden</th></tr>"]
+    for u, g in units.items():
+        rows = []
+        if g.verdict == "effect" and g.groups:
+            for grp in g.groups:
+                ms = grp["members"]
+                named = ms[0]
+                first = (f"<code>{e(named['effect'])}</code> = {e(value(named))} from year "
+                         f"{grp['onset']}")
+                spread = bool(grp.get("failure_year_spread"))
+                members = "<br>".join(
+                    (f"<code>{e(' and '.join(m['together_with']))}</code> with "
+                     if m.get("together_with") else "")
+                    + f"<code>{e(m['effect'])}</code> = {e(value(m))}: "
+                    f"<b>{e(weight_text(m['weight']))}</b>"
+                    + (f" (failure {e(fy(m['failure_year']))})" if spread else "")
+                    for m in ms) if len(ms) > 1 else "alone (no other candidate fits as well)"
+                if spread:
+                    years = ("<span class='warn'>differs across the group: "
+                             f"{e(failure_range_text(grp['failure_year_range']))} (each "
+                             "member's beside its name)</span>")
+                else:
+                    years = e(fy(named["failure_year"]))
+                sep = (f"<code>{e(grp['separating_channel'])}</code>"
+                       if grp.get("separating_channel") else "—")
+                rows.append(f"<td>{first}</td><td>{members}</td><td>{years}</td><td>{sep}</td>")
+        elif g.verdict == "effect":
+            # A gap.h5 written before groups were recorded.
+            rows.append(f"<td>{e(', '.join(g.effects))} from year {g.onset}</td>"
+                        f"<td>{e(' or '.join(g.group)) if len(g.group) > 1 else '—'}</td>"
+                        f"<td>{e(fy(g.failure_year_after))}</td>"
+                        f"<td>{e(g.separating_channel or '—')}</td>")
+        elif g.verdict == "unexplained":
+            best = (f"; the best candidate, <code>{e(g.candidates[0])}</code>, closes only "
+                    f"{g.closed_percent:.0f} % of it" if g.candidates else "")
+            rows.append(f"<td colspan='4'>a gap from year {g.onset} that no candidate "
+                        f"explains{best}</td>")
+        else:
+            rows.append("<td colspan='4'>no significant gap</td>")
+        span = f" rowspan='{len(rows)}'" if len(rows) > 1 else ""
+        hid = f"<td{span}>{hidden_cell(g.hidden)}</td>"
+        out.append(f"<tr><td class='unit'{span}>{e(u)}</td>{rows[0]}{hid}</tr>")
+        out += [f"<tr>{r}</tr>" for r in rows[1:]]
+    out.append("</table>")
+    return out

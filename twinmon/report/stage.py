@@ -20,8 +20,8 @@ from .fig_forecast import fig_indicator_forecast, fig_marginals, fig_trends
 from .fig_observations import fig_indicator_history, fig_last_transients
 from .fig_surrogate import fig_surrogate
 from .fleet import check_requested, fleet_view, is_fleet
-from .html import (calibration_table, e_p, fleet_overview, page, stored_validation_text,
-                   surrogate_text)
+from .html import (calibration_table, diagnose_table, e_p, fleet_overview, page,
+                   stored_validation_text, surrogate_text)
 from .load import Inputs, check_consistency, load, observed_indicator
 from .summary import ReportSummary, calibration_diagnostics, unit_summary, words_dict
 
@@ -263,6 +263,12 @@ def _render(cfg: Config, inp: Inputs, tmp: Path, out: Path, provenance: dict,
                           f"_{k + 1}" if len(chunks) > 1 else "") for k, g in enumerate(chunks)]
             for i, u in enumerate(other):
                 colours.setdefault(u, UNIT_COLOURS[i % len(UNIT_COLOURS)])
+        # Each unit's named effects, groups and hidden candidates (a large fleet's: those
+        # drawn in detail).
+        tabled = (list(inp.gap.units) if fleet is None else
+                  [u for g, _, _ in gap_views for u in g if u in inp.gap.units])
+        extra["diagnose"] = (extra.get("diagnose", [])
+                             + diagnose_table(cfg, {u: inp.gap.units[u] for u in tabled}))
         overlay = ranked = False
         for group, sub, suffix in _drawing(figs, gap_views, fleet):
             if sub.gap.units:

@@ -87,9 +87,11 @@ class ReportSummary:
             w = max(len(u) for u in self.units)
             h = max(len(s.short_health) for s in self.units.values())
             t = max(len(s.time_to_failure) for s in self.units.values())
-            lines = [f"{u:<{w}}  {s.short_health:<{h}}  {s.time_to_failure:<{t}}"
-                     + (f"  -> {s.action}" if s.action else "")
-                     for u, s in self.units.items()]
+            lines = []
+            for u, s in self.units.items():
+                lines.append(f"{u:<{w}}  {s.short_health:<{h}}  {s.time_to_failure:<{t}}"
+                             + (f"  -> {s.action}" if s.action else ""))
+                lines += diagnose_lines(s.diagnose)
         sur = self.surrogate or {}
         if sur.get("max_range_error") is not None:
             n = f" on {sur['n_test']} test runs" if sur.get("n_test") else ""
@@ -100,6 +102,19 @@ class ReportSummary:
         if skipped:
             lines.append(f"(skipped: {', '.join(skipped)})")
         return "\n".join(lines)
+
+
+def diagnose_lines(d: Optional[dict]) -> list[str]:
+    """Under a unit's line: each named effect's group of more than one member (posterior
+    weights, separating channel, failure-year spread) and the candidates the recorded
+    channels cannot see, as ``twinmon diagnose`` words them; none without either."""
+    if not d or not (d.get("hidden") or any(len(g["members"]) > 1 for g in d["groups"])):
+        return []
+    from ..diagnose.text import INDENT, group_line, hidden_line
+    lines = [INDENT + group_line(g) for g in d["groups"] if len(g["members"]) > 1]
+    if d.get("hidden"):
+        lines.append(INDENT + hidden_line(d["hidden"]))
+    return lines
 
 
 def words_dict(inp: Inputs) -> tuple[dict, dict]:
@@ -274,6 +289,7 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
             "failure_year_before": gap.failure_year_before,
             "failure_year_after": gap.failure_year_after,
             "groups": list(getattr(gap, "groups", []) or []),
+            "hidden": dict(getattr(gap, "hidden", {}) or {}),
             "estimate": {k: {"mean": plain(float(v[0])), "q05": plain(float(v[1])),
                              "q95": plain(float(v[2]))} for k, v in gap.estimate.items()},
         }
@@ -304,12 +320,15 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
                 s.action += (f"; the twin misses the plant from year {gap.onset}: check {eff}"
                              if gap.onset is not None
                              else f"; the twin misses the plant: check {eff}")
-            if s.status != "withheld" or s.forced:
+            projection = (f"year {gap.failure_year_after}"
+                          if gap.failure_year_after is not None
+                          else "no failure within the horizon")
+            if uf is None:
+                why.append(f"diagnose's projected failure year with {eff} in the twin: "
+                           + projection)
+            elif s.status != "withheld" or s.forced:
                 why.append("the failure year shown is the forecast's (the calibrated twin, "
-                           f"without {eff}); diagnose's projection with it is "
-                           + (f"year {gap.failure_year_after}"
-                              if gap.failure_year_after is not None
-                              else "no failure within the horizon"))
+                           f"without {eff}); diagnose's projection with it is " + projection)
             eff_units = {k: (cfg.model.effects[k].units if k in cfg.model.effects else "")
                          for k in gap.estimate}
             est = "; ".join(f"{k} = {v[0]:.3g} (90 % interval {v[1]:.3g} to {v[2]:.3g}) "
@@ -349,6 +368,10 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
                        "estimates may be biased")
         else:
             why.append("diagnose: no significant gap between the twin and the plant")
+        if getattr(gap, "hidden", None):
+            from ..diagnose.text import hidden_line
+            why.append("diagnose: " + hidden_line(gap.hidden) + "; the estimates may carry "
+                       "such an effect unnoticed")
     if s.true_failure_year is not None or (uf is not None and uf.has_truth):
         why.append(f"true failure year (fabricated data): {s.true_failure_year or 'none'}")
     s.confidence = "; ".join(why) + ("." if why else "")
