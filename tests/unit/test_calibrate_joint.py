@@ -11,7 +11,8 @@ from twinmon.calibrate import calibrate, read_posterior, write_posterior
 from twinmon.calibrate.methods.joint import JointRun, calibrate_unit_joint
 from twinmon.calibrate.samplers.gpbatch import make_predictor
 from twinmon.calibrate.samplers.joint_vectorised import run_joint_tasks
-from twinmon.calibrate.trend import TREND_FIELDS, design_matrix, segment_starts, trend_predictive
+from twinmon.calibrate.trend import (TREND_FIELDS, TREND_OPTIONAL, design_matrix,
+                                    segment_starts, trend_predictive)
 from twinmon.config import load_config
 from twinmon.errors import ConfigError
 from twinmon.observations import (Observations, UnitObservations, read_observations,
@@ -224,7 +225,8 @@ def test_calibrate_stage_writes_the_trend_and_reads_it_back(setup, tmp_path):
     s = calibrate(quick, tmp / "sur.h5", obs, tmp_path / "post.h5")
     p = s.posterior["A"]
     q = read_posterior(tmp_path / "post.h5").units["A"]
-    assert set(q.trend) == set(TREND_FIELDS)
+    # The joint method's trend is the line alone: none of the shapes' fields.
+    assert set(q.trend) == set(TREND_FIELDS) - set(TREND_OPTIONAL) | {"sigma_scale"}
     assert np.array_equal(q.trend["start"], p.trend["start"])
     for key in ("rhat", "ess", "acceptance"):
         assert np.array_equal(q.trend[key], p.trend[key]), key

@@ -11,7 +11,7 @@ from scipy import stats
 from twinmon import artifacts
 from twinmon.calibrate import calibrate, read_posterior
 from twinmon.calibrate.methods.joint import calibrate_unit_joint
-from twinmon.calibrate.methods.laplace import GaussianTrend
+from twinmon.calibrate.gaussian_trend import GaussianTrend
 from twinmon.calibrate.trend import TREND_FIELDS
 from twinmon.config import load_config
 from twinmon.observations import Observations, UnitObservations, write_observations
@@ -185,8 +185,8 @@ def test_the_stage_recovers_the_trend_and_agrees_with_the_joint_sampler(setup, t
 
 
 def test_forecast_runs_on_a_laplace_fleet_and_pools_its_sigma(setup, tmp_path):
-    """Five units: forecast pools sigma over them as for the joint method and gives each
-    unit a verdict."""
+    """Five units: forecast pools sigma over them as for the joint method, gives each unit a
+    verdict and the shapes' probabilities of its trend, which forecast.h5 keeps."""
     from twinmon.forecast import forecast
     cfg, cfg_path, tmp, sur = setup
     obs = tmp_path / "obs.h5"
@@ -198,6 +198,13 @@ def test_forecast_runs_on_a_laplace_fleet_and_pools_its_sigma(setup, tmp_path):
     d = s.as_dict()
     assert d["sigma_pooling"]["pooled"] and d["sigma_pooling"]["units"] == 5
     assert set(d["units"]) == {f"U{i}" for i in range(5)}
+    # The trend's shapes reach the verdict, and the artifact keeps them.
+    from twinmon.forecast import read_forecast
+    back = read_forecast(tmp_path / "fc.h5")
+    for u, ud in d["units"].items():
+        shape = ud["trend_shape"]
+        assert abs(shape["line"] + shape["accelerating"] + shape["change"] - 1) < 1e-6
+        assert back.units[u].shape == shape
 
 
 def test_a_trend_beyond_the_box_gets_no_weight_and_stays_in_the_box():

@@ -13,8 +13,11 @@ import numpy as np
 SIGMA_POINTS = 512
 SIGMA_ESS = 100.0
 SIGMA_ROUNDS = 5
-#: Points with a weight below this share of the largest do not hold the next round's box.
+#: Points with a weight below this share of the largest do not hold the next round's box;
+#: one within a spacing of an inner face of a reused box with more than ``SIGMA_EDGE`` of
+#: it means the box cuts the mass off.
 SIGMA_KEEP = 1e-4
+SIGMA_EDGE = 1e-3
 #: A year's draw outside the design box is drawn again this many times, then clipped.
 BOX_TRIES = 20
 #: Expectation propagation of the years' sites (GaussianTrend.refine): sweeps, draws of the
@@ -28,128 +31,30 @@ EP_MIN_ESS = 30.0
 WIDE_BOX = np.tile([-np.inf, np.inf], (64, 1))
 
 
-@dataclass
-class GaussianTrend:
-    """One unit's trend model on its years' summaries.
+def _inv_logdet(V: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Inverses and log-determinants of stacked symmetric positive definite matrices
+    ``V`` [..., d, d]; closed form for d <= 2 (the usual case: LAPACK's per-matrix calls
+    cost more than the arithmetic)."""
+    d = V.shape[-1]
+    if d == 1:
+        return 1.0 / V, np.log(V[..., 0, 0])
+    if d == 2:
+        a, b, c = V[..., 0, 0], V[..., 0, 1], V[..., 1, 1]
+        det = a * c - b * b
+        inv = np.stack([np.stack([c, -b], -1), np.stack([-b, a], -1)], -2) / det[..., None, None]
+        return inv, np.log(det)
+    L = np.linalg.cholesky(V)
+    return np.linalg.inv(V), 2.0 * np.log(np.diagonal(L, axis1=-2, axis2=-1)).sum(axis=-1)
 
-    Attributes
-    ----------
-    x : ndarray, shape [K, d]
-        The years' maximum-likelihood points (input units).
-    cov : ndarray, shape [K, d, d]
-        Their Laplace covariances.
-    Mk : ndarray, shape [K, d, n_beta]
-        The trend's design per year (``theta_k = Mk[k] @ beta``).
-    prior_prec, prior_mean : ndarray, shape [n_beta]
-        Gaussian prior of beta per coefficient (precision 0: flat, the levels).
-    A : ndarray, shape [d]
-        Scale of sigma's half-Cauchy prior (input units).
-    """
 
-    x: np.ndarray
-    cov: np.ndarray
-    Mk: np.ndarray
-    prior_prec: np.ndarray
-    prior_mean: np.ndarray
-    A: np.ndarray
-
-    def _conditional(self, sigma: np.ndarray):
-        """beta's Gaussian conditional and sigma's log marginal likelihood at sigma points
-        ``sigma`` [P, d]: (precision [P, nb, nb], its Cholesky factor, mean [P, nb],
-        log-likelihood [P])."""
-        K, d = self.x.shape
-        V = self.cov[None] + (sigma ** 2)[:, None, :, None] * np.eye(d)        # [P, K, d, d]
-        Lv = np.linalg.cholesky(V)
-        logdet_v = 2.0 * np.log(np.diagonal(Lv, axis1=2, axis2=3)).sum(axis=(1, 2))
-        W = np.linalg.inv(V)
-        # Stacked matrix products (matmul is far faster than einsum on many small blocks).
-        MtW = np.swapaxes(self.Mk, 1, 2)[None] @ W                          # [P, K, nb, d]
-        Pb = (MtW @ self.Mk[None]).sum(axis=1) + np.diag(self.prior_prec)
-        Wx = (W @ self.x[None, :, :, None])[..., 0]                          # [P, K, d]
-        b = (MtW @ self.x[None, :, :, None])[..., 0].sum(axis=1) + \
-            self.prior_prec * self.prior_mean
-        quad = np.sum(Wx * self.x[None], axis=(1, 2))
-        Lb = np.linalg.cholesky(Pb)
-        mean = np.linalg.solve(Pb, b[:, :, None])[:, :, 0]
-        logdet_b = 2.0 * np.log(np.einsum("pii->pi", Lb)).sum(axis=1)
-        ll = -0.5 * (logdet_v + quad - np.einsum("pa,pa->p", b, mean) + logdet_b)
-        return Pb, Lb, mean, ll
-
-    def _sigma(self, u: np.ndarray) -> np.ndarray:
-        return self.A * np.tan(0.5 * np.pi * u)
-
-    def sigma_points(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, float]:
-        """Weighted sigma points of sigma's posterior (the module docstring): points [P, d],
-        normalised weights [P] and their effective number."""
-        from scipy.stats import qmc
-        d = self.x.shape[1]
-        lo, hi = np.zeros(d), np.ones(d)
-        for _ in range(SIGMA_ROUNDS):
-            seed = int(rng.integers(2 ** 31))
-            u = lo + (hi - lo) * qmc.Sobol(d, scramble=True, seed=seed).random(SIGMA_POINTS)
-            u = np.minimum(u, 1.0 - 1e-12)
-            sigma = self._sigma(u)
-            ll = self._conditional(sigma)[3]
-            w = np.exp(ll - ll.max())
-            w /= w.sum()
-            n_eff = 1.0 / float(np.sum(w * w))
-            if n_eff >= SIGMA_ESS:
-                break
-            # Zoom in on the mass: the box of the points that carry weight, one point
-            # spacing wider on each side (the prior is uniform in u, so each round is
-            # importance sampling on its own box).
-            keep = u[w >= SIGMA_KEEP * w.max()]
-            pad = (hi - lo) * SIGMA_POINTS ** (-1.0 / d)
-            lo = np.maximum(keep.min(axis=0) - pad, 0.0)
-            hi = np.minimum(keep.max(axis=0) + pad, 1.0)
-        return sigma, w, n_eff
-
-    def draw(self, n: int, rng: np.random.Generator, bounds: np.ndarray, points=None
-             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-        """``n`` independent posterior draws (sigma from ``points``, an earlier
-        :meth:`sigma_points`' result, when given).
-
-        Returns
-        -------
-        beta : ndarray, shape [n, n_beta]
-        sigma : ndarray, shape [n, d]
-        theta : ndarray, shape [n, K, d]
-            The years' inputs, inside ``bounds`` (module docstring).
-        sigma_ess : float
-            Effective number of the sigma points behind the draws.
-        """
-        K, d = self.x.shape
-        pts, w, n_eff = self.sigma_points(rng) if points is None else points
-        pick = rng.choice(len(w), size=n, p=w)
-        uniq, inv = np.unique(pick, return_inverse=True)
-        sigma_u = pts[uniq]
-        Pb, Lb, mean, _ = self._conditional(sigma_u)
-        # beta = mean + Lb^-T z: covariance Pb^-1.
-        z = rng.standard_normal((n, mean.shape[1]))
-        beta = mean[inv] + np.linalg.solve(np.swapaxes(Lb, 1, 2)[inv], z[:, :, None])[:, :, 0]
-        sigma = sigma_u[inv]
-        H = np.linalg.inv(self.cov)                                           # [K, d, d]
-        S_inv = 1.0 / sigma ** 2                                              # [n, d]
-        G = np.linalg.inv(H[None] + S_inv[:, None, :, None] * np.eye(d))      # [n, K, d, d]
-        m = np.einsum("kia,na->nki", self.Mk, beta)                           # [n, K, d]
-        hx = np.einsum("kij,kj->ki", H, self.x)
-        mu = np.einsum("nkij,nkj->nki", G, hx[None] + S_inv[:, None, :] * m)
-        Lg = np.linalg.cholesky(G)
-        lo, hi = bounds[:, 0], bounds[:, 1]
-        theta = np.empty_like(mu)
-        todo = np.ones((n, K), bool)
-        for _ in range(BOX_TRIES):
-            e = rng.standard_normal(mu.shape)
-            t = mu + np.einsum("nkij,nkj->nki", Lg, e)
-            take = todo & np.all((t >= lo) & (t <= hi), axis=2)
-            theta[take] = t[take]
-            todo &= ~take
-            if not todo.any():
-                break
-        if todo.any():
-            theta[todo] = np.clip(t[todo], lo, hi)
-        return beta, sigma, theta, n_eff
-
+class SiteModel:
+    """What a Gaussian model on the years' sites does with the exact likelihood, whatever
+    its trend (:class:`GaussianTrend`, or a mixture of shapes,
+    :class:`~twinmon.calibrate.shapes.ShapeMixture`): refine the sites by expectation
+    propagation, and weight its draws to the exact posterior. A subclass has the sites
+    ``x`` [K, d] and ``cov`` [K, d, d], ``sigma_points(rng)`` and ``draw(n, rng, bounds,
+    points)`` returning ``(coef, sigma, theta, sigma_ess)``, ``coef`` [n, ...] the draws'
+    trend coefficients in whatever form the subclass documents."""
 
     def refine(self, loglik, rng: np.random.Generator, bounds: np.ndarray,
                sweeps: int = EP_SWEEPS) -> None:
@@ -207,7 +112,6 @@ class GaussianTrend:
                 new_cov[k] = np.linalg.inv(H_new)
                 new_x[k] = new_cov[k] @ eta
             self.x, self.cov = new_x, 0.5 * (new_cov + np.swapaxes(new_cov, 1, 2))
-
     def importance(self, loglik, n: int, rng: np.random.Generator, bounds: np.ndarray):
         """Draws of the exact joint posterior: ``n`` draws of this Gaussian model weighted
         by each year's exact likelihood over its site (0 outside the box), then ``n``
@@ -242,3 +146,168 @@ class GaussianTrend:
         return beta[idx], sigma[idx], theta[idx], 1.0 / float(w @ w)
 
 
+
+
+@dataclass
+class GaussianTrend(SiteModel):
+    """One unit's trend model on its years' summaries.
+
+    Attributes
+    ----------
+    x : ndarray, shape [K, d]
+        The years' maximum-likelihood points (input units).
+    cov : ndarray, shape [K, d, d]
+        Their Laplace covariances.
+    Mk : ndarray, shape [K, d, n_beta]
+        The trend's design per year (``theta_k = Mk[k] @ beta``).
+    prior_prec : ndarray, shape [n_beta] or [n_beta, n_beta]
+        Gaussian prior precision of beta: per coefficient (0: flat, the levels), or a whole
+        matrix (a shape's extra coefficients, :mod:`.shapes`); zero rows are flat.
+    prior_mean : ndarray, shape [n_beta]
+    A : ndarray, shape [d]
+        Scale of sigma's half-Cauchy prior (input units).
+    """
+
+    x: np.ndarray
+    cov: np.ndarray
+    Mk: np.ndarray
+    prior_prec: np.ndarray
+    prior_mean: np.ndarray
+    A: np.ndarray
+
+    def __post_init__(self):
+        P0 = np.asarray(self.prior_prec, float)
+        self.prior_P = P0 if P0.ndim == 2 else np.diag(P0)
+        # The proper part's normalisation, so that the marginal likelihoods of models that
+        # share their flat coefficients compare (:meth:`sigma_points`' log evidence).
+        proper = np.diag(self.prior_P) > 0
+        m0 = np.asarray(self.prior_mean, float)
+        self._log_norm = 0.5 * (np.linalg.slogdet(self.prior_P[np.ix_(proper, proper)])[1]
+                                - m0 @ self.prior_P @ m0)
+
+    def _conditional(self, sigma: np.ndarray):
+        """beta's Gaussian conditional and sigma's log marginal likelihood at sigma points
+        ``sigma`` [P, d]: (precision [P, nb, nb], its Cholesky factor, mean [P, nb],
+        log-likelihood [P])."""
+        K, d = self.x.shape
+        nb = self.Mk.shape[2]
+        V = self.cov[None] + (sigma ** 2)[:, None, :, None] * np.eye(d)        # [P, K, d, d]
+        W, logdet_v = _inv_logdet(V)
+        logdet_v = logdet_v.sum(axis=1)
+        # Every sum over (year, input, input) is one matrix product with W flattened:
+        # sum_kij W[p,k,i,j] f[k,i,j,...] (far faster than stacked small products).
+        Wf = W.reshape(len(sigma), K * d * d)
+        Mk, x = self.Mk, self.x
+        Pb = (Wf @ np.einsum("kia,kjb->kijab", Mk, Mk).reshape(K * d * d, nb * nb)
+              ).reshape(-1, nb, nb) + self.prior_P
+        b = Wf @ np.einsum("kia,kj->kija", Mk, x).reshape(K * d * d, nb) + \
+            self.prior_P @ self.prior_mean
+        quad = Wf @ np.einsum("ki,kj->kij", x, x).ravel()
+        Lb = np.linalg.cholesky(Pb)
+        mean = np.linalg.solve(Pb, b[:, :, None])[:, :, 0]
+        logdet_b = 2.0 * np.log(np.einsum("pii->pi", Lb)).sum(axis=1)
+        ll = -0.5 * (logdet_v + quad - np.einsum("pa,pa->p", b, mean) + logdet_b) + \
+            self._log_norm
+        return Pb, Lb, mean, ll
+
+    def _sigma(self, u: np.ndarray) -> np.ndarray:
+        return self.A * np.tan(0.5 * np.pi * u)
+
+    def sigma_points(self, rng: np.random.Generator, start=None, first=None
+                     ) -> tuple[np.ndarray, np.ndarray, float, float]:
+        """Weighted sigma points of sigma's posterior (the module docstring): points [P, d],
+        normalised weights [P], their effective number, and the log evidence: the log
+        marginal likelihood of the sites under this model, up to a constant shared by
+        models with the same flat coefficients (sigma's prior is uniform in ``u``, so it
+        is the volume of the last round's box times the mean likelihood there).
+
+        The rounds start from ``start`` (a box ``(lo, hi)`` in ``u``), else from this model's
+        last box (:attr:`box`, kept between calls: the sites move little from one call to
+        the next), else from the whole prior; a start box that cuts off weight (a point
+        within a spacing of an inner face holding more than ``SIGMA_EDGE`` of the largest
+        weight) is dropped for the whole prior. ``first``: the first round's sigma points
+        [P, d], spread evenly over ``start`` (another model's last round: models whose sigma
+        agree then cost one evaluation of them)."""
+        from scipy.stats import qmc
+        d = self.x.shape[1]
+        whole = (np.zeros(d), np.ones(d))
+        lo, hi = start if start is not None else getattr(self, "box", whole)
+        for r in range(SIGMA_ROUNDS):
+            if r == 0 and first is not None:
+                sigma = first
+                u = 2.0 / np.pi * np.arctan(sigma / self.A)
+            else:
+                seed = int(rng.integers(2 ** 31))
+                u = lo + (hi - lo) * qmc.Sobol(d, scramble=True, seed=seed).random(SIGMA_POINTS)
+                u = np.minimum(u, 1.0 - 1e-12)
+                sigma = self._sigma(u)
+            ll = self._conditional(sigma)[3]
+            w = np.exp(ll - ll.max())
+            log_z = float(ll.max() + np.log(w.mean()) + np.log(np.prod(hi - lo)))
+            w /= w.sum()
+            n_eff = 1.0 / float(np.sum(w * w))
+            pad = (hi - lo) * SIGMA_POINTS ** (-1.0 / d)
+            near = ((u - lo < pad) & (lo > 0)) | ((hi - u < pad) & (hi < 1))
+            near = near.any(axis=1)
+            if near.any() and w[near].max() > SIGMA_EDGE * w.max():
+                # The box cuts the mass off: start again from the whole prior.
+                lo, hi = whole
+                continue
+            # Another model's points are taken at half the mark: they were zoomed to its
+            # mass, which lies close (their weights are still exact importance weights).
+            if n_eff >= (SIGMA_ESS / 2 if r == 0 and first is not None else SIGMA_ESS):
+                break
+            # Zoom in on the mass: the box of the points that carry weight, one point
+            # spacing wider on each side (the prior is uniform in u, so each round is
+            # importance sampling on its own box).
+            keep = u[w >= SIGMA_KEEP * w.max()]
+            lo = np.maximum(keep.min(axis=0) - pad, 0.0)
+            hi = np.minimum(keep.max(axis=0) + pad, 1.0)
+        self.box = (lo, hi)
+        return sigma, w, n_eff, log_z
+
+    def draw(self, n: int, rng: np.random.Generator, bounds: np.ndarray, points=None
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """``n`` independent posterior draws (sigma from ``points``, an earlier
+        :meth:`sigma_points`' result, when given).
+
+        Returns
+        -------
+        beta : ndarray, shape [n, n_beta]
+        sigma : ndarray, shape [n, d]
+        theta : ndarray, shape [n, K, d]
+            The years' inputs, inside ``bounds`` (module docstring).
+        sigma_ess : float
+            Effective number of the sigma points behind the draws.
+        """
+        K, d = self.x.shape
+        pts, w, n_eff = (self.sigma_points(rng) if points is None else points)[:3]
+        pick = rng.choice(len(w), size=n, p=w)
+        uniq, inv = np.unique(pick, return_inverse=True)
+        sigma_u = pts[uniq]
+        Pb, Lb, mean, _ = self._conditional(sigma_u)
+        # beta = mean + Lb^-T z: covariance Pb^-1.
+        z = rng.standard_normal((n, mean.shape[1]))
+        beta = mean[inv] + np.linalg.solve(np.swapaxes(Lb, 1, 2)[inv], z[:, :, None])[:, :, 0]
+        sigma = sigma_u[inv]
+        H = np.linalg.inv(self.cov)                                           # [K, d, d]
+        S_inv = 1.0 / sigma ** 2                                              # [n, d]
+        G = np.linalg.inv(H[None] + S_inv[:, None, :, None] * np.eye(d))      # [n, K, d, d]
+        m = np.einsum("kia,na->nki", self.Mk, beta)                           # [n, K, d]
+        hx = np.einsum("kij,kj->ki", H, self.x)
+        mu = np.einsum("nkij,nkj->nki", G, hx[None] + S_inv[:, None, :] * m)
+        Lg = np.linalg.cholesky(G)
+        lo, hi = bounds[:, 0], bounds[:, 1]
+        theta = np.empty_like(mu)
+        todo = np.ones((n, K), bool)
+        for _ in range(BOX_TRIES):
+            e = rng.standard_normal(mu.shape)
+            t = mu + np.einsum("nkij,nkj->nki", Lg, e)
+            take = todo & np.all((t >= lo) & (t <= hi), axis=2)
+            theta[take] = t[take]
+            todo &= ~take
+            if not todo.any():
+                break
+        if todo.any():
+            theta[todo] = np.clip(t[todo], lo, hi)
+        return beta, sigma, theta, n_eff

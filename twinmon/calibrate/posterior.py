@@ -14,7 +14,7 @@ from .. import artifacts
 from ..config import Config
 from ..errors import ArtifactError
 from .fit import FIT_FIELDS, STATUS_OK
-from .trend import TREND_DRAWS, TREND_FIELDS
+from .trend import TREND_DRAWS, TREND_FIELDS, TREND_OPTIONAL
 
 #: Config sections recorded as the posterior's provenance (and compared by ``twinmon run``).
 SECTIONS = ("model", "calibrate", "seed")
@@ -379,7 +379,7 @@ def _put_trend(g: h5py.Group, trend: dict, keep: int) -> None:
     """``/units/<U>/trend/<field>`` (``trend.TREND_FIELDS``); the draws thinned like the
     years' (:func:`thin_indices`), their diagnostics of all the draws."""
     for key, (units, desc) in TREND_FIELDS.items():
-        if key not in trend:        # sigma_scale of a posterior from before it was recorded
+        if key not in trend:        # an optional field (TREND_OPTIONAL)
             continue
         data = np.asarray(trend[key])
         if key in TREND_DRAWS:
@@ -389,11 +389,11 @@ def _put_trend(g: h5py.Group, trend: dict, keep: int) -> None:
 
 def _get_trend(g: h5py.Group, path: Path) -> dict:
     """The trend posterior of one unit; empty when it has none (the sequential method).
-    ``sigma_scale`` is absent from posteriors written before it was recorded."""
+    The fields of ``trend.TREND_OPTIONAL`` may be absent."""
     if "trend" not in g:
         return {}
     return {key: artifacts.get(g["trend"], key, path) for key in TREND_FIELDS
-            if key != "sigma_scale" or key in g["trend"]}
+            if key not in TREND_OPTIONAL or key in g["trend"]}
 
 
 def _put_draws(g: h5py.Group, samples: np.ndarray, keep: int) -> None:

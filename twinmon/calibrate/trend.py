@@ -29,11 +29,31 @@ TREND_FIELDS = {
     "ess": ("1", "bulk effective sample size of the last segment's intercept, slope, and of "
             "sigma [3, input]"),
     "acceptance": ("1", "acceptance rate of the trend's moves after burn-in [chain]"),
+    "now": ("input units, per year, per year squared, input units",
+            "the trend at the last recorded year, which the forecast extends: level, rate, "
+            "curvature and growth amplitude, the trend u = t - now_year years later being "
+            "level + rate u + curvature u^2 + amplitude (exp(growth u) - 1 - growth u) "
+            "[draw, 4, input] (laplace method)"),
+    "growth": ("per year", "growth rate of the draw's exponential form, 0 for the other "
+               "forms [draw] (laplace method)"),
+    "now_year": ("year", "the last recorded year (laplace method)"),
+    "shape": ("1", "the draw's trend shape on the current segment: 0 line, 1 accelerating, "
+              "2 change (calibrate.shapes) [draw] (laplace method)"),
+    "change_year": ("year", "the year of a change shape's jump, -1 for the other shapes "
+                    "[draw] (laplace method)"),
+    "shape_prob": ("1", "posterior probability of the line, accelerating and change shapes "
+                   "[3] (laplace method)"),
 }
+
+#: Fields of :data:`TREND_FIELDS` a trend posterior may lack: the prior's scale (written
+#: since it was recorded) and the shapes' (the laplace method; the joint method's trend is
+#: the line alone).
+TREND_OPTIONAL = ("sigma_scale", "now", "now_year", "shape", "change_year", "shape_prob",
+                  "growth")
 
 #: The fields of :data:`TREND_FIELDS` that hold draws (first axis): the artifact thins them
 #: like the years' draws (``calibrate.keep_draws``).
-TREND_DRAWS = ("intercept", "slope", "sigma")
+TREND_DRAWS = ("intercept", "slope", "sigma", "now", "shape", "change_year", "growth")
 
 
 # ---------------------------------------------------------------------------------------
@@ -220,8 +240,10 @@ def last_segment(trend: dict, field: str) -> np.ndarray:
 
 
 def trend_predictive(trend: dict, years, rng: np.random.Generator) -> np.ndarray:
-    """Draws of the inputs in (future) ``years`` from the trend's posterior predictive:
-    ``intercept + slope * (year - start) + sigma * N(0, 1)``, last segment of each input.
+    """Draws of the inputs in (future) ``years`` from the trend's posterior predictive: the
+    trend in force at the last recorded year extended (``now`` and ``growth``, the laplace
+    method's shapes, :func:`~twinmon.calibrate.shapes.extend`), or the last segment's line ``intercept + slope * (year -
+    start)`` (the joint method), plus ``sigma * N(0, 1)``.
 
     Parameters
     ----------
@@ -236,10 +258,16 @@ def trend_predictive(trend: dict, years, rng: np.random.Generator) -> np.ndarray
         Input units; not clipped to the design box.
     """
     years = np.asarray(years, float)
+    s = np.asarray(trend["sigma"])
+    if "now" in trend:
+        from .shapes import extend
+        now = np.asarray(trend["now"], float)                            # [n, 4, d]
+        growth = np.asarray(trend.get("growth", np.zeros(len(now))), float)
+        mean = extend(now, growth, years - float(trend["now_year"]))
+        return mean + s[:, None, :] * rng.standard_normal(mean.shape)
     start = np.asarray(trend["start"])
     last = (start >= 0).sum(axis=0) - 1                                 # [d]
     a, b = last_segment(trend, "intercept"), last_segment(trend, "slope")   # [n, d]
-    s = np.asarray(trend["sigma"])
     t0 = start[last, np.arange(start.shape[1])].astype(float)
     mean = a[:, None, :] + b[:, None, :] * (years[None, :, None] - t0)
     return mean + s[:, None, :] * rng.standard_normal(mean.shape)

@@ -2,8 +2,14 @@
 convergence and goodness-of-fit marks, and where it runs."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal, Optional
+
+import numpy as np
+
+#: ``calibrate.shapes``' default: the straight line a priori 3 times as likely as each
+#: other shape (docs/calibration.md, "Trend shapes").
+DEFAULT_SHAPES = {"line": 0.6, "accelerating": 0.2, "change": 0.2}
 
 
 @dataclass(frozen=True)
@@ -77,8 +83,22 @@ class CalibrateConfig:
     #: ``joint`` only: moves of the whole trend (levels, slopes, scatter) per Gibbs sweep,
     #: each one surrogate call over the unit's years; the years' own moves are one each.
     joint_trend_moves: int = 5
+    #: ``laplace`` only: the shapes each input's current trend segment may take, with their
+    #: prior probabilities (calibrate/shapes.py; docs/calibration.md, "Trend shapes"):
+    #: ``line``, ``accelerating`` (a quadratic term) and ``change`` (the level and the rate
+    #: change in one year). The posterior averages them by their evidence; ``{line: 1}`` is
+    #: the straight line alone.
+    shapes: dict[str, float] = field(default_factory=lambda: dict(DEFAULT_SHAPES))
 
     def _check(self):
+        from ..calibrate.shapes import SHAPES
+        for name, p in self.shapes.items():
+            if name not in SHAPES:
+                yield f"shapes.{name}", f"is not a shape (choose from {', '.join(SHAPES)})", p
+            elif not (np.isfinite(p) and p >= 0):
+                yield f"shapes.{name}", "must be a finite probability >= 0", p
+        if sum(p for p in self.shapes.values() if np.isfinite(p) and p > 0) <= 0:
+            yield "shapes", "must give one shape a probability > 0", dict(self.shapes)
         if self.chains < 2:
             yield "chains", "must be >= 2 (split R-hat needs several chains)", self.chains
         if self.samples < 100:

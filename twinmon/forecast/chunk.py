@@ -14,9 +14,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..calibrate.shapes import describe_shape, shape_summary
 from ..config import Config
 from ..errors import ArtifactError, CalibrationError
 from ..repairs import FoundRepair, find_repairs
+from .attribution import HEALTHY
 from .covariance import estimate_error_covariance
 from .detection import gradient_from, gradient_points, mid_state
 from .judge import STATUS_OK, STATUS_UNRELIABLE, STATUS_WITHHELD, judge, prognosis_status
@@ -180,7 +182,9 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict,
     plan = dict(years=years, mean=mean, trends=trends, fut=fut, X=X, Xo=Xo, corr=corr,
                 resid=resid, step=step, since=max(since.values()), since_by_input=since,
                 repairs=repairs, post_cov=post_cov,
-                err_cov=err_cov, state=state, slope_draws=slope_draws, pool_ess=pool_ess)
+                err_cov=err_cov, state=state, slope_draws=slope_draws, pool_ess=pool_ess,
+                shapes="now" in trend_post and cfg.calibrate.shapes.get("accelerating", 0) > 0,
+                shape=shape_summary(trend_post))
     return plan, [X.reshape(-1, d), Xo.reshape(-1, d), probe]
 
 
@@ -230,13 +234,18 @@ def _finish_unit(cfg: Config, unit: str, up, p: dict, twin: TwinResult,
                                int(p["years"][-1]), float(p_obs[-1]), cfg.safety,
                                drift=drift, attribution=attribution, cfg=cfg)
     uf.repairs = [r.as_dict() for r in p["repairs"]]
+    uf.shape = p["shape"]
+    told = describe_shape(uf.shape) if uf.root_cause != HEALTHY else ""
+    if told:
+        uf.plan = f"{uf.plan} {told}"
     found = "; ".join(r.describe(cfg, unit) for r in p["repairs"])
     if found:
         uf.plan = f"{found[0].upper()}{found[1:]}; its trend restarts there. {uf.plan}"
     uf.status, uf.status_reason = prognosis_status(up, cfg, fit_windows)
-    if uf.status == STATUS_OK:
+    if uf.status == STATUS_OK and not p["shapes"]:
         # The twin fits, but the trend may not: accelerating wear makes the line's
-        # failure year late with intervals that look sure.
+        # failure year late with intervals that look sure. A posterior that averaged the
+        # accelerating shape in (calibrate.shapes) has already weighed it.
         shape = shape_gate(cfg, p["since_by_input"], p["years"], p["mean"], trends)
         if shape:
             uf.status, uf.status_reason = STATUS_UNRELIABLE, shape

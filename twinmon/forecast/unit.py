@@ -91,6 +91,10 @@ class UnitForecast:
     pool_ess: float = float("nan")
     #: Jumps back towards nominal no event explains (:meth:`~twinmon.repairs.FoundRepair.as_dict`).
     repairs: list = field(default_factory=list)
+    #: The trend's shape on the current segment, from a posterior that weighed several
+    #: (``calibrate.shapes``; :func:`~twinmon.calibrate.shapes.shape_summary`): the
+    #: probability of each, and the most probable change year; empty otherwise.
+    shape: dict = field(default_factory=dict)
 
     #: Set by :meth:`slim`: the figures kept when the Monte Carlo arrays are dropped.
     _slim: Optional[dict] = field(default=None, repr=False)
@@ -168,6 +172,8 @@ class UnitForecast:
         if np.isfinite(self.pool_ess):
             d["pool_ess"] = round(self.pool_ess, 1)
         d["unrecorded_repairs"] = list(self.repairs)
+        if self.shape:
+            d["trend_shape"] = dict(self.shape)
         if self.has_truth:
             d["true_failure_year"] = self.true_failure_year
             d["truth_source"] = self.truth_source

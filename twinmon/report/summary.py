@@ -246,6 +246,13 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
                 why.append(f"{name} drifts {t.slope:+.3g}/yr (90 % interval {lo:+.3g} to "
                            f"{hi:+.3g}) against normal ageing {t.normal_rate:+.3g} +- {t.tolerance:.3g}/yr "
                            f"({'one' if t.direction else 'two'}-sided test, p = {t.p_value:.1g})")
+        if uf.shape:
+            # The trend's shape, as weighed by calibrate (calibrate.shapes).
+            sh = uf.shape
+            change = (f", a change in year {sh['change_year']} {sh['change']:.2f}"
+                      if sh.get("change_year") is not None else f", a change {sh['change']:.2f}")
+            why.append(f"trend shape on the current segment: straight line {sh['line']:.2f}, "
+                       f"accelerating {sh['accelerating']:.2f}{change}")
         if not comps:
             pmin = min(t.p_value for t in uf.trends.values())
             why.append(f"every input drifts within normal ageing (tests of the slopes, all "

@@ -51,9 +51,8 @@ from ..fit import years_fit
 from ..posterior import UnitPosterior, draw_statistics
 from ..samplers.batch_map import Batch, batch_map
 from ..shared import sampling_pool, unit_groups
-from ..gaussian_trend import GaussianTrend
-from ..trend import (Layout, design_matrix, lines_at_start, segment_starts, sigma_prior_scale,
-                     with_found_repairs)
+from ..shapes import ShapeMixture, build_shapes, shape_probabilities
+from ..trend import Layout, design_matrix, segment_starts, sigma_prior_scale, with_found_repairs
 
 #: Draws of the Gaussian model weighted to the exact posterior, per kept draw
 #: (``calibrate.keep_draws``).
@@ -167,9 +166,10 @@ class LaplaceRun:
         self._result, self.found_repairs = results[0]
         self.k = len(self.years)
 
-    def _trend_model(self, x: np.ndarray, cov: np.ndarray):
+    def _trend_model(self, x: np.ndarray, cov: np.ndarray, rng: np.random.Generator):
         """Segments (recorded events, then repairs found in the years), the layout and the
-        Gaussian model of the trend."""
+        Gaussian model of the trend: the mixture of ``calibrate.shapes`` on each input's
+        current segment (:mod:`~twinmon.calibrate.shapes`)."""
         cfg = self.cfg
         names = cfg.model.input_names
         starts, self.found_repairs = with_found_repairs(
@@ -187,9 +187,11 @@ class LaplaceRun:
             # Levels flat; slopes N(normal_rate, range^2) per year, as the joint method's.
             prec += [0.0, span[i] ** -2.0] * n_seg
             mean += [0.0, cfg.model.inputs[names[i]].normal_rate] * n_seg
-        model = GaussianTrend(x, cov, Mk, np.array(prec), np.array(mean),
-                              sigma_prior_scale(cfg))
-        return starts, centres, lay, model
+        slopes = np.tile([False, True], len(prec) // 2)
+        shapes = build_shapes(self.years, x, cov, Mk, np.array(prec), np.array(mean),
+                              sigma_prior_scale(cfg), slopes,
+                              np.array([s[-1] for s in starts]), cfg.calibrate.shapes, rng)
+        return starts, centres, lay, ShapeMixture(shapes)
 
     def posterior(self, surrogate, predict, x, cov, total, ratio) -> UnitPosterior:
         """The unit's posterior from its years' summaries (:func:`summarise`): the Gaussian
@@ -197,7 +199,8 @@ class LaplaceRun:
         docstring); ``predict`` is the batched surrogate, ``surrogate`` checks the fit."""
         cfg, cc = self.cfg, self.cfg.calibrate
         bounds = cfg.model.bounds
-        starts, centres, lay, model = self._trend_model(x, cov)
+        rng = np.random.default_rng(self.seed)
+        starts, centres, lay, model = self._trend_model(x, cov, rng)
         K, d = x.shape
         ok = np.isfinite(self.flows)
         yz, wz = np.where(ok, self.flows, 0.0), np.where(ok, 1.0 / total, 0.0)
@@ -207,13 +210,12 @@ class LaplaceRun:
             r = yz - predict(theta.reshape(-1, d)).reshape(m, K, -1)
             return -0.5 * np.einsum("mkt,mkt,kt->mk", r, r, wz)
 
-        rng = np.random.default_rng(self.seed)
         model.refine(loglik, rng, bounds)
         n_c = cc.chains
         n_s = -(-IMPORTANCE_DRAWS_PER_KEPT * cc.keep_draws // n_c)
         ext = 0
         while True:
-            beta, sigma, theta, n_eff = model.importance(loglik, n_c * n_s, rng, bounds)
+            coef, sigma, theta, n_eff = model.importance(loglik, n_c * n_s, rng, bounds)
             if n_eff >= cc.ess_warn or ext >= cc.max_extensions:
                 break
             # Too few effective draws: one more sweep of the sites and twice as many draws,
@@ -233,32 +235,47 @@ class LaplaceRun:
         return UnitPosterior(
             years=self.years, samples=pooled, acceptance=np.full((K, n_c), np.nan),
             noise_std=noise, noise_source=self.source, surrogate_var_ratio=ratio,
-            fit=fit, trend=self._trend(starts, centres, lay, beta, sigma, n_c, n_s, n_eff),
+            fit=fit, trend=self._trend(starts, model, coef, sigma, n_c, n_s, n_eff),
             var=pooled.var(axis=1), chain_end=chains[:, :, -1].copy(), **stats)
 
-    def _trend(self, starts, centres, lay: Layout, beta, sigma, n_c: int, n_s: int,
-               n_eff: float) -> dict:
-        """:data:`~twinmon.calibrate.trend.TREND_FIELDS` from the draws."""
-        d = lay.d
-        n = len(beta)
+    def _trend(self, starts, model: ShapeMixture, coef: np.ndarray, sigma: np.ndarray,
+               n_c: int, n_s: int, n_eff: float) -> dict:
+        """:data:`~twinmon.calibrate.trend.TREND_FIELDS` from the draws. Each segment's
+        ``intercept`` and ``slope`` are the chord of the draw's trend over the segment's
+        recorded years (its value at the first, its mean rate to the last; the line itself
+        for a straight line); ``now`` is the trend at the last year, which the forecast
+        extends."""
+        years = self.years.astype(float)
+        code, m, now = model.decode(coef)
+        n, K, d = m.shape
         S = max(len(s) for s in starts)
         start = np.full((S, d), -1, dtype=np.int64)
         a, b = np.full((n, S, d), np.nan), np.full((n, S, d), np.nan)
-        col = 0
         for i in range(d):
-            m = len(starts[i])
-            start[:m, i] = starts[i]
-            a[:, :m, i], b[:, :m, i] = lines_at_start(beta[:, col:col + 2 * m], starts[i],
-                                                      centres[i])
-            col += 2 * m
+            bounds = list(starts[i]) + [np.inf]
+            for j in range(len(starts[i])):
+                start[j, i] = starts[i][j]
+                seg = np.flatnonzero((years >= bounds[j]) & (years < bounds[j + 1]))
+                first, last = seg[0], seg[-1]
+                span = years[last] - years[first]
+                b[:, j, i] = ((m[:, last, i] - m[:, first, i]) / span if span > 0
+                              else now[:, 1, i])
+                a[:, j, i] = m[:, first, i] - b[:, j, i] * (years[first] - starts[i][j])
         rhat = np.empty((3, d))
         for i in range(d):
             last = len(starts[i]) - 1
             for r, v in enumerate((a[:, last, i], b[:, last, i], sigma[:, i])):
                 rhat[r, i] = split_rhat(v.reshape(n_c, n_s))
+        shapes = model.shapes
+        shape = np.array([shapes[c].code for c in code], dtype=np.int64)
         return {"start": start, "intercept": a, "slope": b, "sigma": sigma,
                 "sigma_scale": np.asarray(sigma_prior_scale(self.cfg), float),
-                "rhat": rhat, "ess": np.full((3, d), n_eff), "acceptance": np.full(n_c, np.nan)}
+                "rhat": rhat, "ess": np.full((3, d), n_eff), "acceptance": np.full(n_c, np.nan),
+                "now": now, "now_year": np.int64(self.years[-1]),
+                "shape": shape,
+                "change_year": np.array([shapes[c].change_year for c in code], dtype=np.int64),
+                "growth": np.array([shapes[c].growth for c in code]),
+                "shape_prob": shape_probabilities(shape)}
 
     def result(self) -> UnitPosterior:
         return self._result

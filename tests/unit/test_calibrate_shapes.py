@@ -1,0 +1,162 @@
+"""calibrate, laplace method's trend shapes (twinmon/calibrate/shapes.py): the shapes'
+posterior probabilities against a brute-force quadrature, and what they do on histories
+that accelerate, step, or run straight."""
+from __future__ import annotations
+
+import numpy as np
+from scipy import stats
+
+from twinmon.calibrate.shapes import ShapeMixture, build_shapes
+from twinmon.calibrate.trend import design_matrix, trend_predictive
+
+YEARS = np.arange(1, 11)
+WIDE = np.array([[-1e9, 1e9]] * 2)
+PRIORS = {"line": 0.6, "accelerating": 0.2, "change": 0.2}
+
+
+def _mixture(x, err, priors=PRIORS, A=0.2, seed=0):
+    """One unit, one segment per input, sites ``x`` [K, d] with independent errors ``err``
+    [K, d]; slope priors N(0, 10^2), levels flat (as the laplace method builds them)."""
+    K, d = x.shape
+    X, _ = design_matrix(YEARS, np.array([YEARS[0]]))
+    Mk = np.zeros((K, d, 2 * d))
+    for i in range(d):
+        Mk[:, i, 2 * i:2 * i + 2] = X
+    cov = np.einsum("ki,ij->kij", err ** 2, np.eye(d))
+    prec = np.tile([0.0, 0.01], d)
+    shapes = build_shapes(YEARS, x, cov, Mk, prec, np.zeros(2 * d), np.full(d, A),
+                          np.tile([False, True], d), np.full(d, YEARS[0]), priors,
+                          np.random.default_rng(seed))
+    return ShapeMixture(shapes)
+
+
+def test_shape_probabilities_match_a_quadrature():
+    """One input bending a little: the line's and the accelerating shape's posterior
+    probabilities on the sites equal those of the marginal likelihoods integrated over sigma
+    on a fine grid (the years' joint Gaussian written out whole, the same priors)."""
+    rng = np.random.default_rng(3)
+    t = YEARS.astype(float)
+    err = rng.uniform(0.05, 0.1, len(t))
+    x = (0.1 * (t - 5.5) + 0.007 * (t - 5.5) ** 2 + rng.normal(0, 0.05, len(t))
+         + err * rng.standard_normal(len(t)))[:, None]
+    mix = _mixture(x, err[:, None], {"line": 0.5, "accelerating": 0.5})
+    # The line and the quadratic form, even odds.
+    mix.shapes = [sh for sh in mix.shapes if sh.growth == 0.0]
+    assert [sh.code for sh in mix.shapes] == [0, 1]
+    for sh in mix.shapes:
+        sh.log_prior = np.log(0.5)
+    _, probs = mix.sigma_points(np.random.default_rng(1))
+    acc = mix.shapes[1].model
+    A, grid = 0.2, np.linspace(1e-5, 2.0, 20001)
+    prior_s = np.log(2 / (np.pi * A * (1 + (grid / A) ** 2)))
+    logz = []
+    for model in (mix.shapes[0].model, acc):
+        M = model.Mk[:, 0, :]
+        P = model.prior_P.copy()
+        P[0, 0] = 1e-2                       # the flat level: wide next to the data
+        C0 = np.linalg.inv(P)
+        ll = [stats.multivariate_normal(M @ model.prior_mean,
+                                        np.diag(err ** 2 + s * s) + M @ C0 @ M.T).logpdf(x[:, 0])
+              for s in grid]
+        lw = np.array(ll) + prior_s
+        # The wide level prior, the same in both models, cancels in their ratio.
+        logz.append(np.log(np.trapezoid(np.exp(lw - lw.max()), grid)) + lw.max())
+    p_acc = 1.0 / (1.0 + np.exp(logz[0] - logz[1]))
+    assert abs(probs[1] - p_acc) < 0.02, (probs, p_acc)
+    assert 0.05 < p_acc < 0.95          # a case where the evidence is not one-sided
+
+
+def _draws(mix, n=4000, seed=2):
+    """The mixture's draws on its sites: shape code, change year, trend at the last year
+    [n, 3, d], sigma [n, d]."""
+    coef, sigma, _, _ = mix.draw(n, np.random.default_rng(seed), WIDE[:mix.x.shape[1]])
+    code, m, now = mix.decode(coef)
+    return np.array([mix.shapes[c].code for c in code]), \
+        np.array([mix.shapes[c].change_year for c in code]), now, sigma, \
+        np.array([mix.shapes[c].growth for c in code])
+
+
+def _future(now, sigma, years, growth, seed=5):
+    trend = {"now": now, "now_year": YEARS[-1], "sigma": sigma, "growth": growth}
+    return trend_predictive(trend, years, np.random.default_rng(seed))
+
+
+def test_accelerating_wear_is_found_and_its_future_covered():
+    """Two inputs, the first wearing quadratically (rate 0.05 rising to 0.4 a year), the
+    second flat: the accelerating shape takes the posterior, and the 90 % interval five years
+    ahead holds the quadratic's continuation, which a straight line's misses."""
+    rng = np.random.default_rng(11)
+    t = YEARS.astype(float)
+    truth = lambda tt: 0.05 * (tt - 1) + 0.02 * (tt - 1) ** 2         # noqa: E731
+    err = np.full((len(t), 2), 0.05)
+    x = np.column_stack([truth(t), np.zeros_like(t)]) + err * rng.standard_normal(err.shape)
+    shape, _, now, sigma, growth = _draws(_mixture(x, err))
+    assert np.mean(shape == 1) > 0.9
+    future = _future(now, sigma, np.array([15]), growth)[:, 0, 0]
+    lo, hi = np.quantile(future, [0.05, 0.95])
+    assert lo <= truth(15.0) <= hi, (lo, hi, truth(15.0))
+    shape_l, _, now_l, sigma_l, growth_l = _draws(_mixture(x, err, {"line": 1.0}))
+    assert np.all(shape_l == 0)
+    assert np.quantile(_future(now_l, sigma_l, np.array([15]), growth_l)[:, 0, 0], 0.95) < \
+        truth(15.0)
+
+
+def test_exponential_wear_is_covered_ahead():
+    """Wear growing exponentially at 0.25 a year (between the exponential forms' rates): the
+    accelerating shape takes the posterior, and the 90 % intervals three and six years ahead
+    hold the truth, where a quadratic alone falls short six years ahead."""
+    rng = np.random.default_rng(21)
+    t = YEARS.astype(float)
+    truth = lambda tt: 0.1 * np.expm1(0.25 * (tt - 1)) / 0.25        # noqa: E731
+    err = np.full((len(t), 2), 0.05)
+    x = np.column_stack([truth(t), np.zeros_like(t)]) + err * rng.standard_normal(err.shape)
+    shape, _, now, sigma, growth = _draws(_mixture(x, err))
+    assert np.mean(shape == 1) > 0.9
+    future = _future(now, sigma, np.array([13, 16]), growth)[:, :, 0]
+    for j, year in enumerate((13.0, 16.0)):
+        lo, hi = np.quantile(future[:, j], [0.05, 0.95])
+        assert lo <= truth(year) <= hi, (year, lo, hi, truth(year))
+    quadratic = _mixture(x, err)
+    quadratic.shapes = [sh for sh in quadratic.shapes if sh.code == 1 and sh.growth == 0.0]
+    _, _, now_q, sigma_q, growth_q = _draws(quadratic)
+    assert np.quantile(_future(now_q, sigma_q, np.array([16]), growth_q)[:, 0, 0], 0.95) < \
+        truth(16.0)
+
+
+def test_a_step_is_placed_in_its_year_and_not_extended():
+    """Wear that steps up by 0.5 in year 7 and stays (sigma's prior scale 0.05): the change
+    shape takes the posterior with its year right, and the future stays at the new level
+    where a line through the history would climb on."""
+    rng = np.random.default_rng(12)
+    t = YEARS.astype(float)
+    err = np.full((len(t), 2), 0.04)
+    x = np.column_stack([0.5 * (t >= 7), np.zeros_like(t)]) + err * rng.standard_normal(err.shape)
+    shape, year, now, sigma, growth = _draws(_mixture(x, err, A=0.05))
+    assert np.mean(shape == 2) > 0.9
+    assert np.mean(year[shape == 2] == 7) > 0.9
+    future = _future(now, sigma, np.array([16]), growth)[:, 0, 0]
+    lo, hi = np.quantile(future, [0.05, 0.95])
+    assert lo <= 0.5 <= hi, (lo, hi)
+    # The rate after the step is the four years' own (0.03 a year in this draw of the
+    # noise), well below the line's through the whole history, which climbs to 0.92.
+    line = np.polyval(np.polyfit(t, x[:, 0], 1), 16.0)
+    assert np.median(future) < line - 0.15, (np.median(future), line)
+
+
+def test_a_straight_line_stays_the_line():
+    """Twenty straight-line units: the line keeps most of the posterior (BIC-like Bayes
+    factors of the unit-information prior), and the mixture's 90 % interval of the last
+    year's rate covers the true rate in about 90 % of them."""
+    rng = np.random.default_rng(13)
+    t = YEARS.astype(float)
+    p_line, hits = [], 0
+    for u in range(20):
+        slope = rng.uniform(0.02, 0.1)
+        err = np.full((len(t), 2), 0.05)
+        x = np.column_stack([slope * t, -0.5 * slope * t]) + err * rng.standard_normal(err.shape)
+        shape, _, now, _, _ = _draws(_mixture(x, err, seed=u), n=2000, seed=u)
+        p_line.append(np.mean(shape == 0))
+        lo, hi = np.quantile(now[:, 1, 0], [0.05, 0.95])
+        hits += lo <= slope <= hi
+    assert np.median(p_line) > 0.7, p_line
+    assert hits >= 16, hits
