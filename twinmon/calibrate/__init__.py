@@ -82,6 +82,7 @@ import numpy as np
 from .. import artifacts
 from ..config import Config
 from ..errors import ArtifactError, InputDataError
+from ..executors import one_blas_thread
 from ..observations import check_events, read_observations
 from ..plausibility import check_observations
 from .base import Method, Sampler, Work
@@ -358,7 +359,10 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
     fork = hasattr(os, "fork") or cfg.calibrate.executor == "dask"
     pool_args = (init_worker, (model if fork else None, str(surrogate_path),
                                cfg.model.output.name, tuple(channels)))
-    sampler.finish(Work(cfg, model, runs, resume, output, progress, pool_args))
+    # Here or in the workers, each unit's small factorisations on one BLAS thread
+    # (executors.threads: OpenBLAS's threads make them several times slower on busy cores).
+    with one_blas_thread():
+        sampler.finish(Work(cfg, model, runs, resume, output, progress, pool_args))
     posterior = {unit: run.result() for unit, run in runs.items()}
     for unit, p in posterior.items():
         p.digest = np.array(digests[unit])
