@@ -30,8 +30,10 @@ The result is ``posterior.h5`` (``twinmon.posterior/2``)::
                             surrogate_var_ratio; chain_end [chains, d] and digest (what
                             --update continues from); fit_<field> for each of FIT_FIELDS
                             (rms, p_chi2, p_ljung_box, window, window_rms, edge_share [d],
-                            extensions, converged, status ok|misfit|edge|unconverged), and
-                            fit_channel_rms [n_ch] when further channels were in the likelihood
+                            extensions, converged, status ok|misfit|edge|unconverged),
+                            fit_channel_rms [n_ch] when further channels were in the
+                            likelihood, and (laplace) each year's site: site_x [d], site_cov
+                            [d, d], site_var [n_out], site_ratio (what --update keeps)
     /units/<U>/samples      float64 [n_y, n_s, d] pooled post-burn-in draws (input units),
                             evenly thinned to calibrate.keep_draws (statistics use them all)
     /units/<U>/trend/<field>                   methods joint and laplace only: the trend's
