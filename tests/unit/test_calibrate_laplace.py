@@ -260,9 +260,16 @@ def test_update_summarises_only_the_new_years_and_equals_a_full_run(setup, tmp_p
     for unit in full.units:
         _assert_same_unit(full.units[unit], upd.units[unit], unit)
 
-    # Nothing new: every unit kept as it is.
-    u = calibrate(cfg, tmp / "sur.h5", full_obs, tmp_path / "upd.h5", update=True).update
-    assert (u["kept_years"], u["new_years"]) == (3 * len(YEARS), 0)
+    # Nothing new: every unit kept as it is; the command says what it kept.
+    from click.testing import CliRunner
+
+    from twinmon.cli import main
+    r = CliRunner().invoke(main, ["calibrate", "-c", str(cfg_path), "--surrogate",
+                                  str(tmp / "sur.h5"), "--observations", str(full_obs),
+                                  "-o", str(tmp_path / "upd.h5"), "--update"])
+    assert r.exit_code == 0, r.output
+    assert f"sites of {3 * len(YEARS)} unit-year(s) kept from" in r.output
+    assert "0 summarised, each unit with a new year drawn again" in r.output
     for unit in full.units:
         _assert_same_unit(full.units[unit], read_posterior(tmp_path / "upd.h5").units[unit],
                           unit)
