@@ -94,7 +94,9 @@ def iter_forecast(cfg: Config, post, sur, *, directions: dict, box_ok: bool,
     if n_workers <= 1 and not (cfg.simulate.executor == "dask" and cfg.dask.address):
         own = executor is None
         if own:
-            executor = make_executor(cfg.simulate.executor, cfg.simulate.workers, cfg.dask)
+            # Kept open from batch to batch (a process pool started once, not per chunk).
+            executor = make_executor(cfg.simulate.executor, cfg.simulate.workers,
+                                     cfg.dask).__enter__()
         try:
             # One unit, or one worker: the FMU runs fan out on the executor instead. The
             # units' small factorisations on one BLAS thread, as in a pool's worker.
@@ -109,7 +111,7 @@ def iter_forecast(cfg: Config, post, sur, *, directions: dict, box_ok: bool,
                     yield unit, uf
         finally:
             if own:
-                executor.close()
+                executor.__exit__(None, None, None)
         return
     yield from _pooled(cfg, sur, spec, chunks, chunk_of, context, n_workers, progress)
 
