@@ -31,10 +31,10 @@ def test_every_configured_method_is_a_module_with_a_sampler_per_choice():
             assert isinstance(sampler, Sampler) and sampler.name == s
 
 
-def test_update_continues_the_sequential_years_only():
+def test_update_continues_the_sequential_and_laplace_years_only():
     assert methods.method_named("sequential").continues_years
     assert not methods.method_named("joint").continues_years
-    assert not methods.method_named("laplace").continues_years
+    assert methods.method_named("laplace").continues_years
 
 
 def test_unknown_names_are_refused_with_the_choices():

@@ -219,3 +219,81 @@ def test_a_trend_beyond_the_box_gets_no_weight_and_stays_in_the_box():
                                                  np.random.default_rng(0), box)
     assert n_eff == 0.0 and theta.shape == (400, 6, 1)
     assert np.all((theta >= 0.0) & (theta <= 1.0))
+
+
+def _assert_same_unit(a, b, where=""):
+    """Every field of two unit posteriors equal, bit for bit (NaN equal to NaN)."""
+    import dataclasses
+    for f in dataclasses.fields(a):
+        x, y = getattr(a, f.name), getattr(b, f.name)
+        pairs = [(np.asarray(x[k]), np.asarray(y[k])) for k in x] if isinstance(x, dict) \
+            else [(x, y)]
+        if isinstance(x, dict):
+            assert x.keys() == y.keys(), (where, f.name)
+        for p, q in pairs:
+            if isinstance(p, np.ndarray):
+                assert np.array_equal(p, q, equal_nan=p.dtype.kind == "f"), (where, f.name)
+            else:
+                assert p == q, (where, f.name)
+
+
+def test_update_summarises_only_the_new_years_and_equals_a_full_run(setup, tmp_path):
+    """Years 1..4 of two units, then ``--update`` with years 1..6 and a third unit (two
+    workers): only the new unit-years are summarised, the stored years' sites are kept, and
+    every array equals a full run on years 1..6, bit for bit; an update with nothing new
+    keeps everything; a posterior without sites (written before they were recorded) is
+    summarised again whole, to the same arrays."""
+    import dataclasses
+
+    from twinmon.calibrate import write_posterior
+    from twinmon.observations import read_observations
+    cfg, cfg_path, tmp, sur = setup
+    full_obs, short_obs = tmp_path / "o6.h5", tmp_path / "o4.h5"
+    _fleet(full_obs, sur, [2, 3, 4])
+    whole = read_observations(full_obs)
+    write_observations(short_obs, dataclasses.replace(whole, units={
+        u: dataclasses.replace(o, years=o.years[:4],
+                               channels={c: v[:4] for c, v in o.channels.items()})
+        for u, o in whole.units.items() if u != "U4"}))
+    s = calibrate(cfg, tmp / "sur.h5", full_obs, tmp_path / "full.h5")
+    assert s.method == "laplace" and s.posterior["U2"].site["x"].shape == (len(YEARS), 2)
+    calibrate(cfg, tmp / "sur.h5", short_obs, tmp_path / "upd.h5")
+    two = load_config(cfg_path, ["calibrate.workers=2"])
+    u = calibrate(two, tmp / "sur.h5", full_obs, tmp_path / "upd.h5", update=True).update
+    assert (u["kept_years"], u["new_years"]) == (8, 2 * 2 + len(YEARS))
+    assert u["new_units"] == ["U4"] and not u["redone_units"]
+    full, upd = read_posterior(tmp_path / "full.h5"), read_posterior(tmp_path / "upd.h5")
+    assert list(upd.units) == list(full.units)
+    for unit in full.units:
+        _assert_same_unit(full.units[unit], upd.units[unit], unit)
+
+    # Nothing new: every unit kept as it is; the command says what it kept.
+    from click.testing import CliRunner
+
+    from twinmon.cli import main
+    r = CliRunner().invoke(main, ["calibrate", "-c", str(cfg_path), "--surrogate",
+                                  str(tmp / "sur.h5"), "--observations", str(full_obs),
+                                  "-o", str(tmp_path / "upd.h5"), "--update"])
+    assert r.exit_code == 0, r.output
+    assert f"sites of {3 * len(YEARS)} unit-year(s) kept from" in r.output
+    assert "0 summarised, each unit with a new year drawn again" in r.output
+    for unit in full.units:
+        _assert_same_unit(full.units[unit], read_posterior(tmp_path / "upd.h5").units[unit],
+                          unit)
+
+    # Sites missing (an older posterior): the units with new years are summarised whole.
+    calibrate(cfg, tmp / "sur.h5", short_obs, tmp_path / "old.h5")
+    stored = read_posterior(tmp_path / "old.h5")
+    units = {}
+    for unit, p in stored.units.each():
+        p.site = {}
+        units[unit] = p
+    write_posterior(tmp_path / "old.h5", units, stored.input_names, cfg,
+                    [tmp / "sur.h5", short_obs], surrogate_id=sur.fingerprint(),
+                    method="laplace")
+    assert not read_posterior(tmp_path / "old.h5").units["U2"].site
+    u = calibrate(cfg, tmp / "sur.h5", full_obs, tmp_path / "old.h5", update=True).update
+    assert (u["kept_years"], u["new_years"]) == (0, 3 * len(YEARS))
+    for unit in full.units:
+        _assert_same_unit(full.units[unit], read_posterior(tmp_path / "old.h5").units[unit],
+                          unit)

@@ -7,7 +7,9 @@ import numpy as np
 import pytest
 
 from twinmon.errors import ConfigError, SimulationError
-from twinmon.executors import ProcessExecutor, SerialExecutor, SimulationSpec, make_executor
+from twinmon.executors import (ProcessExecutor, SerialExecutor, SimulationSpec, make_executor,
+                               one_blas_thread, start_pool)
+from twinmon.executors.local import shutdown_pool
 
 TIMES = np.arange(2.0, 50.0 + 1e-9, 2.0)
 
@@ -50,6 +52,28 @@ def test_process_results_equal_serial(fmu_path, alarm):
     a = {r.index: r.outputs["sensor.m_flow"] for r in SerialExecutor().map(spec, params)}
     b = {r.index: r.outputs["sensor.m_flow"] for r in ProcessExecutor(2).map(spec, params)}
     assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
+
+
+def blas_threads() -> list:
+    """The thread counts of this process's BLAS libraries (numpy's and scipy's OpenBLAS)."""
+    import scipy.linalg  # noqa: F401 -- loads scipy's own OpenBLAS
+    from threadpoolctl import threadpool_info
+    return sorted({i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"})
+
+
+def test_a_pool_worker_runs_blas_on_one_thread(alarm):
+    pool = start_pool(2)
+    try:
+        assert pool.submit(blas_threads).result() == [1]
+    finally:
+        shutdown_pool(pool)
+
+
+def test_one_blas_thread_as_a_block_gives_the_threads_back():
+    before = blas_threads()
+    with one_blas_thread():
+        assert blas_threads() == [1]
+    assert blas_threads() == before
 
 
 def test_negative_worker_count_is_a_config_error():

@@ -66,6 +66,17 @@ def test_dask_batch_equals_process_and_leaves_no_worker(fmu_path, alarm):
     assert not _workers_alive() - before
 
 
+def test_a_dask_worker_runs_blas_on_one_thread(alarm):
+    from twinmon.executors.dask import open_dask_pool
+
+    from .test_executors import blas_threads
+    pool = open_dask_pool(2)
+    try:
+        assert pool.submit(blas_threads).result() == [1]
+    finally:
+        pool.shutdown()
+
+
 def test_a_dask_worker_that_cannot_open_the_fmu_names_the_users_file(fmu_path, alarm):
     spec = SimulationSpec(fmu=fmu_path, outputs=("no.such.output",), times=TIMES)
     with pytest.raises(SimulationError, match="no.such.output") as exc:

@@ -252,6 +252,27 @@ def test_points_outside_the_box_go_through_the_fmu(setup):
     assert np.all(f.source.ravel()[outside] != SOURCE_SURROGATE)
 
 
+def test_a_repeated_point_is_evaluated_once_with_the_result_of_every_point(setup):
+    """Repeats (a joint posterior's points are drawn with replacement) are evaluated once; a
+    point's result is the one it gets alone, in the box and outside it, wherever it sits
+    in the batch."""
+    from twinmon.forecast.twin import distinct_rows
+    cfg, _, tmp, _ = setup
+    sur = read_surrogate(tmp / "sur.h5")
+    rng = np.random.default_rng(5)
+    pool = np.column_stack([rng.uniform(5.0, 40.0, 12), rng.uniform(1.5, 4.0, 12)])
+    X = pool[rng.integers(0, 12, 40)]
+    U, inv = distinct_rows(X)
+    assert len(U) < len(X) and np.array_equal(U[inv], X)
+    assert len(np.unique(U, axis=0)) == len(U)
+    r = evaluate_twin(cfg, sur, X)
+    assert (r.source == SOURCE_FMU).any() and (r.source == SOURCE_SURROGATE).any()
+    for k in range(len(X)):
+        one = evaluate_twin(cfg, sur, X[k:k + 1])
+        assert np.array_equal(r.value[k], one.value[0], equal_nan=True)
+        assert (r.source[k], r.nonphysical[k]) == (one.source[0], one.nonphysical[0])
+
+
 def test_failed_fmu_runs_count_as_unsafe(setup):
     cfg = setup[0]
     r = TwinResult(value=np.array([10.0, np.nan]), nonphysical=np.zeros(2, bool),

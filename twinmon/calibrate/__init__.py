@@ -30,8 +30,10 @@ The result is ``posterior.h5`` (``twinmon.posterior/2``)::
                             surrogate_var_ratio; chain_end [chains, d] and digest (what
                             --update continues from); fit_<field> for each of FIT_FIELDS
                             (rms, p_chi2, p_ljung_box, window, window_rms, edge_share [d],
-                            extensions, converged, status ok|misfit|edge|unconverged), and
-                            fit_channel_rms [n_ch] when further channels were in the likelihood
+                            extensions, converged, status ok|misfit|edge|unconverged),
+                            fit_channel_rms [n_ch] when further channels were in the
+                            likelihood, and (laplace) each year's site: site_x [d], site_cov
+                            [d, d], site_var [n_out], site_ratio (what --update keeps)
     /units/<U>/samples      float64 [n_y, n_s, d] pooled post-burn-in draws (input units),
                             evenly thinned to calibrate.keep_draws (statistics use them all)
     /units/<U>/trend/<field>                   methods joint and laplace only: the trend's
@@ -82,6 +84,7 @@ import numpy as np
 from .. import artifacts
 from ..config import Config
 from ..errors import ArtifactError, InputDataError
+from ..executors import one_blas_thread
 from ..observations import check_events, read_observations
 from ..plausibility import check_observations
 from .base import Method, Sampler, Work
@@ -358,7 +361,10 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
     fork = hasattr(os, "fork") or cfg.calibrate.executor == "dask"
     pool_args = (init_worker, (model if fork else None, str(surrogate_path),
                                cfg.model.output.name, tuple(channels)))
-    sampler.finish(Work(cfg, model, runs, resume, output, progress, pool_args))
+    # Here or in the workers, each unit's small factorisations on one BLAS thread
+    # (executors.threads: OpenBLAS's threads make them several times slower on busy cores).
+    with one_blas_thread():
+        sampler.finish(Work(cfg, model, runs, resume, output, progress, pool_args))
     posterior = {unit: run.result() for unit, run in runs.items()}
     for unit, p in posterior.items():
         p.digest = np.array(digests[unit])

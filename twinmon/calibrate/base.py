@@ -127,9 +127,16 @@ class Method(ABC):
 
     #: The ``calibrate.method`` value that selects it (its module's name in :mod:`.methods`).
     name: ClassVar[str]
-    #: ``calibrate --update`` keeps a unit's stored years and samples only the years added
-    #: since (True), or samples a unit with new years again whole (False).
+    #: ``calibrate --update`` keeps what it stored of a unit's years and works only on the
+    #: years added since (True: the sequential method samples them, the laplace method
+    #: summarises them, then draws the unit again), or samples a unit with new years again
+    #: whole (False).
     continues_years: ClassVar[bool]
+
+    def can_continue(self, posterior: UnitPosterior) -> bool:
+        """Whether a stored posterior of a unit holds what :attr:`continues_years` needs
+        (one written before it was recorded does not: the unit is calibrated again whole)."""
+        return True
 
     @property
     @abstractmethod

@@ -80,6 +80,11 @@ class UnitPosterior:
     #: 0 but for ``calibrate --update``, which leaves the draws of the years it keeps in the
     #: posterior it continues (read with ``draws=False``) and writes only the new ones.
     samples_from: int = 0
+    #: The laplace method's Gaussian site of each year (what ``calibrate --update`` keeps of
+    #: the stored years, :data:`SITE_FIELDS`): ``x`` [n_y, d], ``cov`` [n_y, d, d], ``var``
+    #: [n_y, n_out], ``ratio`` [n_y]; empty for the other methods and for posteriors
+    #: written before.
+    site: dict = field(default_factory=dict)
 
     @property
     def chains(self) -> int:
@@ -143,6 +148,19 @@ _CONTINUATION = {
 }
 
 
+#: The laplace method's site of a year (``UnitPosterior.site``), stored as the record's
+#: ``site_<key>`` fields: key -> (units, description).
+SITE_FIELDS = {
+    "x": ("input units", "laplace: the year's maximum-likelihood point (its site's centre) "
+          "[year, input]"),
+    "cov": ("input units squared", "laplace: the site's Laplace covariance [year, input, "
+            "input]"),
+    "var": ("output units squared", "laplace: the likelihood's variance per sample, noise + "
+            "surrogate variance at the site [year, sample]"),
+    "ratio": ("1", "laplace: mean surrogate-to-noise variance ratio of the site [year]"),
+}
+
+
 def thin_indices(n_draws: int, keep: int) -> np.ndarray:
     """Indices of ``keep`` draws evenly spaced over ``n_draws`` pooled draws (all of them
     when ``keep >= n_draws``).
@@ -158,7 +176,7 @@ def thin_indices(n_draws: int, keep: int) -> np.ndarray:
 
 
 def record_dtype(d: int, chains: int, n_channels: int = 0, fit: bool = True,
-                 continuation: bool = True) -> np.dtype:
+                 continuation: bool = True, n_site: int = 0) -> np.dtype:
     """The compound dtype of ``/units/<U>/record``: one row per year (:data:`RECORD_FIELDS`).
 
     Parameters
@@ -170,6 +188,9 @@ def record_dtype(d: int, chains: int, n_channels: int = 0, fit: bool = True,
     fit, continuation : bool
         Whether the ``fit_*`` fields and ``var``/``chain_end``/``digest`` are present (a
         posterior without them, e.g. built in memory by a test, stores none).
+    n_site : int
+        Samples of the likelihood's variance in the ``site_*`` fields (the laplace method's
+        sites, :data:`SITE_FIELDS`); 0: no such fields.
     """
     fields = [("year", "<i8")] + [(k, "<f8", (d,)) for k in
                                   ("mean", "median", "q05", "q95", "rhat", "ess")]
@@ -184,6 +205,9 @@ def record_dtype(d: int, chains: int, n_channels: int = 0, fit: bool = True,
                    ("fit_converged", "i1"), ("fit_status", "S16")]
         if n_channels:
             fields.append(("fit_channel_rms", "<f8", (n_channels,)))
+    if n_site:
+        fields += [("site_x", "<f8", (d,)), ("site_cov", "<f8", (d, d)),
+                   ("site_var", "<f8", (n_site,)), ("site_ratio", "<f8")]
     return np.dtype(fields)
 
 
@@ -198,6 +222,7 @@ RECORD_FIELDS = {
     **{f"fit_{k}": v for k, v in FIT_FIELDS.items()},
     "fit_channel_rms": ("1", "residual RMS per channel (order of the unit's channels "
                         "attribute), in its noise sd [year, channel]"),
+    **{f"site_{k}": v for k, v in SITE_FIELDS.items()},
 }
 
 
@@ -206,7 +231,8 @@ def _records(p: UnitPosterior) -> np.ndarray:
     n_y, d = np.shape(p.mean)
     cont = bool(np.size(p.var) and np.size(p.chain_end) and np.size(p.digest))
     n_ch = np.shape(p.fit["channel_rms"])[1] if p.fit and "channel_rms" in p.fit else 0
-    rec = np.zeros(n_y, record_dtype(d, p.chains, n_ch, bool(p.fit), cont))
+    n_site = np.shape(p.site["var"])[1] if p.site else 0
+    rec = np.zeros(n_y, record_dtype(d, p.chains, n_ch, bool(p.fit), cont, n_site))
     rec["year"] = p.years
     for k in ("mean", "median", "q05", "q95", "rhat", "ess"):
         rec[k] = getattr(p, k)
@@ -221,6 +247,8 @@ def _records(p: UnitPosterior) -> np.ndarray:
         rec[f"fit_{key}"] = [str(x).encode() for x in v] if key == "status" else v
     if n_ch:
         rec["fit_channel_rms"] = p.fit["channel_rms"]
+    for key in SITE_FIELDS if n_site else ():
+        rec[f"site_{key}"] = p.site[key]
     return rec
 
 
@@ -488,12 +516,22 @@ def _read_unit(f: h5py.File, unit: str, path: Path, names: list[str],
         fit["status"] = np.array([v.decode() for v in fit["status"]])
         if "fit_channel_rms" in fields:
             fit["channel_rms"] = np.ascontiguousarray(rec["fit_channel_rms"])
+    site = {}
+    if "site_x" in fields:
+        for key, want in (("site_x", (d,)), ("site_cov", (d, d)), ("site_var", None),
+                          ("site_ratio", ())):
+            if key not in fields:
+                raise ArtifactError(f"{path}: /units/{unit}/record lacks the field {key!r}")
+            if want is not None and rec.dtype[key].shape != want:
+                raise ArtifactError(f"{path}: /units/{unit}/record[{key!r}] has "
+                                    f"{rec.dtype[key].shape} per year, expected {want}")
+        site = {k: np.ascontiguousarray(rec[f"site_{k}"]) for k in SITE_FIELDS}
     src = g.attrs.get("noise_source", "")
     return UnitPosterior(years=np.ascontiguousarray(rec["year"]), samples=samples,
                          samples_from=0 if draws else n_y,
                          noise_source=src.decode() if isinstance(src, bytes) else str(src),
                          fit=fit, channels=json.loads(g.attrs.get("channels", "{}")),
-                         trend=_get_trend(g, path), **arrs,
+                         trend=_get_trend(g, path), **arrs, site=site,
                          events=[tuple(e) for e in json.loads(g.attrs.get("events", "[]"))],
                          found_repairs=json.loads(g.attrs.get("found_repairs", "[]")))
 

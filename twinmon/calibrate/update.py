@@ -10,7 +10,11 @@ even read: the new posterior starts as a copy of the old file, each continued un
 is rewritten and its new years' draws appended (``write_posterior(base=...)``).
 
 With the joint method (a unit's whole history in one posterior) a unit is kept as it is when
-it has no new year, and calibrated again in full otherwise.
+it has no new year, and calibrated again in full otherwise. The laplace method draws the same
+joint model from a Gaussian site per year, and a year's site depends on that year's data
+alone: a unit with new years keeps its stored years' sites (recorded bit for bit in its
+record), summarises only the new years, and is drawn again from all of them with its own
+seed, which gives the full run's arrays.
 
 A unit is calibrated in full instead when it is new, when the data of a stored year changed
 (each year's observation row and noise are recorded as a SHA-256: a corrected file, or a
@@ -101,12 +105,15 @@ def plan_update(cfg: Config, surrogate_id: str, output: str | os.PathLike,
     -------
     resume : dict unit -> UnitPosterior
         Units that keep their stored years (their arrays as they are): all of the unit's
-        years, or (sequential method) the first ones, sampling continuing after them. With
-        the joint method a unit with new years is sampled again in full. Their draws are
-        left in the file (``samples_from``) unless it is a ``twinmon.posterior/1`` file.
+        years, or (sequential method) the first ones, sampling continuing after them, or
+        (laplace method) the first ones' sites, the unit drawn again from them and the new
+        years' (a posterior without sites: sampled again in full). With the joint method a
+        unit with new years is sampled again in full. Their draws are left in the file
+        (``samples_from``) unless it is a ``twinmon.posterior/1`` file.
     info : dict
         ``{"from", "kept_years", "new_years", "new_units", "redone_units", "dropped_units"}``
-        for the summary (``from`` is None when there was no earlier posterior).
+        for the summary (``from`` is None when there was no earlier posterior);
+        ``new_years``: unit-years sampled (laplace: summarised), ``kept_years`` the others.
 
     Raises
     ------
@@ -157,7 +164,7 @@ def plan_update(cfg: Config, surrogate_id: str, output: str | os.PathLike,
             list(p.digest) == year_digests(run.flows, run.noise)[:n]
         if not same:
             redone.append(unit)
-        elif n == len(years) or method.continues_years:
+        elif n == len(years) or (method.continues_years and method.can_continue(p)):
             resume[unit] = p      # a joint history is one posterior: new years redo it all
     kept = sum(len(p.years) for p in resume.values())
     return resume, {"from": str(path), "kept_years": kept, "new_years": total - kept,

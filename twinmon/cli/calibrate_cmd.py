@@ -50,8 +50,11 @@ def calibrate(config_path, overrides, surrogate, observations, truth, output, up
         say(f"calibrate: {s.method_reason}")
     if s.update is not None:
         u = s.update
-        say(f"calibrate --update: {u['kept_years']} unit-year(s) kept from "
-            f"{u['from'] or 'nothing (no earlier posterior)'}, {u['new_years']} sampled"
+        # The laplace method keeps the years' sites, not their draws (docs/calibration.md).
+        kept, done = (("sites of ", "summarised, each unit with a new year drawn again")
+                      if s.method == "laplace" else ("", "sampled"))
+        say(f"calibrate --update: {kept}{u['kept_years']} unit-year(s) kept from "
+            f"{u['from'] or 'nothing (no earlier posterior)'}, {u['new_years']} {done}"
             + "".join(f"; {what}: {', '.join(u[key])}" for key, what in
                       (("new_units", "new units"), ("redone_units", "redone (data changed)"),
                        ("dropped_units", "no longer observed")) if u[key]))

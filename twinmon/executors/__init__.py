@@ -7,11 +7,13 @@ has to implement :meth:`Executor.map`.
 
 Stages that fan out their own tasks (calibrate's chains, diagnose's units) take a pool from
 :func:`open_pool` and stop it with :func:`stop_pool` after an error or a Ctrl-C; a process
-pool and a Dask pool have the same ``submit``/``map``/``shutdown`` surface.
+pool and a Dask pool have the same ``submit``/``map``/``shutdown`` surface. Every worker
+runs its BLAS on one thread (:mod:`.threads`).
 """
 from .base import Executor, RunResult, SimulationSpec
 from .local import (InterruptGuard, ProcessExecutor, SerialExecutor, closing_pool, start_pool,
                     stop_pool)
+from .threads import one_blas_thread
 
 #: Executor names a config may give (``simulate.executor``; ``serial`` is for FMU batches).
 KINDS = ("process", "serial", "dask")
@@ -64,4 +66,4 @@ def _dask_options(dask) -> dict:
 
 __all__ = ["Executor", "RunResult", "SimulationSpec", "SerialExecutor", "ProcessExecutor",
            "check_workers", "make_executor", "open_pool", "start_pool", "stop_pool",
-           "closing_pool", "InterruptGuard", "KINDS"]
+           "closing_pool", "InterruptGuard", "KINDS", "one_blas_thread"]

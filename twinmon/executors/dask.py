@@ -40,6 +40,7 @@ from typing import Any, Callable, Iterator, Mapping, Sequence
 
 from .base import Executor, RunResult, SimulationSpec, run_one
 from .dask_cluster import DEFAULT_TIMEOUT, DaskConnection, _one_line
+from .threads import one_blas_thread_for_good
 
 
 #: FMU runs per task at most, and tasks per worker aimed at (see :meth:`DaskExecutor.map`).
@@ -91,6 +92,9 @@ def _prepare(token: str, setup: _Setup) -> None:
     try:
         _state.paths = {orig: _materialise(orig, digest, data)
                         for orig, (digest, data) in setup.files.items()}
+        # As a process pool's worker (.threads); a local cluster's nanny also sets
+        # OPENBLAS_NUM_THREADS=1 before it starts a worker, a remote one may not have.
+        one_blas_thread_for_good()
         if setup.initializer is not None:
             setup.initializer(*_localise(setup.initargs))
     except Exception as exc:  # noqa: BLE001 -- every task of this pool reports it

@@ -13,6 +13,7 @@ from contextlib import contextmanager
 from typing import Iterator, Mapping, Optional, Sequence
 
 from .base import Executor, RunResult, SimulationSpec, run_one
+from .threads import one_blas_thread_for_good
 
 
 def _open(spec: SimulationSpec):
@@ -288,6 +289,8 @@ def closing_pool(pool, broken: Exception, interrupted: Optional[Exception] = Non
 
 def _init_detached(initializer, initargs, scratch: str = "", parent: int = 0) -> None:
     detach_worker()
+    # One worker per core: each one's BLAS on one thread (.threads).
+    one_blas_thread_for_good()
     if parent:
         die_with_parent(parent, scratch)
     if scratch:

@@ -64,11 +64,45 @@ def evaluate_twin(cfg: Config, surrogate, X: np.ndarray, executor=None,
     output the surrogate learnt. ``predict`` replaces ``surrogate.predict`` (its numpy form,
     :func:`~twinmon.calibrate.samplers.gpbatch.make_predictor`); ``spec`` the config's FMU spec (a
     worker's copy of the FMU).
+
+    Each distinct point is evaluated once (:func:`distinct_rows`) and its result copied to
+    its repeats: a joint posterior's future points are drawn with replacement from its
+    trend draws, and its years' draws are resampled, so about half of a unit's points are
+    repeats. A point's result depends on that point alone (the surrogate's rows are
+    computed independently, the FMU is reset before every run), so the copies are what
+    evaluating every point would give, bit for bit. ``messages`` has one message per
+    failed run, a repeated point's once.
     """
+    X = np.asarray(X, float).reshape(-1, len(cfg.model.inputs))
+    U, inv = distinct_rows(X)
+    if len(U) == len(X):
+        return _evaluate_distinct(cfg, surrogate, X, executor, fmu_everywhere, progress,
+                                  predict, spec)
+    out = _evaluate_distinct(cfg, surrogate, U, executor, fmu_everywhere, progress, predict,
+                             spec)
+    return TwinResult(out.value[inv], out.nonphysical[inv], out.source[inv], out.messages)
+
+
+def distinct_rows(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct rows of ``X`` [m, d] (sorted) and, per row of ``X``, the index of its
+    distinct row: ``U[inv]`` is ``X``. A few times faster than ``np.unique(axis=0)``."""
+    if len(X) < 2:
+        return X, np.arange(len(X))
+    order = np.lexsort(X.T[::-1])
+    Xs = X[order]
+    new = np.ones(len(X), bool)
+    new[1:] = np.any(Xs[1:] != Xs[:-1], axis=1)
+    inv = np.empty(len(X), np.int64)
+    inv[order] = np.cumsum(new) - 1
+    return Xs[new], inv
+
+
+def _evaluate_distinct(cfg: Config, surrogate, X: np.ndarray, executor, fmu_everywhere: bool,
+                       progress, predict, spec) -> TwinResult:
+    """:func:`evaluate_twin` at every row of ``X`` [m, d] (input units)."""
     from ..safety import Indicator
     from ..simulate import as_parameters, run_batch, spec_for
     ind = Indicator.from_config(cfg)
-    X = np.asarray(X, float).reshape(-1, len(cfg.model.inputs))
     m = len(X)
     value = np.full(m, np.nan)
     nph = np.zeros(m, bool)

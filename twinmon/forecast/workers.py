@@ -67,7 +67,7 @@ def iter_forecast(cfg: Config, post, sur, *, directions: dict, box_ok: bool,
     SimulationError
         A worker process died.
     """
-    from ..executors import check_workers, make_executor
+    from ..executors import check_workers, make_executor, one_blas_thread
     from ..simulate import spec_for
     unit_names = list(post.units)
     n = len(unit_names)
@@ -94,19 +94,24 @@ def iter_forecast(cfg: Config, post, sur, *, directions: dict, box_ok: bool,
     if n_workers <= 1 and not (cfg.simulate.executor == "dask" and cfg.dask.address):
         own = executor is None
         if own:
-            executor = make_executor(cfg.simulate.executor, cfg.simulate.workers, cfg.dask)
+            # Kept open from batch to batch (a process pool started once, not per chunk).
+            executor = make_executor(cfg.simulate.executor, cfg.simulate.workers,
+                                     cfg.dask).__enter__()
         try:
-            # One unit, or one worker: the FMU runs fan out on the executor instead.
+            # One unit, or one worker: the FMU runs fan out on the executor instead. The
+            # units' small factorisations on one BLAS thread, as in a pool's worker.
             state = _TwinState(cfg, sur, spec, executor)
             for names_ in chunks:
-                for unit, uf in _forecast_chunk(state, chunk_of(names_), **context):
+                with one_blas_thread():
+                    results = _forecast_chunk(state, chunk_of(names_), **context)
+                for unit, uf in results:
                     done += 1
                     if progress:
                         progress(done, n)
                     yield unit, uf
         finally:
             if own:
-                executor.close()
+                executor.__exit__(None, None, None)
         return
     yield from _pooled(cfg, sur, spec, chunks, chunk_of, context, n_workers, progress)
 

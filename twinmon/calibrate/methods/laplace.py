@@ -128,8 +128,13 @@ def summarise(surrogate, predict, tasks: list[LaplaceTask], bounds: np.ndarray
 class LaplaceRun:
     """One unit's calibration with this method, with
     :class:`~twinmon.calibrate.base.UnitRun`'s interface: :meth:`plan` gives one
-    :class:`LaplaceTask`, :meth:`finish` takes its summary (:func:`summarise`). It holds no
-    surrogate, so that it travels to a worker as it is."""
+    :class:`LaplaceTask` (the years to summarise), :meth:`finish` takes the unit's result
+    (:func:`_group`). It holds no surrogate, so that it travels to a worker as it is.
+
+    ``calibrate --update`` (:meth:`resume`): a year's site depends on that year's data
+    alone, so the stored years' sites are kept and only the new years are summarised; the
+    unit is then drawn again from all its sites, as a full run draws it (same seed: the
+    same arrays, bit for bit)."""
 
     def __init__(self, surrogate, cfg: Config, years, flows, noise_std, rng_seed: int,
                  noise_source: str, events: Sequence = ()):
@@ -148,18 +153,35 @@ class LaplaceRun:
         self.found_repairs: list = []
         self.k = 0
         self._result: Optional[UnitPosterior] = None
+        #: The stored years' sites (x, cov, var, ratio), kept by :meth:`resume`.
+        self._kept: Optional[tuple] = None
 
     @property
     def done(self) -> bool:
         return self._result is not None
 
     def resume(self, p: UnitPosterior) -> None:
-        raise CalibrationError("calibrate --update continues the sequential method only: the "
-                               "laplace method draws every year again when one is added (a "
-                               "few milliseconds per unit-year); run without --update")
+        """Keep the sites of ``p``'s years (the first of this unit's years, their data
+        unchanged: :func:`~twinmon.calibrate.update.plan_update` checked it); only the
+        years after them are summarised."""
+        n = len(p.years)
+        if not p.site or n > len(self.years) or \
+                not np.array_equal(np.asarray(p.years), self.years[:n]):
+            raise CalibrationError(f"cannot continue a posterior of years {list(p.years)} "
+                                   "without their sites")
+        self._kept = tuple(np.asarray(p.site[k]) for k in ("x", "cov", "var", "ratio"))
 
     def plan(self) -> list[LaplaceTask]:
-        return [LaplaceTask(self.flows, self.noise_var)]
+        """The years to summarise: all of them, or those after the kept ones."""
+        n = 0 if self._kept is None else len(self._kept[0])
+        return [LaplaceTask(self.flows[n:], self.noise_var[n:])]
+
+    def sites(self, new: tuple) -> tuple:
+        """Every year's site (x [K, d], cov [K, d, d], var [K, n_out], ratio [K]): the kept
+        years' then ``new``'s (:func:`summarise` of :meth:`plan`'s task)."""
+        if self._kept is None:
+            return new
+        return tuple(np.concatenate([a, b]) for a, b in zip(self._kept, new))
 
     def finish(self, results: list) -> None:
         """Take the unit's posterior and the repairs it found (:func:`_group`)."""
@@ -290,8 +312,11 @@ def _group(surrogate, predict, runs: list) -> list:
     bounds = runs[0].cfg.model.bounds
     summaries = summarise(surrogate, predict, [r.plan()[0] for r in runs], bounds)
     out = []
-    for r, (x, cov, total, ratio) in zip(runs, summaries):
+    for r, new in zip(runs, summaries):
+        x, cov, total, ratio = r.sites(new)
         post = r.posterior(surrogate, predict, x, cov, total, ratio)
+        # Recorded, so that an update summarises only the years added since.
+        post.site = {"x": x, "cov": cov, "var": total, "ratio": ratio}
         out.append((post, list(r.found_repairs)))
     return out
 
@@ -359,7 +384,12 @@ class LaplaceMethod(Method):
     (``calibrate.method: laplace``)."""
 
     name = "laplace"
-    continues_years = False
+    #: ``--update`` keeps the stored years' sites (each depends on its year alone) and
+    #: summarises the years added since; every updated unit is drawn again whole.
+    continues_years = True
+
+    def can_continue(self, p: UnitPosterior) -> bool:
+        return bool(p.site)
 
     @property
     def samplers(self):
