@@ -412,6 +412,14 @@ def _put_trend(g: h5py.Group, trend: dict, keep: int) -> None:
         data = np.asarray(trend[key])
         if key in TREND_DRAWS:
             data = data[thin_indices(len(data), keep)]
+            if key in ("shape", "change_year"):
+                data = data.astype(np.int16)        # codes and years
+            if data.size:
+                # Shuffle + gzip, as the years' draws: the shapes' fields are mostly zeros
+                # and repeats (benchmarks/fleet_scale.py: 136 -> 72 kB of trend a unit).
+                artifacts.put(g, f"trend/{key}", data, units, desc, compression="gzip",
+                              compression_opts=4, shuffle=True)
+                continue
         artifacts.put(g, f"trend/{key}", data, units, desc)
 
 
