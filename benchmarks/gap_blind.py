@@ -121,7 +121,10 @@ def build_cases(cfg, rng, n_cases, n_nulls, n_ool, years, mags):
 def main(argv=None):
     if argv is None and "--pairs" in sys.argv:
         return pair_main(sys.argv[1:])
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(
+        description=__doc__.splitlines()[0],
+        epilog="--pairs N: two withheld effects at once instead, N pair units per machine "
+               "(its own options: gap_blind.py --pairs 24 --help)")
     ap.add_argument("--cases", type=int, default=63, help="effect cases (9 per candidate)")
     ap.add_argument("--nulls", type=int, default=20)
     ap.add_argument("--out-of-list", type=int, default=10)
