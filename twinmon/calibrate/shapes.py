@@ -124,7 +124,9 @@ def build_shapes(years: np.ndarray, x: np.ndarray, cov: np.ndarray, Mk: np.ndarr
     seg = t[None, :] >= np.asarray(last_start, float)[:, None]              # [d, K]
     total = sum(max(float(p), 0.0) for p in priors.values())
     line = GaussianTrend(x, cov, Mk, prior_prec, prior_mean, A)
-    shapes = [Shape(0, line, np.log(priors.get("line", 0.0) / total), _line_now(Mk, slopes))]
+    # A line with prior 0 stays as the others' base, with no draws of its own.
+    p_line = priors.get("line", 0.0) / total
+    shapes = [Shape(0, line, np.log(p_line) if p_line > 0 else -np.inf, _line_now(Mk, slopes))]
     extras = []
     if priors.get("accelerating", 0.0) > 0:
         forms = []
