@@ -18,6 +18,14 @@ from .density import Prior
 ADAPT_PERIOD, ADAPT_RANGE, ADAPT_UP, ADAPT_DOWN = 30, (0.117, 0.468), 1.2, 0.8
 
 
+def yearly_noise(surrogate, noise_std, n_years: int) -> np.ndarray:
+    """Each year's noise standard deviation: [n_years], or [n_years, n_ch] for a stacked
+    surrogate (several channels take one noise each), broadcast from ``noise_std``."""
+    n_ch = len(getattr(surrogate, "blocks", ()))
+    return np.broadcast_to(np.asarray(noise_std, float),
+                           (n_years, n_ch) if n_ch else (n_years,)).copy()
+
+
 def initial_states(rng: np.random.Generator, x_map: np.ndarray, cov: np.ndarray,
                    prior: Prior, chains: int) -> np.ndarray:
     """Dispersed starting points: N(MAP, (2 sd)^2) draws kept inside the box."""

@@ -70,7 +70,7 @@ from ..posterior import UnitPosterior, draw_statistics
 from ..samplers.gpbatch import make_predictor
 from ..samplers.joint_vectorised import JointVectorisedSampler, run_joint_tasks
 from ..samplers.openturns import OpenTurnsSampler
-from ..shared import JointTask, initial_states
+from ..shared import JointTask, initial_states, yearly_noise
 from ..trend import (Layout, design_matrix, lines_at_start, segment_starts, sigma_prior_scale,
                      slope_prior, with_found_repairs)
 from ..trend import theta as trend_theta
@@ -235,10 +235,7 @@ class JointRun:
         self.years = np.asarray(years, dtype=np.int64)
         self.flows = np.atleast_2d(np.asarray(flows, float))
         n_y = len(self.years)
-        # A stacked surrogate (several channels) takes one noise per channel: [n_y, n_ch].
-        n_ch = len(getattr(surrogate, "blocks", ()))
-        self.noise = np.broadcast_to(np.asarray(noise_std, float),
-                                     (n_y, n_ch) if n_ch else (n_y,)).copy()
+        self.noise = yearly_noise(surrogate, noise_std, n_y)
         self.events = list(events)
         #: Repairs no event records, found in the years' estimates (:meth:`_prepare`).
         self.found_repairs: list = []

@@ -50,7 +50,7 @@ from ..diagnostics import split_rhat
 from ..fit import years_fit
 from ..posterior import UnitPosterior, draw_statistics
 from ..samplers.batch_map import Batch, batch_map
-from ..shared import sampling_pool, unit_groups
+from ..shared import sampling_pool, unit_groups, yearly_noise
 from ..shapes import ShapeMixture, build_shapes, shape_probabilities
 from ..trend import Layout, design_matrix, segment_starts, sigma_prior_scale, with_found_repairs
 
@@ -142,9 +142,7 @@ class LaplaceRun:
         self.years = np.asarray(years, dtype=np.int64)
         self.flows = np.atleast_2d(np.asarray(flows, float))
         n_y = len(self.years)
-        n_ch = len(getattr(surrogate, "blocks", ()))
-        self.noise = np.broadcast_to(np.asarray(noise_std, float),
-                                     (n_y, n_ch) if n_ch else (n_y,)).copy()
+        self.noise = yearly_noise(surrogate, noise_std, n_y)
         # Noise variance per year and sample (a stacked surrogate: per channel's samples).
         self.noise_var = np.array([
             surrogate.noise_var(self.noise[k]) if self.noise.ndim == 2

@@ -18,7 +18,7 @@ from ..fit import FIT_FIELDS, STATUS_OK, STATUS_UNCONVERGED, year_fit
 from ..posterior import UnitPosterior, thin_indices
 from ..samplers.openturns import OpenTurnsSampler
 from ..samplers.vectorised import VectorisedSampler
-from ..shared import ChainTask, initial_states, year_prior
+from ..shared import ChainTask, initial_states, year_prior, yearly_noise
 
 
 def plan_chains(ld: LogDensity, chains: int, seed: int) -> tuple[np.ndarray, np.ndarray,
@@ -134,10 +134,7 @@ class SequentialRun:
         self.years = np.asarray(years, dtype=np.int64)
         self.flows = np.atleast_2d(np.asarray(flows, float))
         n_y, d = len(self.years), len(cfg.model.input_names)
-        # A stacked surrogate (several channels) takes one noise per channel: [n_y, n_ch].
-        n_ch = len(getattr(surrogate, "blocks", ()))
-        self.noise = np.broadcast_to(np.asarray(noise_std, float),
-                                     (n_y, n_ch) if n_ch else (n_y,)).copy()
+        self.noise = yearly_noise(surrogate, noise_std, n_y)
         self.stats = {k: np.empty((n_y, d))
                       for k in ("mean", "median", "q05", "q95", "rhat", "ess")}
         self.samples = np.empty((n_y, cc.chains * cc.samples, d))
