@@ -184,9 +184,13 @@ def test_posterior_round_trip_and_schema(setup, tmp_path):
     for name in ("years", "mean", "median", "q05", "q95", "rhat", "ess",
                  "acceptance", "noise_std", "surrogate_var_ratio"):
         assert np.array_equal(getattr(q, name), getattr(p, name)), name
-    # calibrate.keep_draws of the pooled draws are stored, evenly thinned.
+    # calibrate.keep_draws of the pooled draws are stored, evenly thinned, in single
+    # precision (DRAW_DTYPE), and read back as float64.
     keep = cfg.calibrate.keep_draws
-    assert np.array_equal(q.samples, p.samples[:, thin_indices(p.samples.shape[1], keep)])
+    kept = p.samples[:, thin_indices(p.samples.shape[1], keep)]
+    assert q.samples.dtype == np.float64
+    assert np.array_equal(q.samples, kept.astype(np.float32).astype(float))
+    assert np.allclose(q.samples, kept, rtol=1e-7, atol=0)
     assert q.noise_source == "estimated"
     with h5py.File(tmp_path / "post.h5", "r") as f:
         # A unit is one compound record per year and its draws; the root documents every

@@ -20,6 +20,11 @@ from .trend import TREND_DRAWS, TREND_FIELDS, TREND_OPTIONAL
 SECTIONS = ("model", "calibrate", "seed")
 #: Added to ``cfg.seed`` so that calibrate's random streams differ from other stages'.
 SEED_OFFSET = 3000
+#: Stored type of the draws (the years' and the trend's), read back as float64. Single
+#: precision keeps 7 significant digits, a million times finer than a posterior's Monte
+#: Carlo error (its sd / sqrt(ESS)), at half the bytes: 1000 units x 10 years take about
+#: 60 % of the float64 file, whose random mantissas gzip cannot shrink.
+DRAW_DTYPE = np.float32
 
 
 @dataclass
@@ -352,7 +357,8 @@ def _append_unit(g: h5py.Group, p: UnitPosterior, keep: int) -> None:
     ds.write(h5s.ALL, h5s.ALL, rec)
     draws = g["samples"].id
     new = np.asarray(p.samples)
-    new = np.ascontiguousarray(new[:, thin_indices(new.shape[1], keep), :])
+    # Rounded as a full run stores them, whatever type an older file's dataset has.
+    new = np.ascontiguousarray(new[:, thin_indices(new.shape[1], keep), :], DRAW_DTYPE)
     if draws.shape[0] != p.samples_from or draws.shape[1:] != new.shape[1:]:
         raise ArtifactError(f"{g.file.filename}: {g.name}/samples has shape {draws.shape}, "
                             f"expected ({p.samples_from}, {new.shape[1]}, {new.shape[2]}); "
@@ -414,6 +420,8 @@ def _put_trend(g: h5py.Group, trend: dict, keep: int) -> None:
             data = data[thin_indices(len(data), keep)]
             if key in ("shape", "change_year"):
                 data = data.astype(np.int16)        # codes and years
+            elif data.dtype.kind == "f":
+                data = data.astype(DRAW_DTYPE)
             if data.size:
                 # Shuffle + gzip, as the years' draws: the shapes' fields are mostly zeros
                 # and repeats (benchmarks/fleet_scale.py: 136 -> 72 kB of trend a unit).
@@ -428,15 +436,16 @@ def _get_trend(g: h5py.Group, path: Path) -> dict:
     The fields of ``trend.TREND_OPTIONAL`` may be absent."""
     if "trend" not in g:
         return {}
-    return {key: artifacts.get(g["trend"], key, path) for key in TREND_FIELDS
-            if key not in TREND_OPTIONAL or key in g["trend"]}
+    out = {key: artifacts.get(g["trend"], key, path) for key in TREND_FIELDS
+           if key not in TREND_OPTIONAL or key in g["trend"]}
+    return {key: v.astype(float) if v.dtype.kind == "f" else v for key, v in out.items()}
 
 
 def _put_draws(g: h5py.Group, samples: np.ndarray, keep: int) -> None:
-    """The thinned draws [n_y, n_kept, d]: one chunk per year, so reading a unit-year reads
-    one chunk; shuffle + gzip shrink float64 draws by about a fifth."""
+    """The thinned draws [n_y, n_kept, d] as :data:`DRAW_DTYPE`: one chunk per year, so
+    reading a unit-year reads one chunk; shuffle + gzip shrink them a little further."""
     n_y, n_draws, d = samples.shape
-    kept = samples[:, thin_indices(n_draws, keep), :]
+    kept = samples[:, thin_indices(n_draws, keep), :].astype(DRAW_DTYPE)
     chunks = (1, kept.shape[1], d) if kept.size else None
     ds = g.create_dataset("samples", data=kept, chunks=chunks,
                           maxshape=(None,) + kept.shape[1:] if kept.size else None,
@@ -492,7 +501,7 @@ def _read_unit(f: h5py.File, unit: str, path: Path, names: list[str],
         raise ArtifactError(f"{path}: dataset /units/{unit}/record is missing")
     rec = _read_record(g["record"])
     if draws:
-        samples = artifacts.get(g, "samples", path)
+        samples = artifacts.get(g, "samples", path).astype(float)
     else:
         shape = artifacts.get_shape(g, "samples", path)
         samples = np.empty((0,) + shape[1:])
