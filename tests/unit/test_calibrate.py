@@ -133,6 +133,17 @@ def test_rhat_and_ess_on_known_sequences():
     assert split_rhat(wide, rank_normalize=False) < 1.02
 
 
+def test_average_ranks_are_scipys_with_ties():
+    """The rank-normalisation's ranks: scipy's average ranks bit for bit, on draws that
+    repeat (a rejected step, a resampled draw) and on draws that do not."""
+    from scipy.stats import rankdata
+    from twinmon.calibrate.diagnostics import _average_ranks
+    rng = np.random.default_rng(1)
+    for x in (rng.choice(rng.standard_normal(40), size=(4, 75)), rng.standard_normal((3, 50)),
+              np.repeat([[2.0, 1.0, 2.0]], 2, axis=0)):
+        assert np.array_equal(_average_ranks(x), rankdata(x, method="average").reshape(x.shape))
+
+
 def test_noise_source_file_then_config_then_estimated(setup):
     cfg, cfg_path, _, _ = setup
     with_file = UnitObservations(np.array([1]), {"m_flow": np.zeros((1, 25))}, {"m_flow": 3.0})

