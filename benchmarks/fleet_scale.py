@@ -39,6 +39,8 @@ default adds 300 units, Dask at 300 and OpenTURNS' sampler at 30 units: about 45
         --update-sizes 300 --workdir /tmp/fleet_scale --keep
     .venv/bin/python benchmarks/fleet_scale.py --sizes 1000 --stages calibrate \\
         --dask-sizes --update-sizes 1000 --reference 0
+    .venv/bin/python benchmarks/fleet_scale.py --sizes 10000 --dask-sizes 10000 --dask-only \\
+        --update-sizes --reference 0 --stages calibrate forecast
 """
 from __future__ import annotations
 
@@ -253,6 +255,9 @@ def main() -> None:
     ap.add_argument("--dask-sizes", type=int, nargs="*", default=[30, 300],
                     help="fleet sizes also run with executor: dask (calibrate, forecast, "
                          "diagnose)")
+    ap.add_argument("--dask-only", action="store_true",
+                    help="at the sizes of --dask-sizes, run with Dask alone (not the process "
+                         "executor first): a fleet too large to run twice")
     ap.add_argument("--update-sizes", type=int, nargs="*", default=None,
                     help="fleet sizes whose yearly update is timed [default: the largest]")
     ap.add_argument("--reference", type=int, default=30,
@@ -312,7 +317,8 @@ def main() -> None:
             execs = [("process", [], d)]
             if n in args.dask_sizes:
                 (d / "dask").mkdir(exist_ok=True)
-                execs.append(("dask", dask_overrides(), d / "dask"))
+                execs = execs[:0 if args.dask_only else 1] + [("dask", dask_overrides(),
+                                                                d / "dask")]
             for ex, extra, o in execs:
                 r = run_stage(["calibrate", *c, *samp, *extra, "--surrogate", str(sur),
                                "--observations", str(obs), "--truth", str(truth),
