@@ -243,3 +243,26 @@ def test_indicator_drift_takes_a_joint_posteriors_slope_draws_over_its_smoothed_
     # (p 0.039 against the OLS fit's < 0.01 at alpha 0.01).
     assert ols.p_value < 0.01 < 0.02 < post.p_value and not post.abnormal
     assert post.years.tolist() == YEARS.tolist()    # the yearly values still shown
+
+
+def test_wear_rates_pooled_over_a_repair_weigh_each_segment_by_its_precision():
+    """history_slope_draws: per input, each draw's segment slopes averaged with weights
+    1 / variance; an input with one segment keeps its slope; no restart at all, None.
+    Three inputs, the second repaired twice."""
+    from twinmon.forecast.judge import history_slope_draws
+    rng = np.random.default_rng(5)
+    n = 20000
+    start = np.array([[1, 1, 1], [-1, 4, -1], [-1, 8, -1]])
+    slope = np.zeros((n, 3, 3))
+    slope[:, 0, 0] = 0.1 + 0.01 * rng.standard_normal(n)
+    # the repaired input: a long early segment (sd 0.02), then two short ones (sd 0.04, 0.08)
+    for s, sd in enumerate((0.02, 0.04, 0.08)):
+        slope[:, s, 1] = -0.08 + sd * rng.standard_normal(n)
+    slope[:, 0, 2] = 2.0 + 0.5 * rng.standard_normal(n)
+    h = history_slope_draws({"start": start, "slope": slope})
+    assert h.shape == (n, 3)
+    assert np.array_equal(h[:, 0], slope[:, 0, 0]) and np.array_equal(h[:, 2], slope[:, 0, 2])
+    # precision weighting: sd 1 / sqrt(1/0.02^2 + 1/0.04^2 + 1/0.08^2) = 0.0175
+    assert abs(h[:, 1].mean() + 0.08) < 0.001
+    assert abs(h[:, 1].std() - 0.0175) < 0.0005
+    assert history_slope_draws({"start": start[:1], "slope": slope[:, :1]}) is None

@@ -190,3 +190,9 @@ def test_the_joint_method_starts_a_segment_at_an_unrecorded_repair(dcdrive_fleet
     assert u.root_cause == "bearing" and u.status == "ok"
     assert abs(u.failure_year - u.true_failure_year) <= 1
     assert u.trends["bearing_friction"].n == 5
+    # The wear before the repair is tested with the wear since (pooled over the segments);
+    # a unit without a repair has no such test.
+    assert np.isfinite(u.drift.p_history) and u.drift.abnormal
+    assert "across its repairs" in u.plan
+    for other in ("Acc", "Lin", "Ok"):
+        assert np.isnan(s.units[other].drift.p_history), other

@@ -150,7 +150,8 @@ def _drift_state(dr: IndicatorDrift) -> dict:
             "normal_slope": dr.normal_slope,
             "normal_halfwidth": [float(v) for v in dr.normal_halfwidth],
             "gradient": [float(v) for v in dr.gradient], "sense": dr.sense,
-            "p_value": dr.p_value, "abnormal": bool(dr.abnormal), "p_inputs": dr.p_inputs}
+            "p_value": dr.p_value, "abnormal": bool(dr.abnormal), "p_inputs": dr.p_inputs,
+            "p_history": dr.p_history}
 
 
 def _drift_from(d: dict) -> IndicatorDrift:

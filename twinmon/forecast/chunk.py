@@ -21,7 +21,8 @@ from ..repairs import FoundRepair, find_repairs
 from .attribution import HEALTHY
 from .covariance import estimate_error_covariance
 from .detection import gradient_from, gradient_points, mid_state
-from .judge import STATUS_OK, STATUS_UNRELIABLE, STATUS_WITHHELD, judge, prognosis_status
+from .judge import (STATUS_OK, STATUS_UNRELIABLE, STATUS_WITHHELD, history_slope_draws, judge,
+                    prognosis_status)
 from .plan import maintenance_plan
 from .pooling import _pool_unit
 from .predictive import (residual_correlation, sample_predictive, sample_state,
@@ -136,10 +137,11 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict,
                                {n: d.sign for n, d in directions.items()}, post_cov)
         since = repair_years(cfg, up, years, repairs)
     trends = {}
-    slope_draws = None
+    slope_draws = history_draws = None
     if trend_post:
         from ..calibrate.trend import last_segment
         slope_draws = last_segment(trend_post, "slope")         # [n, d]
+        history_draws = history_slope_draws(trend_post)
     for i, name in enumerate(names):
         spec = cfg.model.inputs[name]
         t = segment_trend(years, mean[:, i], since[name], spec)
@@ -182,7 +184,8 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict,
     plan = dict(years=years, mean=mean, trends=trends, fut=fut, X=X, Xo=Xo, corr=corr,
                 resid=resid, step=step, since=max(since.values()), since_by_input=since,
                 repairs=repairs, post_cov=post_cov,
-                err_cov=err_cov, state=state, slope_draws=slope_draws, pool_ess=pool_ess,
+                err_cov=err_cov, state=state, slope_draws=slope_draws,
+                history_draws=history_draws, pool_ess=pool_ess,
                 shapes="now" in trend_post and cfg.calibrate.shapes.get("accelerating", 0) > 0,
                 shape=shape_summary(trend_post))
     return plan, [X.reshape(-1, d), Xo.reshape(-1, d), probe]

@@ -83,6 +83,9 @@ class IndicatorDrift:
     abnormal: bool
     #: p-value of the inputs' slopes against the normal-ageing box (:func:`box_test_uniform`).
     p_inputs: float = float("nan")
+    #: The same test on each input's wear rate pooled over its trend's segments, when a
+    #: repair restarted one (:func:`~.judge.history_slope_draws`); NaN otherwise.
+    p_history: float = float("nan")
 
     @property
     def excess(self) -> float:

@@ -21,6 +21,8 @@ prognosis at all (``ok``, ``withheld``, ``unreliable``), from calibrate's goodne
 """
 from __future__ import annotations
 
+from typing import Optional
+
 import numpy as np
 
 from ..config import Config
@@ -87,6 +89,34 @@ def prognosis_status(up, cfg: Config, windows: list) -> tuple[str, str]:
     return STATUS_OK, ""
 
 
+def history_slope_draws(trend: dict) -> Optional[np.ndarray]:
+    """Draws [n, d] of each input's wear rate pooled over its trend's segments, or None when
+    no input has more than one (no repair restarted a trend).
+
+    A repair (recorded, or found by calibrate) restarts an input's trend; the component
+    usually goes on wearing as fast as before (same duty, same kind of part). Per input, each
+    draw's segment slopes are averaged with weights proportional to their posterior
+    precision (a segment of two years weighs little): the rate the whole record shows if
+    every segment wore alike.
+
+    Parameters
+    ----------
+    trend : dict
+        ``UnitPosterior.trend``: ``start`` [n_seg, d] (-1 = no such segment) and ``slope``
+        [n, n_seg, d] (input units per year).
+    """
+    start = np.asarray(trend["start"])
+    if not np.any((start >= 0).sum(axis=0) > 1):
+        return None
+    slope = np.asarray(trend["slope"], float)
+    out = np.empty((slope.shape[0], start.shape[1]))
+    for i in range(start.shape[1]):
+        s = slope[:, start[:, i] >= 0, i]                                  # [n, k]
+        w = 1.0 / np.maximum(s.var(axis=0, ddof=1), np.finfo(float).tiny)
+        out[:, i] = s @ (w / w.sum())
+    return out
+
+
 def judge(cfg: Config, unit: str, plan: dict, ind_obs: np.ndarray, gradient: np.ndarray,
           directions: dict, observed: set) -> tuple[IndicatorDrift, Attribution]:
     """Detection on the health indicator (:mod:`.detection`), then attribution
@@ -127,18 +157,28 @@ def judge(cfg: Config, unit: str, plan: dict, ind_obs: np.ndarray, gradient: np.
         C, dof = slope_covariance(tl, plan["resid"], years[after], err), max(tl[0].dof, 1)
     C = np.atleast_2d(C)
     drift.p_inputs = box_test_uniform(b, C, dof, rate, tol, dirs, unit_rng(cfg, unit, 4))
-    # Two views of one question, each at alpha / 2 (Bonferroni): the indicator's drift
-    # (sees a fault the inputs trade off between) and the inputs' slopes jointly (sees a
-    # fault another input's normal ageing hides from the indicator).
-    if np.isfinite(drift.p_value):
-        drift.abnormal = bool(min(drift.p_value, drift.p_inputs) < alpha / 2)
-    else:
-        drift.abnormal = bool(drift.p_inputs < alpha)
+    history = plan.get("history_draws")
+    if history is not None:
+        # A repair restarted a trend: the segments before it wore too. Their rates pooled
+        # with the current one's test the component's wear between repairs, which a
+        # segment of a few years since the repair cannot show alone.
+        drift.p_history = box_test_uniform(history.mean(axis=0),
+                                           np.atleast_2d(np.cov(history, rowvar=False)),
+                                           POSTERIOR_DOF, rate, tol, dirs,
+                                           unit_rng(cfg, unit, 5))
+    # Two or three views of one question, each at alpha over their number (Bonferroni): the
+    # indicator's drift (sees a fault the inputs trade off between), the inputs' slopes
+    # jointly (sees a fault another input's normal ageing hides from the indicator) and,
+    # after a repair, the wear rates pooled over the repairs.
+    tests = [p for p in (drift.p_value, drift.p_inputs, drift.p_history) if np.isfinite(p)]
+    drift.abnormal = bool(min(tests) < alpha / len(tests))
     if not drift.abnormal:
         return drift, Attribution(HEALTHY)
+    # The components are named from the slopes whose evidence is the stronger.
+    by_history = history is not None and drift.p_history < drift.p_inputs
     att = attribute(tl, names, [s.component or n for s, n in zip(specs, names)], C, rate, tol,
                     dirs, cfg.forecast.attribution_confidence, unit_rng(cfg, unit, 3),
-                    draws=slope_draws)
+                    draws=history if by_history else slope_draws)
     if att.verdict == AMBIGUOUS and att.leading_slopes is not None:
         years = plan["years"]
         first = np.array([trends[n].intercept + trends[n].slope * years[0] for n in names])

@@ -37,6 +37,9 @@ def maintenance_plan(trends: dict, years_future: np.ndarray,
         if drift.abnormal:
             evidence = drift.describe(ind.name, ind.units)
             evidence += f"; inputs' slopes vs normal ageing jointly p = {drift.p_inputs:.2g}"
+            if np.isfinite(drift.p_history):
+                evidence += (f"; their wear rates over the whole record, across its "
+                             f"repairs, p = {drift.p_history:.2g}")
         if attribution.verdict == AMBIGUOUS:
             faulty = sorted(probs, key=lambda c: -probs[c])
             evidence += ("; the data cannot tell which component: " +

@@ -187,6 +187,7 @@ def _drift_dict(dr: Optional[IndicatorDrift]) -> Optional[dict]:
     return {"slope": f(dr.slope), "slope_se": f(dr.slope_se), "normal_slope": f(dr.normal_slope),
             "normal_tolerance": f(float(np.sum(dr.normal_halfwidth))),
             "p_value": f(dr.p_value), "p_inputs": f(dr.p_inputs),
+            "p_history": f(dr.p_history),
             "abnormal": bool(dr.abnormal),
             "years": [int(y) for y in dr.years]}
 
