@@ -189,40 +189,66 @@ def predict_ahead(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarray
     S : ndarray, shape [n, d, d]
         Each component's predictive mean and covariance of year ``k``'s site.
     """
-    from ..calibrate.gaussian_trend import GaussianTrend
+    from ..calibrate.gaussian_trend import linear_gaussian, year_weights
     from ..calibrate.methods.laplace import line_model
     from ..calibrate.shapes import OCCAM, build_shapes
     from ..calibrate.trend import sigma_prior_scale
     sig, log_p0 = grid
     yk = np.asarray(years[:k])
+    xk, ck = x[:k], cov[:k]
     st = [s[s <= yk[-1]] for s in starts]
     _, Mk, prec, mean0, slopes, _ = line_model(cfg, yk, st)
-    A = sigma_prior_scale(cfg)
-    line = GaussianTrend(x[:k], cov[:k], Mk, prec, mean0, A)
-    lw = log_p0 + line._conditional(sig)[3]
+    Wg, lv_g = year_weights(ck, sig)
+    # The line's posterior mean of sigma on these years: the shapes' reference (as
+    # calibration takes it from the line's sigma points).
+    P0 = np.diag(prec)
+    proper = prec > 0
+    log_norm0 = 0.5 * (np.sum(np.log(prec[proper])) - mean0 @ P0 @ mean0)
+    lw = log_p0 + linear_gaussian(Wg, lv_g, Mk[None], xk, P0[None], mean0[None],
+                                  np.array([log_norm0]))[3][0]
     w = np.exp(lw - lw.max())
     s_ref = (w / w.sum()) @ sig
-    shapes = build_shapes(yk, x[:k], cov[:k], Mk, prec, mean0, A, slopes,
-                          np.array([s[-1] for s in st]), priors, None, sigma_ref=s_ref)
-    u = float(years[k] - yk[-1])
+    shapes = [s for s in build_shapes(yk, xk, ck, Mk, prec, mean0, sigma_prior_scale(cfg),
+                                      slopes, np.array([s[-1] for s in st]), priors, None,
+                                      sigma_ref=s_ref)
+              if np.isfinite(s.log_prior)]
+    # Shapes of one size are evaluated together (one batched product each).
+    groups: dict = {}
+    for s in shapes:
+        groups.setdefault(s.model.Mk.shape[2], []).append(s)
+
+    def evaluate(group, Wf, lv):
+        m = [s.model for s in group]
+        return linear_gaussian(Wf, lv, np.stack([g.Mk for g in m]), xk,
+                               np.stack([g.prior_P for g in m]),
+                               np.stack([np.asarray(g.prior_mean, float) for g in m]),
+                               np.array([g._log_norm for g in m]))
+
     # Occam's window, as calibration's mixture: a shape far less probable than the best at
-    # the reference sigma could not hold weight (and most change years and growth rates
-    # are not worth the grid).
-    quick = np.array([s.log_prior + s.model._conditional(s_ref[None])[3][0]
-                      if np.isfinite(s.log_prior) else -np.inf for s in shapes])
+    # the reference sigma could not hold weight (most change years and growth rates are
+    # not worth the grid).
+    Wr, lv_r = year_weights(ck, s_ref[None])
+    quick = {nb: np.array([s.log_prior for s in g]) + evaluate(g, Wr, lv_r)[3][:, 0]
+             for nb, g in groups.items()}
+    best = max(q.max() for q in quick.values())
+    u = float(years[k] - yk[-1])
+    eye = np.eye(x.shape[1])
     logw, means, covs = [], [], []
-    for s, q in zip(shapes, quick):
-        if q < quick.max() + np.log(OCCAM):
+    for nb, group in groups.items():
+        group = [s for s, q in zip(group, quick[nb]) if q >= best + np.log(OCCAM)]
+        if not group:
             continue
-        Pb, _, mb, ll = s.model._conditional(sig)
-        lw = s.log_prior + log_p0 + ll
-        keep = lw >= lw.max() + np.log(NEGLIGIBLE)
-        bend = np.expm1(s.growth * u) - s.growth * u
-        H = s.now[0] + u * s.now[1] + u * u * s.now[2] + bend * s.now[3]       # [d, nb]
-        means.append(mb[keep] @ H.T)
-        HP = np.linalg.solve(Pb[keep], np.broadcast_to(H.T, (int(keep.sum()),) + H.T.shape))
-        covs.append(H @ HP + sig[keep, :, None] ** 2 * np.eye(len(H)) + cov[k])
-        logw.append(lw[keep])
+        Pb, _, mb, ll = evaluate(group, Wg, lv_g)                        # [G, P, ...]
+        logw.append((np.array([s.log_prior for s in group])[:, None] + log_p0 + ll).ravel())
+        # Each shape's map to the trend one year on: its ``now`` rows extended.
+        H = np.stack([s.now[0] + u * s.now[1] + u * u * s.now[2]
+                      + (np.expm1(s.growth * u) - s.growth * u) * s.now[3]
+                      for s in group])                                       # [G, d, nb]
+        means.append(np.einsum("gpb,gdb->gpd", mb, H).reshape(-1, len(eye)))
+        HP = np.linalg.solve(Pb, np.broadcast_to(np.swapaxes(H, 1, 2)[:, None],
+                                                 Pb.shape[:3] + (len(eye),)))
+        covs.append((np.einsum("gdb,gpbe->gpde", H, HP) + sig[None, :, :, None] ** 2 * eye
+                     ).reshape(-1, len(eye), len(eye)) + cov[k])
     logw = np.concatenate(logw)
     keep = logw >= logw.max() + np.log(NEGLIGIBLE)
     w = np.exp(logw[keep] - logw.max())
