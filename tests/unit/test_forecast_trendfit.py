@@ -169,3 +169,18 @@ def test_rejects_at_about_its_level_on_histories_of_the_model(configs, d):
         fit = check_trend_fit(cfg, YEARS, x, cov, [np.array([1])] * d, SHAPES, fleet)
         rejected += fit.p_value < 0.01
     assert rejected / n <= 0.03
+
+
+def test_the_shapes_weighed_are_the_ones_the_posterior_recorded(configs, tmp_path):
+    """The gate weighs ``calibrate.shapes`` as the posterior's provenance recorded them (a
+    posterior drawn with the line alone is judged as a line), else the config's."""
+    import h5py
+    import yaml
+
+    from twinmon.forecast.trendfit import recorded_shapes
+    cfg = configs[2]
+    path = tmp_path / "post.h5"
+    with h5py.File(path, "w") as f:
+        f.attrs["config"] = yaml.safe_dump({"calibrate": {"shapes": {"line": 1.0}}})
+    assert recorded_shapes(cfg, path) == {"line": 1.0}
+    assert recorded_shapes(cfg, tmp_path / "absent.h5") == dict(cfg.calibrate.shapes)
