@@ -184,3 +184,13 @@ def test_the_shapes_weighed_are_the_ones_the_posterior_recorded(configs, tmp_pat
         f.attrs["config"] = yaml.safe_dump({"calibrate": {"shapes": {"line": 1.0}}})
     assert recorded_shapes(cfg, path) == {"line": 1.0}
     assert recorded_shapes(cfg, tmp_path / "absent.h5") == dict(cfg.calibrate.shapes)
+
+
+def test_a_change_the_data_favour_restarts_the_check_there():
+    """The posterior's change year restarts the check (as a repair does) when its
+    probability is at least its prior share; a change the data do not favour does not."""
+    from twinmon.forecast.trendfit import change_year
+    shape = {"line": 0.5, "accelerating": 0.1, "change": 0.4, "change_year": 6}
+    assert change_year(shape, SHAPES) == 6
+    assert change_year({**shape, "line": 0.8, "change": 0.1}, SHAPES) is None
+    assert change_year({}, SHAPES) is None and change_year(shape, LINE) is None

@@ -31,7 +31,7 @@ from .predictive import (residual_correlation, sample_predictive, sample_state,
 from .streams import unit_rng
 from .trend import (posterior_slope_test, repair_years, segment_trend, shape_gate,
                     slope_test)
-from .trendfit import check_trend_fit, describe_miss, unit_sites
+from .trendfit import change_year, check_trend_fit, describe_miss, unit_sites
 from .twin import SOURCE_FAILED, TwinResult, evaluate_twin
 from .unit import UnitForecast
 
@@ -189,9 +189,8 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict, fleet=None,
     if fc.trend_fit_alpha > 0:
         # The posterior's own trend model, judged one year ahead over the unit's history.
         priors = shape_priors if "shape" in trend_post else {"line": 1.0}
-        shape = shape_summary(trend_post)
-        changed = shape["change_year"] if shape and shape["change"] >= 0.5 else None
-        x, cov, starts = unit_sites(cfg, up, post_cov, trend_post, repairs, changed)
+        x, cov, starts = unit_sites(cfg, up, post_cov, trend_post, repairs,
+                                    change_year(shape_summary(trend_post), priors))
         trend_fit = check_trend_fit(cfg, years, x, cov, starts, priors,
                                     fleet if trend_post else None)
     plan = dict(years=years, mean=mean, trends=trends, fut=fut, X=X, Xo=Xo, corr=corr,
