@@ -397,7 +397,7 @@ def change_year(shape: dict, priors: dict) -> Optional[int]:
     steps held less than half the posterior (a step of 3 site sd: change 0.34-0.44), and
     their step year, unpredictable one year ahead, failed the check."""
     total = sum(max(float(p), 0.0) for p in priors.values())
-    if not shape or shape.get("change_year") is None or total <= 0:
+    if not shape or shape.get("change_year") is None or priors.get("change", 0) <= 0:
         return None
     return int(shape["change_year"]) if shape["change"] >= priors.get("change", 0) / total \
         else None
