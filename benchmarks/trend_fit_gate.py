@@ -20,7 +20,8 @@ without a fleet: on ``N`` simulated ten-year histories of 1, 2 and 3 inputs draw
 model (a line per input, the year-to-year sd drawn from a log-normal fleet prior, each
 year's site error correlated 0.9 between inputs, as the pump's from flow), the share
 rejected at ``forecast.trend_fit_alpha`` with its 90 % Wilson interval, and the CPU time per
-unit, for the shapes' model (``calibrate.shapes``' default) and the line alone.
+unit, for the shapes' model (``calibrate.shapes``' default) and the line alone. ``--cost``
+times the gate per unit on each folder's posterior, as the forecast runs it.
 """
 from __future__ import annotations
 
@@ -116,12 +117,51 @@ def size(n: int, seed: int = 1) -> None:
                   f"{1e3 * cpu / n:8.1f}")
 
 
+def cost(w: Path, tag: str) -> None:
+    """CPU time of the gate per unit on a work folder's posterior, as the forecast runs it
+    (the sites, the fleet's prior of sigma, the recorded shapes; one BLAS thread)."""
+    import time
+
+    from twinmon.calibrate.shapes import shape_summary
+    from twinmon.executors import one_blas_thread
+    from twinmon.forecast.pooling import _pool_unit, fleet_sigma_prior
+    from twinmon.forecast.trendfit import (change_year, check_trend_fit, recorded_shapes,
+                                           unit_sites)
+    from twinmon.repairs import FoundRepair
+    cfg = load_config(w / "bench.yaml")
+    path = w / f"post_{tag}.h5"
+    post = read_posterior(path)
+    fleet = fleet_sigma_prior(cfg, post)
+    priors = recorded_shapes(cfg, path)
+    times = []
+    with one_blas_thread():
+        for u in post.units:
+            up = post.units[u]
+            trend = up.trend or {}
+            if fleet is not None and trend:
+                trend = _pool_unit(cfg, u, trend, np.asarray(up.samples), fleet)[0]
+            cov = np.array([np.cov(s, rowvar=False) for s in np.asarray(up.samples)])
+            t0 = time.process_time()
+            x, c, starts = unit_sites(cfg, up, cov, trend, [FoundRepair(**r) for r in
+                                                            up.found_repairs or ()],
+                                      change_year(shape_summary(trend), priors))
+            check_trend_fit(cfg, np.asarray(up.years), x, c, starts,
+                            priors if "shape" in trend else {"line": 1.0},
+                            fleet if trend else None)
+            times.append(time.process_time() - t0)
+    t = 1e3 * np.array(times[1:])      # the first call imports scipy's modules
+    print(f"{w}: the gate's CPU time per unit {t.mean():.1f} ms (median {np.median(t):.1f}, "
+          f"max {t.max():.1f}; {t.size} units, one BLAS thread)")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("workdirs", nargs="*", type=Path)
     ap.add_argument("--size", type=int, default=0, metavar="N")
     ap.add_argument("--tag", default="laplace_flow")
     ap.add_argument("--deviation", action="store_true")
+    ap.add_argument("--cost", action="store_true",
+                    help="also time the gate per unit on each folder's posterior")
     a = ap.parse_args()
     if a.size:
         size(a.size)
@@ -160,6 +200,8 @@ def main() -> int:
                 devs[u] = (max(deviation(ty, np.asarray(truth.inputs[u][n], float), sd[i])
                                for i, n in enumerate(names)), flag, uf.status, miss)
         print(f"{w}: trend_fit_alpha {cfg.forecast.trend_fit_alpha}")
+        if a.cost:
+            cost(w, a.tag)
         for kind, (n, f, fm, om) in rows.items():
             print(f"  {kind:8s} flagged {f}/{n} = {f / max(n, 1):.3f}; flagged whose forecast "
                   f"missed {fm}; status ok whose forecast missed {om}")
