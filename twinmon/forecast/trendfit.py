@@ -12,10 +12,11 @@ predicts year ``k``'s site (:func:`predict_ahead`):
 over the posterior's shapes ``s`` (:mod:`twinmon.calibrate.shapes`, with the priors the
 posterior was calibrated with; the straight line alone for a posterior without shapes) and a
 fixed grid of the year-to-year sd ``sigma_p`` (:func:`sigma_grid`: under the fleet's prior of
-it when the forecast pools sigma over the fleet, else calibration's half-Cauchy prior). At a given sigma each shape is a linear Gaussian model: ``beta``'s
-posterior (mean, precision ``P_sp``) and the evidence that weighs it are closed form
-(:meth:`~twinmon.calibrate.gaussian_trend.GaussianTrend._conditional`, evaluated on the whole
-grid at once); ``H_s`` maps the coefficients to the trend one year on (the shape's ``now``
+it when the forecast pools sigma over the fleet, else calibration's half-Cauchy prior). At a
+given sigma each shape is a linear Gaussian model: ``beta``'s posterior (mean, precision
+``P_sp``) and the evidence that weighs it are closed form
+(:func:`~twinmon.calibrate.gaussian_trend.linear_gaussian`, the shapes of one size on the
+whole grid at once); ``H_s`` maps the coefficients to the trend one year on (the shape's ``now``
 map extended, :func:`~twinmon.calibrate.shapes.extend`), ``C_k`` is the site's own covariance.
 sigma is learnt from the years before ``k`` only, like the rest: the unit's posterior sigma,
 fitted to the whole history, grows to swallow what the trend misses (a unit whose wear
@@ -197,7 +198,7 @@ def predict_ahead(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarray
     S : ndarray, shape [n, d, d]
         Each component's predictive mean and covariance of year ``k``'s site.
     """
-    from ..calibrate.gaussian_trend import linear_gaussian, year_weights
+    from ..calibrate.gaussian_trend import GaussianTrend, linear_gaussian, year_weights
     from ..calibrate.methods.laplace import line_model
     from ..calibrate.shapes import OCCAM, build_shapes
     from ..calibrate.trend import sigma_prior_scale
@@ -206,20 +207,17 @@ def predict_ahead(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarray
     xk, ck = x[:k], cov[:k]
     st = [s[s <= yk[-1]] for s in starts]
     _, Mk, prec, mean0, slopes, _ = line_model(cfg, yk, st)
-    Wg, lv_g = year_weights(ck, sig)
+    A = sigma_prior_scale(cfg)
     # The line's posterior mean of sigma on these years: the shapes' reference (as
     # calibration takes it from the line's sigma points).
-    P0 = np.diag(prec)
-    proper = prec > 0
-    log_norm0 = 0.5 * (np.sum(np.log(prec[proper])) - mean0 @ P0 @ mean0)
-    lw = log_p0 + linear_gaussian(Wg, lv_g, Mk[None], xk, P0[None], mean0[None],
-                                  np.array([log_norm0]))[3][0]
+    lw = log_p0 + GaussianTrend(xk, ck, Mk, prec, mean0, A)._conditional(sig)[3]
     w = np.exp(lw - lw.max())
     s_ref = (w / w.sum()) @ sig
-    shapes = [s for s in build_shapes(yk, xk, ck, Mk, prec, mean0, sigma_prior_scale(cfg),
-                                      slopes, np.array([s[-1] for s in st]), priors, None,
+    shapes = [s for s in build_shapes(yk, xk, ck, Mk, prec, mean0, A, slopes,
+                                      np.array([s[-1] for s in st]), priors, None,
                                       sigma_ref=s_ref)
               if np.isfinite(s.log_prior)]
+    Wg, lv_g = year_weights(ck, sig)
     # Shapes of one size are evaluated together (one batched product each).
     groups: dict = {}
     for s in shapes:
