@@ -13,6 +13,10 @@ family differs from the linear one by the shape of its wear only:
   the units age normally after it (a sudden fault that stays put), half at the faulty rate;
 * ``repair`` / ``repair_hidden``: the faulty part is replaced in year 4-7 and wears again as
   the first did; the replacement is recorded in the observations, or not;
+* ``reversing``: wear no trend shape follows: the faulty part's excess over normal ageing
+  swings at twice the multiple's rate, up until year 3-4, back for three years with no
+  repair (a deposit washed off, a setting drifting back), then up again; its mean excess
+  is about two thirds of the multiple's;
 * ``irregular``: 3-4 years of history, or ten with two years missing; 5-10 % of the samples
   lost (NaN); otherwise the linear fleet's units.
 
@@ -32,7 +36,7 @@ MULT = {"pump_coef": [1.25, 1.5, 2.0, 2.0, 2.25, 2.5, 2.75, 3.0, 3.0, 3.25, 3.5,
 JITTER = {"motor_damping": 0.15, "pump_coef": 0.01}
 YEARS = 10
 FAMILIES = ("linear", "quadratic", "exponential", "step", "repair", "repair_hidden",
-            "irregular")
+            "irregular", "reversing")
 
 
 def shaped(family: str, start: float, rate: float, normal: float,
@@ -56,6 +60,13 @@ def shaped(family: str, start: float, rate: float, normal: float,
         size = rate * ages - normal * (year - 1) - after * (YEARS - year)
         tr.update(slope=normal, changes=[{"year": year, "size": float(size),
                                           "slope": float(after)}])
+    elif family == "reversing":
+        turn = int(rng.integers(3, 5))
+        up, down = normal + 2 * (rate - normal), normal - 2 * (rate - normal)
+        # The excess over normal ageing swings up, back and up again: a zigzag.
+        tr.update(slope=float(up), changes=[
+            {"year": turn, "size": 0.0, "slope": float(down)},
+            {"year": turn + 3, "size": 0.0, "slope": float(up)}])
     else:
         tr["slope"] = rate
     if family in ("repair", "repair_hidden"):

@@ -36,15 +36,17 @@ def write_synthetic_posterior(path, cfg, lines: dict, seed: int = 0, n_s: int = 
                               scatter=(0.25, 0.03), post_std=(0.3, 0.05)):
     """A posterior artifact (calibrate's writer) whose yearly estimates follow given lines.
 
-    ``lines``: unit -> [(intercept, slope)] per input. The yearly means scatter about the
-    line by ``scatter`` (per input); draws scatter about the mean by ``post_std``.
+    ``lines``: unit -> [(intercept, slope)] per input, or the path itself [n_y, d]. The
+    yearly means scatter about it by ``scatter`` (per input); draws scatter about the mean
+    by ``post_std``.
     """
     rng = np.random.default_rng(seed)
     d = len(cfg.model.inputs)
     units = {}
     for unit, coefs in lines.items():
         n_y = YEARS.size
-        centre = np.column_stack([a + b * YEARS for a, b in coefs])
+        centre = (np.array(coefs, float) if np.ndim(coefs) == 2 and len(coefs) == n_y
+                  else np.column_stack([a + b * YEARS for a, b in coefs]))
         centre = centre + rng.standard_normal((n_y, d)) * np.asarray(scatter)
         samples = centre[:, None, :] + rng.standard_normal((n_y, n_s, d)) * np.asarray(post_std)
         units[unit] = UnitPosterior(
@@ -374,6 +376,35 @@ def test_json_shape_via_cli(setup, tmp_path):
                                                  "p_value", "test", "normal_rate"}
         assert set(u["indicator"]) == {"median", "q05", "q95"} and isinstance(u["plan"], str)
         assert 0 <= u["fmu_fraction"] <= 1 and "true_failure_year" not in u
+
+
+def test_a_year_the_trend_cannot_follow_is_unreliable_in_the_artifact_and_json(
+        setup, tmp_path):
+    """A unit whose year 8 lies 6 N.m.s/rad (20 posterior sd) off its line gets status
+    unreliable with the trend-fit gate's reason and p-value in forecast.h5 and --json; the
+    straight line beside it stays ok. (A sequential posterior: no fleet prior of the
+    year-to-year sd, so only a gross miss shows.)"""
+    from twinmon.cli import main
+    cfg, cfg_path, tmp, _ = setup
+    odd = np.column_stack([10.0 + 0 * YEARS, 3.75 - 0.02 * YEARS])
+    odd[7, 0] += 6.0
+    post = write_synthetic_posterior(tmp_path / "post.h5", cfg, {
+        "Steady": HEALTHY, "Odd": odd})
+    res = CliRunner().invoke(main, ["forecast", "-c", str(cfg_path), "--posterior", str(post),
+                                    "--surrogate", str(tmp / "sur.h5"),
+                                    "-o", str(tmp_path / "fc.h5"), "--json"])
+    assert res.exit_code == 0, res.output
+    units = json.loads(res.stdout)["units"]
+    bad, good = units["Odd"], units["Steady"]
+    assert bad["status"] == "unreliable"
+    assert bad["status_reason"].startswith("prognosis unreliable: the trend missed year(s)")
+    assert bad["trend_fit"]["p_value"] < 0.01 and bad["trend_fit"]["missed_years"] == [8]
+    assert good["status"] == "ok" and good["trend_fit"]["p_value"] >= 0.01
+    assert good["trend_fit"]["years"] == list(range(4, 11))
+    stored = read_forecast(tmp_path / "fc.h5").units["Odd"]
+    assert stored.status == "unreliable" and stored.status_reason == bad["status_reason"]
+    assert stored.trend_fit == bad["trend_fit"]
+    assert "(prognosis unreliable: the trend missed" in stored.plan
 
 
 def test_text_lines_give_the_year_to_act_by_and_the_median_year(setup, tmp_path):

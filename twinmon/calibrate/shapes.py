@@ -35,6 +35,7 @@ before any draw (Occam's window, Madigan and Raftery 1994): it could not hold a 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 
@@ -90,7 +91,8 @@ class Shape:
 def build_shapes(years: np.ndarray, x: np.ndarray, cov: np.ndarray, Mk: np.ndarray,
                  prior_prec: np.ndarray, prior_mean: np.ndarray, A: np.ndarray,
                  slopes: np.ndarray, last_start: np.ndarray, priors: dict,
-                 rng: np.random.Generator) -> list[Shape]:
+                 rng: Optional[np.random.Generator], sigma_ref: Optional[np.ndarray] = None
+                 ) -> list[Shape]:
     """A unit's shapes on its sites.
 
     Parameters
@@ -112,6 +114,9 @@ def build_shapes(years: np.ndarray, x: np.ndarray, cov: np.ndarray, Mk: np.ndarr
         Prior probabilities (``calibrate.shapes``; absent or 0: not fitted).
     rng : numpy Generator
         For the line's sigma points (the reference sigma of the other shapes' priors).
+    sigma_ref : ndarray, shape [d], optional
+        That reference sigma given (input units; ``rng`` then unused): the one-year-ahead
+        check of :mod:`twinmon.forecast.trendfit` fixes sigma at the unit's posterior mean.
 
     Returns
     -------
@@ -174,11 +179,16 @@ def build_shapes(years: np.ndarray, x: np.ndarray, cov: np.ndarray, Mk: np.ndarr
             extras.append((2, cols, np.log(priors["change"] / total / len(found)), y, 0.0))
     if not extras:
         return shapes
-    sig, w = line.sigma_points(rng)[:2]
-    s_ref = w @ sig                                                          # [d]
+    if sigma_ref is None:
+        sig, w = line.sigma_points(rng)[:2]
+        s_ref = w @ sig                                                      # [d]
+    else:
+        s_ref = np.asarray(sigma_ref, float)
+    # The years' weights at the reference sigma, the same for every extra block.
+    W = np.linalg.inv(cov + np.diag(s_ref ** 2)[None])                       # [K, d, d]
     for code, cols, log_prior, year, growth in extras:
         E = np.stack([c for c, _, _ in cols], axis=2)                        # [K, d, n_e]
-        P_e = _unit_information(cov, s_ref, Mk, E, prior_prec, K)
+        P_e = _unit_information(W, Mk, E, prior_prec, K)
         M = np.concatenate([Mk, E], axis=2)
         n_l = Mk.shape[2]
         P = np.zeros((M.shape[2], M.shape[2]))
@@ -207,11 +217,12 @@ def _line_now(Mk: np.ndarray, slopes: np.ndarray) -> np.ndarray:
     return now
 
 
-def _unit_information(cov: np.ndarray, sigma: np.ndarray, Mk: np.ndarray, E: np.ndarray,
+def _unit_information(W: np.ndarray, Mk: np.ndarray, E: np.ndarray,
                       prior_prec: np.ndarray, n: int) -> np.ndarray:
     """Zellner's unit-information prior precision of the extra coefficients ``E`` beyond the
-    line ``Mk``: their information given the line's, over ``n`` (the module docstring)."""
-    W = np.linalg.inv(cov + np.diag(sigma ** 2)[None])                       # [K, d, d]
+    line ``Mk``: their information given the line's, over ``n`` (the module docstring).
+    ``W`` [K, d, d]: each year's weight, ``(C_k + diag(sigma^2))^-1`` at the reference
+    sigma."""
     M = np.concatenate([Mk, E], axis=2)
     info = np.einsum("kia,kij,kjb->ab", M, W, M)
     n_l = Mk.shape[2]

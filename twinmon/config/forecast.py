@@ -46,6 +46,12 @@ class ForecastConfig:
     #: current part's years, at this level, Bonferroni over the inputs tested) makes the
     #: unit's prognosis ``unreliable``: its straight-line trend understates the wear. 0: off.
     shape_alpha: float = 0.01
+    #: Trend-fit gate: the unit's trend model (the posterior's shapes, or the line alone)
+    #: fitted to the years before each year predicts it; when the standardised one-year-ahead
+    #: errors, over the years predicted, reject the model at this level
+    #: (twinmon/forecast/trendfit.py), the unit's prognosis is ``unreliable``: its history
+    #: does not follow the trend its forecast extends. 0: off.
+    trend_fit_alpha: float = 0.01
     #: Unrecorded repairs: yearly estimates that fall back towards nominal (twinmon/repairs.py,
     #: at this level, Bonferroni over the years tried and the inputs) are reported with the
     #: command that records the event, and the component's trend restarts there: in
@@ -69,6 +75,8 @@ class ForecastConfig:
             yield "alpha", "must lie in (0, 1)", self.alpha
         if not 0 <= self.shape_alpha < 1:
             yield "shape_alpha", "must lie in [0, 1)", self.shape_alpha
+        if not 0 <= self.trend_fit_alpha < 1:
+            yield "trend_fit_alpha", "must lie in [0, 1)", self.trend_fit_alpha
         if not 0 <= self.repair_alpha < 1:
             yield "repair_alpha", "must lie in [0, 1)", self.repair_alpha
         if self.observed_samples < 1:

@@ -48,6 +48,8 @@ Layout: one concern per file; each imports only those above it in this table.
 ``plan.py``        :func:`maintenance_plan`
 ``pooling.py``     :func:`fleet_sigma_prior`: the fleet's prior of the joint method's
                    year-to-year sd, each unit's draws resampled to it
+``trendfit.py``    :func:`~.trendfit.check_trend_fit`: the trend-fit gate, the posterior's
+                   trend model judged one year ahead over the unit's history
 ``unit.py``        :class:`UnitForecast`, :class:`ForecastSummary`
 ``artifact.py``    ``forecast.h5``: the writer, :func:`read_forecast`, :class:`Forecast`
 ``chunk.py``       a chunk of units: plan each, one batch through the twin, finish each

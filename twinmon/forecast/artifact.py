@@ -119,6 +119,8 @@ def _write_unit(f, cfg: Config, unit: str, u: UnitForecast, names: list) -> None
         g.attrs["unrecorded_repairs"] = artifacts.json_attr(u.repairs)
     if u.shape:
         g.attrs["trend_shape"] = artifacts.json_attr(u.shape)
+    if u.trend_fit:
+        g.attrs["trend_fit"] = artifacts.json_attr(u.trend_fit)
     if u.has_truth:
         g.attrs["true_failure_year"] = (-1 if u.true_failure_year is None
                                         else u.true_failure_year)
@@ -263,6 +265,7 @@ def _read_unit(f, unit: str, path: Path, names: list, arrays: bool = True) -> Un
         repairs=json.loads(g.attrs["unrecorded_repairs"]) if "unrecorded_repairs" in g.attrs
         else [],
         shape=json.loads(g.attrs["trend_shape"]) if "trend_shape" in g.attrs else {},
+        trend_fit=json.loads(g.attrs["trend_fit"]) if "trend_fit" in g.attrs else {},
         drift=_drift_from(json.loads(g.attrs["detection"])) if "detection" in g.attrs else None,
         attribution=(Attribution(**json.loads(g.attrs["attribution"]))
                      if "attribution" in g.attrs else None),

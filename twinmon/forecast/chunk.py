@@ -12,6 +12,8 @@ forecast. The same code runs in this process or in a pool worker (:mod:`.workers
 """
 from __future__ import annotations
 
+from typing import Optional
+
 import numpy as np
 
 from ..calibrate.shapes import describe_shape, shape_summary
@@ -30,6 +32,7 @@ from .predictive import (residual_correlation, sample_predictive, sample_state,
 from .streams import unit_rng
 from .trend import (posterior_slope_test, repair_years, segment_trend, shape_gate,
                     slope_test)
+from .trendfit import change_year, check_trend_fit, describe_miss, unit_sites
 from .twin import SOURCE_FAILED, TwinResult, evaluate_twin
 from .unit import UnitForecast
 
@@ -71,7 +74,8 @@ def _truth_of(truth, truth_path, unit: str):
 
 
 def _forecast_chunk(state: _TwinState, units: list, *, directions: dict, box_ok: bool,
-                    fit_windows: list, truth_path, fleet=None) -> list:
+                    fit_windows: list, truth_path, fleet=None,
+                    shape_priors: Optional[dict] = None) -> list:
     """Forecast a chunk of units: their Monte Carlo points go through the twin in one batch.
 
     Parameters
@@ -86,7 +90,7 @@ def _forecast_chunk(state: _TwinState, units: list, *, directions: dict, box_ok:
     cfg = state.cfg
     plans, points = [], []
     for unit, up, _ in units:
-        p, pts = _plan_unit(cfg, unit, up, directions, fleet)
+        p, pts = _plan_unit(cfg, unit, up, directions, fleet, shape_priors)
         plans.append(p)
         points += pts
     twin = evaluate_twin(cfg, state.sur, np.concatenate(points), state.executor,
@@ -102,16 +106,18 @@ def _forecast_chunk(state: _TwinState, units: list, *, directions: dict, box_ok:
     return out
 
 
-def _plan_unit(cfg: Config, unit: str, up, directions: dict,
-               fleet=None) -> tuple[dict, list]:
+def _plan_unit(cfg: Config, unit: str, up, directions: dict, fleet=None,
+               shape_priors: Optional[dict] = None) -> tuple[dict, list]:
     """A unit's trends, tests and Monte Carlo points (future states, posterior draws of the
     observed years, the probes of the indicator's gradient) before the twin runs.
 
     With ``fleet`` (:func:`~.pooling.fleet_sigma_prior`), a jointly calibrated unit's draws -- the
     years' and the trend's, which are the same chain states -- are first resampled to its
     posterior under the fleet's prior of the year-to-year sd; its yearly estimates are then
-    those draws' means."""
+    those draws' means. ``shape_priors``: ``calibrate.shapes`` as the posterior recorded it
+    (:func:`~.trendfit.recorded_shapes`; default the config's)."""
     fc = cfg.forecast
+    shape_priors = dict(cfg.calibrate.shapes) if shape_priors is None else shape_priors
     names = cfg.model.input_names
     d = len(names)
     years = np.asarray(up.years, int)
@@ -181,13 +187,21 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict,
     n_o = min(fc.observed_samples, samples_post.shape[1])
     pick = np.sort(unit_rng(cfg, unit, 1).choice(samples_post.shape[1], n_o, replace=False))
     Xo = samples_post[:, pick, :]
+    trend_fit = None
+    if fc.trend_fit_alpha > 0:
+        # The posterior's own trend model, judged one year ahead over the unit's history.
+        priors = shape_priors if "shape" in trend_post else {"line": 1.0}
+        x, cov, starts = unit_sites(cfg, up, post_cov, trend_post, repairs,
+                                    change_year(shape_summary(trend_post), priors))
+        trend_fit = check_trend_fit(cfg, years, x, cov, starts, priors,
+                                    fleet if trend_post else None)
     plan = dict(years=years, mean=mean, trends=trends, fut=fut, X=X, Xo=Xo, corr=corr,
                 resid=resid, step=step, since=max(since.values()), since_by_input=since,
                 repairs=repairs, post_cov=post_cov,
                 err_cov=err_cov, state=state, slope_draws=slope_draws,
                 history_draws=history_draws, pool_ess=pool_ess,
                 shapes="now" in trend_post and cfg.calibrate.shapes.get("accelerating", 0) > 0,
-                shape=shape_summary(trend_post))
+                shape=shape_summary(trend_post), trend_fit=trend_fit)
     return plan, [X.reshape(-1, d), Xo.reshape(-1, d), probe]
 
 
@@ -252,6 +266,14 @@ def _finish_unit(cfg: Config, unit: str, up, p: dict, twin: TwinResult,
         shape = shape_gate(cfg, p["since_by_input"], p["years"], p["mean"], trends)
         if shape:
             uf.status, uf.status_reason = STATUS_UNRELIABLE, shape
+    fit = p["trend_fit"]
+    if fit is not None:
+        uf.trend_fit = fit.as_dict(fc.trend_fit_alpha)
+        if uf.status == STATUS_OK and fit.p_value < fc.trend_fit_alpha:
+            # The twin fits each year, but the trend it extends could not have predicted
+            # them: a failure year and intervals from it would look surer than they are.
+            uf.status, uf.status_reason = STATUS_UNRELIABLE, describe_miss(
+                cfg, fit, fc.trend_fit_alpha)
     if uf.status == STATUS_WITHHELD:
         if fc.force_prognosis:
             uf.forced = True

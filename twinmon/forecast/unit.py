@@ -77,7 +77,8 @@ class UnitForecast:
     has_truth: bool = False
     truth_source: str = ""
     #: ``ok``, ``withheld`` (the twin misses the plant: no failure year, no root cause) or
-    #: ``unreliable`` (a calibrated year did not converge); see :func:`~.judge.prognosis_status`.
+    #: ``unreliable`` (a calibrated year did not converge, the trend's shape or its fit to the
+    #: unit's history cannot be trusted: :mod:`.trendfit`); see :func:`~.judge.prognosis_status`.
     status: str = STATUS_OK
     status_reason: str = ""
     #: The prognosis of a withheld unit was given anyway (``forecast.force_prognosis``).
@@ -95,6 +96,12 @@ class UnitForecast:
     #: (``calibrate.shapes``; :func:`~twinmon.calibrate.shapes.shape_summary`): the
     #: probability of each, and the most probable change year; empty otherwise.
     shape: dict = field(default_factory=dict)
+
+    #: The one-year-ahead check of the unit's trend model (:mod:`.trendfit`,
+    #: ``forecast.trend_fit_alpha``): ``p_value``, the ``years`` predicted, their
+    #: ``year_p_values``, the ``missed_years`` named when it fails and the ``shapes``
+    #: weighed; empty when it was off or no year could be predicted.
+    trend_fit: dict = field(default_factory=dict)
 
     #: Set by :meth:`slim`: the figures kept when the Monte Carlo arrays are dropped.
     _slim: Optional[dict] = field(default=None, repr=False)
@@ -174,6 +181,8 @@ class UnitForecast:
         d["unrecorded_repairs"] = list(self.repairs)
         if self.shape:
             d["trend_shape"] = dict(self.shape)
+        if self.trend_fit:
+            d["trend_fit"] = dict(self.trend_fit)
         if self.has_truth:
             d["true_failure_year"] = self.true_failure_year
             d["truth_source"] = self.truth_source

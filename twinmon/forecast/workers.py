@@ -16,6 +16,7 @@ from typing import Optional
 
 from ..config import Config
 from .chunk import _check_unit, _forecast_chunk, _truth_of, _TwinState
+from .trendfit import recorded_shapes
 
 
 #: Units per pool task: big enough that a task's FMU and surrogate batches amortise their
@@ -78,7 +79,8 @@ def iter_forecast(cfg: Config, post, sur, *, directions: dict, box_ok: bool,
         n_workers = 1
     spec = spec_for(cfg)
     context = dict(directions=directions, box_ok=box_ok, fit_windows=post.fit_windows,
-                   truth_path=truth_path, fleet=fleet)
+                   truth_path=truth_path, fleet=fleet,
+                   shape_priors=recorded_shapes(cfg, posterior_path))
 
     def chunk_of(names_):
         ups = []

@@ -125,6 +125,46 @@ def summarise(surrogate, predict, tasks: list[LaplaceTask], bounds: np.ndarray
 # ---------------------------------------------------------------------------------------
 # One unit
 # ---------------------------------------------------------------------------------------
+def line_model(cfg: Config, years: np.ndarray, starts: list) -> tuple:
+    """The straight line's design and coefficient priors on a unit's years (the joint
+    method's: one line per input and segment, levels flat, slopes ``N(normal_rate,
+    range^2)`` per year), the base every shape of :mod:`~twinmon.calibrate.shapes` extends.
+
+    Parameters
+    ----------
+    years : ndarray of int, shape [K]
+    starts : list of ndarray of int, one per input
+        First year of each segment (:func:`~twinmon.calibrate.trend.segment_starts`), each
+        at or before ``years[-1]``.
+
+    Returns
+    -------
+    lay : Layout
+    Mk : ndarray, shape [K, d, n_line]
+        ``theta_k = Mk[k] @ beta``.
+    prior_prec, prior_mean : ndarray, shape [n_line]
+    slopes : ndarray of bool, shape [n_line]
+        Which coefficients are slopes.
+    centres : list of ndarray
+        Each input's segments' mean recorded year (:func:`~twinmon.calibrate.trend.design_matrix`).
+    """
+    names = cfg.model.input_names
+    designs = [design_matrix(years, s) for s in starts]
+    X = [dm for dm, _ in designs]
+    K, d = len(years), len(names)
+    lay = Layout(K, d, [dm.shape[1] for dm in X])
+    Mk = lay.mean_map(X).reshape(K, d, -1)
+    span = np.diff(cfg.model.bounds, axis=1).ravel()
+    prec, mean = [], []
+    for i, dm in enumerate(X):
+        n_seg = dm.shape[1] // 2
+        # Levels flat; slopes N(normal_rate, range^2) per year, as the joint method's.
+        prec += [0.0, span[i] ** -2.0] * n_seg
+        mean += [0.0, cfg.model.inputs[names[i]].normal_rate] * n_seg
+    slopes = np.tile([False, True], len(prec) // 2)
+    return lay, Mk, np.array(prec), np.array(mean), slopes, [c for _, c in designs]
+
+
 class LaplaceRun:
     """One unit's calibration with this method, with
     :class:`~twinmon.calibrate.base.UnitRun`'s interface: :meth:`plan` gives one
@@ -191,26 +231,12 @@ class LaplaceRun:
         Gaussian model of the trend: the mixture of ``calibrate.shapes`` on each input's
         current segment (:mod:`~twinmon.calibrate.shapes`)."""
         cfg = self.cfg
-        names = cfg.model.input_names
         starts, self.found_repairs = with_found_repairs(
             cfg, self.years, self.events, segment_starts(cfg, self.years, self.events), x, cov)
-        designs = [design_matrix(self.years, s) for s in starts]
-        X = [dm for dm, _ in designs]
-        centres = [c for _, c in designs]
-        K, d = x.shape
-        lay = Layout(K, d, [dm.shape[1] for dm in X])
-        Mk = lay.mean_map(X).reshape(K, d, -1)
-        span = np.diff(cfg.model.bounds, axis=1).ravel()
-        prec, mean = [], []
-        for i, dm in enumerate(X):
-            n_seg = dm.shape[1] // 2
-            # Levels flat; slopes N(normal_rate, range^2) per year, as the joint method's.
-            prec += [0.0, span[i] ** -2.0] * n_seg
-            mean += [0.0, cfg.model.inputs[names[i]].normal_rate] * n_seg
-        slopes = np.tile([False, True], len(prec) // 2)
-        shapes = build_shapes(self.years, x, cov, Mk, np.array(prec), np.array(mean),
-                              sigma_prior_scale(cfg), slopes,
-                              np.array([s[-1] for s in starts]), cfg.calibrate.shapes, rng)
+        lay, Mk, prec, mean, slopes, centres = line_model(cfg, self.years, starts)
+        shapes = build_shapes(self.years, x, cov, Mk, prec, mean, sigma_prior_scale(cfg),
+                              slopes, np.array([s[-1] for s in starts]), cfg.calibrate.shapes,
+                              rng)
         return starts, centres, lay, ShapeMixture(shapes)
 
     def posterior(self, surrogate, predict, x, cov, total, ratio) -> UnitPosterior:

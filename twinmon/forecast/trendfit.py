@@ -1,0 +1,440 @@
+"""Whether a unit's trend model could have predicted its own history, one year ahead.
+
+A trend model that cannot follow a unit's history (wear that reverses or oscillates, two
+separate steps, a repair no event records and the repair scan missed, a year whose estimate
+is off) still gives a forecast with intervals that look sure. This check judges the model
+*out of sample*, as a forecast is used: for each recorded year ``k`` whose trend segment has
+at least :data:`MIN_YEARS` years before it, the model is fitted to the years before ``k`` and
+predicts year ``k``'s site (:func:`predict_ahead`):
+
+    x_k ~ sum_(s, p) w_sp N(H_s beta_sp, H_s P_sp^-1 H_s' + diag(sigma_p^2) + C_k)
+
+over the posterior's shapes ``s`` (:mod:`twinmon.calibrate.shapes`, with the priors the
+posterior was calibrated with; the straight line alone for a posterior without shapes) and a
+fixed grid of the year-to-year sd ``sigma_p`` (:func:`sigma_grid`: under the fleet's prior of
+it when the forecast pools sigma over the fleet, else calibration's half-Cauchy prior). At a
+given sigma each shape is a linear Gaussian model: ``beta``'s posterior (mean, precision
+``P_sp``) and the evidence that weighs it are closed form
+(:func:`~twinmon.calibrate.gaussian_trend.linear_gaussian`, the shapes of one size on the
+whole grid at once); ``H_s`` maps the coefficients to the trend one year on (the shape's ``now``
+map extended, :func:`~twinmon.calibrate.shapes.extend`), ``C_k`` is the site's own covariance.
+sigma is learnt from the years before ``k`` only, like the rest: the unit's posterior sigma,
+fitted to the whole history, grows to swallow what the trend misses (a unit whose wear
+reversed twice had sigma 2.0 N.m.s/rad against the fleet's median 0.24, and every year
+inside its noise). The fleet's prior matters: under the half-Cauchy alone a few years leave
+sigma so uncertain that a year 6 sd off lies 1.4 predictive sd off.
+
+Each year's error is standardised by the Rosenblatt transform of its predictive mixture (the
+conditional PIT of each input given the ones before it, through the normal quantile): under
+the model the ``d`` values of a year, and the years' (one-step-ahead predictions of a
+sequence, Dawid's prequential principle), are independent standard normals. Two views, each
+at ``alpha / 2`` (Bonferroni): the sum of squares over the ``m`` years predicted, chi-square
+with ``d m`` degrees of freedom (many moderate misses: oscillation, a reversal), and the worst
+year's chi-square with ``d`` (one outlying year), times ``m`` (Bonferroni over the years).
+
+The sites are the laplace method's (each year's likelihood summarised, ``UnitPosterior.site``);
+for a posterior without them the yearly posterior means and covariances stand in
+(:func:`unit_sites`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+
+from ..config import Config
+
+#: Fewest years of the segment in force before a year predicted (a line through fewer
+#: extrapolates its own noise).
+MIN_YEARS = 3
+#: Points of the year-to-year sd's grid (:func:`sigma_grid`) and their seed.
+SIGMA_GRID = 64
+SIGMA_SEED = 20240611
+#: Mixture components weighing less than this share of the largest are dropped.
+NEGLIGIBLE = 1e-9
+#: A PIT closer than this to 0 or 1 is held there (its normal quantile stays finite: 37 sd).
+PIT_FLOOR = 1e-300
+
+
+@dataclass
+class TrendFit:
+    """The one-year-ahead check of a unit's trend model.
+
+    Attributes
+    ----------
+    p_value : float
+        Of the combined test (module docstring); 1 when no year could be predicted.
+    years : ndarray of int, shape [m]
+        The years predicted.
+    z : ndarray, shape [m, d]
+        Their standardised errors (Rosenblatt; independent N(0, 1) under the model).
+    marginal : ndarray, shape [m, d]
+        Each input's error over its predictive sd (the mixture's marginal moments), for
+        the reason's words.
+    year_p : ndarray, shape [m]
+        Each year's p-value alone (chi-square with d dof of its ``z``).
+    p_sum, p_worst : float
+        The two views' p-values (sum of squares; worst year, Bonferroni over the years).
+    shapes : tuple of str
+        The shapes the model averaged (``line`` alone, or with ``accelerating``, ``change``).
+    """
+
+    p_value: float
+    years: np.ndarray
+    z: np.ndarray
+    marginal: np.ndarray
+    year_p: np.ndarray
+    p_sum: float
+    p_worst: float
+    shapes: tuple
+
+    def missed(self, alpha: float) -> np.ndarray:
+        """Indices of the years to name: those significant alone at ``alpha``, else the
+        (up to) two worst."""
+        bad = np.flatnonzero(self.year_p < alpha)
+        return bad if bad.size else np.sort(np.argsort(self.year_p)[:2])
+
+    def as_dict(self, alpha: float) -> dict:
+        """For ``--json`` and ``forecast.h5``."""
+        return {"p_value": float(self.p_value), "years": [int(y) for y in self.years],
+                "year_p_values": [float(f"{p:.3g}") for p in self.year_p],
+                "missed_years": [int(self.years[k]) for k in self.missed(alpha)]
+                if self.p_value < alpha else [],
+                "shapes": list(self.shapes)}
+
+
+def cut_indices(years: np.ndarray, starts: list, min_years: int = MIN_YEARS) -> np.ndarray:
+    """Indices ``k`` of the years that can be predicted from the years before them: in every
+    input's segment in force at year ``k`` (the last start at or before it) at least
+    ``min_years`` recorded years come before ``k``.
+
+    Parameters
+    ----------
+    years : ndarray of int, shape [K]
+    starts : list of ndarray of int, one per input
+        First year of each segment.
+    """
+    years = np.asarray(years)
+    out = []
+    for k in range(1, years.size):
+        ok = True
+        for s in starts:
+            first = s[s <= years[k]].max()
+            ok &= int(np.sum((years[:k] >= first))) >= min_years
+        if ok:
+            out.append(k)
+    return np.array(out, dtype=int)
+
+
+def sigma_grid(cfg: Config, fleet=None, n: int = SIGMA_GRID
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """A fixed quasi-random grid of the year-to-year sd and its prior log weights.
+
+    With ``fleet`` (:class:`~twinmon.calibrate.fleet.FleetPrior`: the fleet's log-normal
+    prior of sigma, which the forecast pools a unit's draws to), ``log sigma_i`` spans its
+    median +- 3 ``tau`` and is weighted by it, ``tau`` held at the prior's floor
+    (:data:`~twinmon.calibrate.fleet.MIN_TAU`, the spread of a sound fleet's units): the
+    question is whether the unit follows the trend with a sound unit's year-to-year
+    variation, and a fitted spread above the floor is the fleet's misfitting units
+    themselves (their sigma swallowed what the trend missed: a fleet of reversing wear had
+    tau 1.5, which let a swing of 17 site sd pass as scatter). Otherwise calibration's
+    half-Cauchy prior of scale ``A`` (:func:`~twinmon.calibrate.trend.sigma_prior_scale`)
+    over ``[A / 100, 3 A]``.
+    Scrambled Sobol points with a fixed seed, uniform in ``log sigma`` (hence the Jacobian
+    ``log sigma`` in the half-Cauchy's weight).
+
+    Returns
+    -------
+    sigma : ndarray, shape [n, d]
+        Input units.
+    log_prior : ndarray, shape [n]
+    """
+    from scipy.stats import qmc
+
+    from ..calibrate.trend import sigma_prior_scale
+    A = sigma_prior_scale(cfg)
+    u = qmc.Sobol(len(A), scramble=True, seed=SIGMA_SEED).random(n)
+    if fleet is not None:
+        from ..calibrate.fleet import MIN_TAU
+        mu = np.log(np.asarray(fleet.median, float))
+        tau = np.minimum(np.asarray(fleet.tau, float), MIN_TAU)
+        log_s = mu - 3 * tau + 6 * tau * u
+        return np.exp(log_s), np.sum(-0.5 * ((log_s - mu) / tau) ** 2, axis=1)
+    lo, hi = np.log(A / 100), np.log(3 * A)
+    sigma = np.exp(lo + (hi - lo) * u)
+    return sigma, np.sum(np.log(sigma) - np.log1p((sigma / A) ** 2), axis=1)
+
+
+def predict_ahead(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarray,
+                  starts: list, priors: dict, k: int, grid: tuple
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The trend model fitted to years ``[0, k)`` and its predictive of year ``k``'s site.
+
+    The predictive is a mixture over the shapes and the sigma grid: per (shape, sigma) a
+    linear Gaussian model whose coefficients' posterior and evidence are closed form;
+    weights prior times evidence. The shapes' Zellner priors take the straight line's
+    posterior mean of sigma on these years as their reference, as calibration does.
+
+    Parameters
+    ----------
+    years : ndarray of int, shape [K]
+    x, cov : ndarray, shapes [K, d], [K, d, d]
+        The years' sites (input units).
+    starts : list of ndarray of int
+        Each input's segment starts; year ``k`` must lie in the segment in force at year
+        ``k - 1`` (:func:`cut_indices`).
+    priors : dict shape name -> float
+        ``calibrate.shapes`` the posterior was drawn with.
+    grid : (sigma [P, d], log_prior [P])
+        :func:`sigma_grid`.
+
+    Returns
+    -------
+    w : ndarray, shape [n]
+        The components' posterior weights (those below :data:`NEGLIGIBLE` of the largest
+        dropped).
+    mean : ndarray, shape [n, d]
+    S : ndarray, shape [n, d, d]
+        Each component's predictive mean and covariance of year ``k``'s site.
+    """
+    from ..calibrate.gaussian_trend import GaussianTrend, linear_gaussian, year_weights
+    from ..calibrate.methods.laplace import line_model
+    from ..calibrate.shapes import OCCAM, build_shapes
+    from ..calibrate.trend import sigma_prior_scale
+    sig, log_p0 = grid
+    yk = np.asarray(years[:k])
+    xk, ck = x[:k], cov[:k]
+    st = [s[s <= yk[-1]] for s in starts]
+    _, Mk, prec, mean0, slopes, _ = line_model(cfg, yk, st)
+    A = sigma_prior_scale(cfg)
+    # The line's posterior mean of sigma on these years: the shapes' reference (as
+    # calibration takes it from the line's sigma points).
+    lw = log_p0 + GaussianTrend(xk, ck, Mk, prec, mean0, A)._conditional(sig)[3]
+    w = np.exp(lw - lw.max())
+    s_ref = (w / w.sum()) @ sig
+    shapes = [s for s in build_shapes(yk, xk, ck, Mk, prec, mean0, A, slopes,
+                                      np.array([s[-1] for s in st]), priors, None,
+                                      sigma_ref=s_ref)
+              if np.isfinite(s.log_prior)]
+    Wg, lv_g = year_weights(ck, sig)
+    # Shapes of one size are evaluated together (one batched product each).
+    groups: dict = {}
+    for s in shapes:
+        groups.setdefault(s.model.Mk.shape[2], []).append(s)
+
+    def evaluate(group, Wf, lv):
+        m = [s.model for s in group]
+        return linear_gaussian(Wf, lv, np.stack([g.Mk for g in m]), xk,
+                               np.stack([g.prior_P for g in m]),
+                               np.stack([np.asarray(g.prior_mean, float) for g in m]),
+                               np.array([g._log_norm for g in m]))
+
+    # Occam's window, as calibration's mixture: a shape far less probable than the best at
+    # the reference sigma could not hold weight (most change years and growth rates are
+    # not worth the grid).
+    Wr, lv_r = year_weights(ck, s_ref[None])
+    quick = {nb: np.array([s.log_prior for s in g]) + evaluate(g, Wr, lv_r)[3][:, 0]
+             for nb, g in groups.items()}
+    best = max(q.max() for q in quick.values())
+    u = float(years[k] - yk[-1])
+    eye = np.eye(x.shape[1])
+    logw, means, covs = [], [], []
+    for nb, group in groups.items():
+        group = [s for s, q in zip(group, quick[nb]) if q >= best + np.log(OCCAM)]
+        if not group:
+            continue
+        Pb, _, mb, ll = evaluate(group, Wg, lv_g)                        # [G, P, ...]
+        logw.append((np.array([s.log_prior for s in group])[:, None] + log_p0 + ll).ravel())
+        # Each shape's map to the trend one year on: its ``now`` rows extended.
+        H = np.stack([s.now[0] + u * s.now[1] + u * u * s.now[2]
+                      + (np.expm1(s.growth * u) - s.growth * u) * s.now[3]
+                      for s in group])                                       # [G, d, nb]
+        means.append(np.einsum("gpb,gdb->gpd", mb, H).reshape(-1, len(eye)))
+        HP = np.linalg.solve(Pb, np.broadcast_to(np.swapaxes(H, 1, 2)[:, None],
+                                                 Pb.shape[:3] + (len(eye),)))
+        covs.append((np.einsum("gdb,gpbe->gpde", H, HP) + sig[None, :, :, None] ** 2 * eye
+                     ).reshape(-1, len(eye), len(eye)) + cov[k])
+    logw = np.concatenate(logw)
+    keep = logw >= logw.max() + np.log(NEGLIGIBLE)
+    w = np.exp(logw[keep] - logw.max())
+    return w / w.sum(), np.concatenate(means)[keep], np.concatenate(covs)[keep]
+
+
+def standardise(y: np.ndarray, w: np.ndarray, mean: np.ndarray, S: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """A site's error under a Gaussian mixture predictive.
+
+    Parameters
+    ----------
+    y : ndarray, shape [d]
+    w, mean, S : ndarray, shapes [n], [n, d], [n, d, d]
+
+    Returns
+    -------
+    z : ndarray, shape [d]
+        Rosenblatt transform: input ``i``'s PIT under the mixture conditional on inputs
+        ``< i`` (the components reweighted by their density of those), through the normal
+        quantile. Independent N(0, 1) when ``y`` is drawn from the mixture.
+    marginal : ndarray, shape [d]
+        ``(y - E y) / sd(y)`` per input under the mixture.
+    """
+    from scipy.special import ndtr, ndtri
+    L = np.linalg.cholesky(S)                                                  # [n, d, d]
+    e = np.linalg.solve(L, (y - mean)[:, :, None])[:, :, 0]                     # [n, d]
+    diag = np.einsum("nii->ni", L)
+    d = y.size
+    z = np.empty(d)
+    logw = np.log(np.maximum(w, 1e-300))
+    for i in range(d):
+        # Components reweighted by their density of the inputs before i.
+        lw = logw - 0.5 * np.sum(e[:, :i] ** 2, axis=1) - np.sum(np.log(diag[:, :i]), axis=1)
+        c = np.exp(lw - lw.max())
+        c /= c.sum()
+        lower, upper = float(c @ ndtr(e[:, i])), float(c @ ndtr(-e[:, i]))
+        # From the smaller tail, so that a far miss keeps its size.
+        z[i] = (ndtri(max(lower, PIT_FLOOR)) if lower < upper
+                else -ndtri(max(upper, PIT_FLOOR)))
+    m = w @ mean
+    var = np.einsum("n,nii->i", w, S) + w @ (mean - m) ** 2
+    return z, (y - m) / np.sqrt(var)
+
+
+def check_trend_fit(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarray,
+                    starts: list, priors: dict, fleet=None,
+                    min_years: int = MIN_YEARS) -> Optional[TrendFit]:
+    """The one-year-ahead check of a unit's trend model (module docstring).
+
+    Parameters
+    ----------
+    years : ndarray of int, shape [K]
+    x, cov : ndarray, shapes [K, d], [K, d, d]
+        The years' sites (input units, squared).
+    starts : list of ndarray of int, one per input
+        Each input's segment starts (recorded events and repairs found).
+    priors : dict shape name -> float
+        The shapes and their prior probabilities (``{"line": 1}``: the line alone).
+    fleet : FleetPrior, optional
+        The fleet's prior of sigma (:func:`sigma_grid`); else calibration's.
+
+    Returns
+    -------
+    TrendFit or None
+        None when no year can be predicted (too few years in a segment).
+    """
+    from scipy import stats
+    years = np.asarray(years)
+    cuts = cut_indices(years, starts, min_years)
+    if cuts.size == 0:
+        return None
+    d = x.shape[1]
+    z = np.empty((cuts.size, d))
+    marg = np.empty((cuts.size, d))
+    grid = sigma_grid(cfg, fleet)
+    for j, k in enumerate(cuts):
+        w, mean, S = predict_ahead(cfg, years, x, cov, starts, priors, int(k), grid)
+        z[j], marg[j] = standardise(x[k], w, mean, S)
+    q = np.sum(z * z, axis=1)
+    year_p = stats.chi2.sf(q, d)
+    p_sum = float(stats.chi2.sf(q.sum(), d * cuts.size))
+    p_worst = float(min(1.0, cuts.size * year_p.min()))
+    used = tuple(n for n in ("line", "accelerating", "change") if priors.get(n, 0) > 0)
+    return TrendFit(p_value=min(1.0, 2 * min(p_sum, p_worst)), years=years[cuts], z=z,
+                    marginal=marg, year_p=year_p, p_sum=p_sum, p_worst=p_worst, shapes=used)
+
+
+def unit_sites(cfg: Config, up, post_cov: np.ndarray, trend: dict, found=(),
+               change_year: Optional[int] = None) -> tuple[np.ndarray, np.ndarray, list]:
+    """What :func:`check_trend_fit` reads of a unit's posterior.
+
+    The sites are the laplace method's (``up.site``: each year's likelihood summarised);
+    without them, the yearly posterior means and covariances stand in. The segments are the
+    trend posterior's (``trend["start"]``), else the recorded events and the repairs
+    ``found`` (:class:`~twinmon.repairs.FoundRepair`). A ``change_year`` (the posterior's
+    change shape, :func:`change_year`) starts a segment too, as a repair does: a step is
+    unpredictable the year it comes (its size has the change shape's prior, a few years'
+    scatter); what is checked is that the years before and after it follow the trend.
+
+    Parameters
+    ----------
+    up : UnitPosterior
+    post_cov : ndarray, shape [K, d, d]
+        Covariance of each year's posterior draws.
+    trend : dict
+        The trend posterior (``UnitPosterior.trend``), or empty.
+
+    Returns
+    -------
+    x : ndarray, shape [K, d]
+    cov : ndarray, shape [K, d, d]
+    starts : list of ndarray of int
+    """
+    from ..calibrate.trend import segment_starts
+    site = getattr(up, "site", None) or {}
+    if site:
+        x, cov = np.asarray(site["x"], float), np.asarray(site["cov"], float)
+    else:
+        x, cov = np.asarray(up.mean, float), np.asarray(post_cov, float)
+    if trend and "start" in trend:
+        st = np.asarray(trend["start"])
+        starts = [st[:, i][st[:, i] >= 0] for i in range(st.shape[1])]
+    else:
+        events = [(e[0], e[1]) for e in getattr(up, "events", None) or ()]
+        events += [(r.year, c) for r in found for c in r.components]
+        starts = segment_starts(cfg, np.asarray(up.years), events)
+    if change_year is not None:
+        starts = [np.union1d(s, [change_year]) if change_year > s[-1] else s for s in starts]
+    return x, cov, starts
+
+
+def change_year(shape: dict, priors: dict) -> Optional[int]:
+    """The posterior's most probable change year when the data favour a change: its
+    posterior probability (:func:`~twinmon.calibrate.shapes.shape_summary`) at least its
+    prior share of ``priors`` (a Bayes factor of at least 1 against the other shapes);
+    else None. On the step fleets of benchmarks/prognosis.py (seed 11) half the single
+    steps held less than half the posterior (a step of 3 site sd: change 0.34-0.44), and
+    their step year, unpredictable one year ahead, failed the check."""
+    total = sum(max(float(p), 0.0) for p in priors.values())
+    if not shape or shape.get("change_year") is None or priors.get("change", 0) <= 0:
+        return None
+    return int(shape["change_year"]) if shape["change"] >= priors.get("change", 0) / total \
+        else None
+
+
+def recorded_shapes(cfg: Config, posterior_path) -> dict:
+    """``calibrate.shapes`` as the posterior at ``posterior_path`` recorded it (its
+    provenance), else the config's: the one-year-ahead check must weigh the shapes the
+    posterior weighed."""
+    import yaml
+
+    from ..artifacts import read_provenance
+    from ..errors import ArtifactError
+    try:
+        text = read_provenance(posterior_path).get("config") or ""
+        shapes = (yaml.safe_load(text) or {}).get("calibrate", {}).get("shapes")
+    except (ArtifactError, OSError, yaml.YAMLError, AttributeError):
+        shapes = None
+    return dict(shapes) if isinstance(shapes, dict) else dict(cfg.calibrate.shapes)
+
+
+def describe_miss(cfg: Config, fit: TrendFit, alpha: float) -> str:
+    """The unit's status reason when the check fails: the years missed, the p-value, the
+    worst input and what to do."""
+    names = cfg.model.input_names
+    idx = fit.missed(alpha)
+    yrs = ", ".join(str(int(fit.years[k])) for k in idx)
+    worst = int(idx[np.argmin(fit.year_p[idx])])
+    i = int(np.argmax(np.abs(fit.marginal[worst])))
+    v = float(fit.marginal[worst, i])
+    model = ("straight line" if fit.shapes == ("line",) else
+             "trend (" + ", ".join({"line": "a straight line", "accelerating": "accelerating",
+                                    "change": "one change of level and rate"}[s]
+                                   for s in fit.shapes) + ")")
+    return (f"prognosis unreliable: the trend missed year(s) {yrs} one year ahead "
+            f"(p = {fit.p_value:.2g} over the {fit.years.size} years it predicted; in year "
+            f"{int(fit.years[worst])} {names[i]} lay {abs(v):.1f} sd "
+            f"{'above' if v > 0 else 'below'} the forecast): the unit's history does not "
+            f"follow the {model} its forecast extends (wear that reverses or steps more than "
+            "once, a repair no event records, or a year's estimate off), so its failure year "
+            "and intervals may be wrong; check its maintenance records (record a repair with "
+            "'twinmon events add') and those years' fit ('twinmon diagnose')")
