@@ -171,7 +171,7 @@ def judge(cfg: Config, unit: str, plan: dict, ind_obs: np.ndarray, gradient: np.
     # jointly (sees a fault another input's normal ageing hides from the indicator) and,
     # after a repair, the wear rates pooled over the repairs.
     tests = [p for p in (drift.p_value, drift.p_inputs, drift.p_history) if np.isfinite(p)]
-    drift.abnormal = bool(min(tests) < alpha / len(tests))
+    drift.abnormal = bool(tests) and bool(min(tests) < alpha / len(tests))
     if not drift.abnormal:
         return drift, Attribution(HEALTHY)
     # The components are named from the slopes whose evidence is the stronger.
