@@ -54,19 +54,25 @@ def _current(s: UnitState, final, model_effects, model_values, held: int | None 
     return u_now, rows, fixed, Qs, (Gs if Gs and keep else None)
 
 
+def _screened(s: UnitState, candidates, in_model, u_now, rows, Qs, fixed, Gs) -> list:
+    """``(score, name, value, onset)`` of each candidate not in ``in_model`` (its
+    ``(name, onset)`` pairs) screened on top of it (:func:`~.screen.screen`), best first."""
+    used = {n for n, _ in in_model}
+    scores = []
+    for name in candidates:
+        if name not in used:
+            sc, v, on, _ = screen(s, name, u_now, rows, Qs, fixed, Gs=Gs)
+            scores.append((sc, name, v, on))
+    scores.sort(reverse=True)
+    return scores
+
+
 def further(s: UnitState, final, model_effects, model_values, candidates):
     """Try one more effect on top of the current model; None unless the BIC gain is
     above ``bic_gain``."""
     chi2_cur = final[0]
     u_now, rows, fixed, Qs, Gs = _current(s, final, model_effects, model_values)
-    used = {n for n, _ in model_effects}
-    scores = []
-    for name in candidates:
-        if name in used:
-            continue
-        sc, v, on, _ = screen(s, name, u_now, rows, Qs, fixed, Gs=Gs)
-        scores.append((sc, name, v, on))
-    scores.sort(reverse=True)
+    scores = _screened(s, candidates, model_effects, u_now, rows, Qs, fixed, Gs)
     bic_cur = bic(s, chi2_cur, len(model_effects))
     best, near = None, []
     for sc, name, v, on in scores[:s.dc.confirm_further]:
@@ -156,14 +162,7 @@ def _swap_pass(s: UnitState, final, model_effects: list, model_values: list,
             except SimulationError:
                 df = 0.0
             rows_o.append(rows[k] + df)
-        used = {n for n, _ in others}
-        scored = []
-        for name in candidates:
-            if name in used:
-                continue
-            sc, v, on, _ = screen(s, name, u_now, rows_o, Qs, fixed_o, Gs=Gs)
-            scored.append((sc, name, v, on))
-        scored.sort(reverse=True)
+        scored = _screened(s, candidates, others, u_now, rows_o, Qs, fixed_o, Gs)
         own = next((sc for sc, n, _, _ in scored if n == name_j), 0.0)
         # The effect in place is tried again around its screened onset (beside a new
         # partner its onset may move).
