@@ -61,13 +61,18 @@ def _cfg(units, seed=101, **fab):
     return config_from_mapping(raw, PUMP)
 
 
+def _diagnosed(cfg, folder, workers=1) -> dict:
+    """The config's fleet fabricated in ``folder`` and diagnosed from its observations alone
+    (the truth file stays unread): unit -> gap result; gap.h5 is in ``folder``."""
+    fabricate(cfg, folder / "obs.h5", folder / "truth.h5")
+    return diagnose(cfg, folder / "obs.h5", folder / "gap.h5", workers=workers).units
+
+
 @pytest.fixture(scope="module")
 def blind(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("blind")
     cfg = _cfg(_units())
-    fabricate(cfg, tmp / "obs.h5", tmp / "truth.h5")
-    # Only the observations go to diagnose; the truth file stays unread.
-    return diagnose(cfg, tmp / "obs.h5", tmp / "gap.h5", workers=2).units
+    return _diagnosed(cfg, tmp, workers=2)
 
 
 def test_magnitudes_give_a_3_sigma_gap():
@@ -126,8 +131,7 @@ def test_extra_channels_separate_plateau_effects(tmp_path):
              "G": {"trajectories": TRAJ, "effects": {"sensor.gain": {"value": 1.05,
                                                                      "onset": ONSET}}}}
     cfg = _cfg(units, seed=7, record_channels=True)
-    fabricate(cfg, tmp_path / "obs.h5", tmp_path / "truth.h5")
-    res = diagnose(cfg, tmp_path / "obs.h5", tmp_path / "gap.h5", workers=2).units
+    res = _diagnosed(cfg, tmp_path, workers=2)
     assert res["F"].verdict == "effect" and res["F"].effects[0] == "pipe.fouling"
     assert res["G"].verdict == "effect" and res["G"].effects[0] == "sensor.gain"
 
@@ -137,8 +141,7 @@ def test_two_effects_are_both_found(tmp_path):
         "motor.start_delay": {"value": 1.0, "onset": 2},
         "pipe.fouling": {"value": 0.25, "onset": 4}}}}
     cfg = _cfg(units, seed=5)
-    fabricate(cfg, tmp_path / "obs.h5", tmp_path / "truth.h5")
-    g = diagnose(cfg, tmp_path / "obs.h5", tmp_path / "gap.h5", workers=1).units["T"]
+    g = _diagnosed(cfg, tmp_path)["T"]
     assert g.verdict == "effect"
     assert g.effects[0] == "motor.start_delay"
     # The second, plateau-type effect can only be named up to its flow-alike group.
@@ -159,8 +162,7 @@ def test_pair_gets_a_group_per_effect(tmp_path):
         "sensor.tau": {"value": 1.5, "onset": ONSET},
         "pipe.fouling": {"value": 0.25, "onset": ONSET}}}}
     cfg = _cfg(units, seed=5)
-    fabricate(cfg, tmp_path / "obs.h5", tmp_path / "truth.h5")
-    g = diagnose(cfg, tmp_path / "obs.h5", tmp_path / "gap.h5", workers=1).units["P"]
+    g = _diagnosed(cfg, tmp_path)["P"]
     assert g.verdict == "effect"
     assert len(g.groups) == 2
     members = [[m["effect"] for m in grp["members"]] for grp in g.groups]
@@ -225,8 +227,7 @@ def test_plateau_shifts_from_two_years_are_both_found(tmp_path):
         "pipe.fouling": {"value": 0.15, "onset": 3},
         "sensor.gain": {"value": 0.955, "onset": 5}}}}
     cfg = _cfg(units, seed=5, years=7)
-    fabricate(cfg, tmp_path / "obs.h5", tmp_path / "truth.h5")
-    g = diagnose(cfg, tmp_path / "obs.h5", tmp_path / "gap.h5", workers=1).units["S"]
+    g = _diagnosed(cfg, tmp_path)["S"]
     assert g.verdict == "effect" and len(g.groups) == 2, (g.verdict, g.groups)
     by_onset = {grp["onset"]: {m["effect"] for m in grp["members"]} for grp in g.groups}
     assert set(by_onset) == {3, 5}, by_onset
@@ -242,8 +243,7 @@ def test_same_year_plateau_shifts_are_one_group(tmp_path):
         "pipe.fouling": {"value": 0.3, "onset": ONSET},
         "motor.supply_ratio": {"value": 0.925, "onset": ONSET}}}}
     cfg = _cfg(units, seed=9)
-    fabricate(cfg, tmp_path / "obs.h5", tmp_path / "truth.h5")
-    g = diagnose(cfg, tmp_path / "obs.h5", tmp_path / "gap.h5", workers=1).units["W"]
+    g = _diagnosed(cfg, tmp_path)["W"]
     assert g.verdict == "effect" and len(g.groups) == 1, (g.verdict, g.groups)
     grp = g.groups[0]
     members = {m["effect"]: m for m in grp["members"]}
