@@ -200,7 +200,7 @@ def predict_ahead(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarray
     """
     from ..calibrate.gaussian_trend import GaussianTrend, linear_gaussian, year_weights
     from ..calibrate.methods.laplace import line_model
-    from ..calibrate.shapes import OCCAM, build_shapes
+    from ..calibrate.shapes import OCCAM, build_shapes, extend
     from ..calibrate.trend import sigma_prior_scale
     sig, log_p0 = grid
     yk = np.asarray(years[:k])
@@ -247,8 +247,9 @@ def predict_ahead(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarray
         Pb, _, mb, ll = evaluate(group, Wg, lv_g)                        # [G, P, ...]
         logw.append((np.array([s.log_prior for s in group])[:, None] + log_p0 + ll).ravel())
         # Each shape's map to the trend one year on: its ``now`` rows extended.
-        H = np.stack([s.now[0] + u * s.now[1] + u * u * s.now[2]
-                      + (np.expm1(s.growth * u) - s.growth * u) * s.now[3]
+        # extend() is linear in the trend's rows: applied to each coefficient's rows (as
+        # if each were a draw) it gives the map's columns.
+        H = np.stack([extend(np.moveaxis(s.now, 2, 0), np.full(nb, s.growth), [u])[:, 0].T
                       for s in group])                                       # [G, d, nb]
         means.append(np.einsum("gpb,gdb->gpd", mb, H).reshape(-1, len(eye)))
         HP = np.linalg.solve(Pb, np.broadcast_to(np.swapaxes(H, 1, 2)[:, None],
