@@ -344,7 +344,8 @@ def backtest(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
         Unusable inputs (as ``forecast``), or no unit with enough years for one cut.
     """
     from .calibrate import Posterior, read_posterior
-    from .forecast import box_is_physical, degrading_directions, forecast_units
+    from .forecast import (box_is_physical, degrading_directions, forecast_limit_state,
+                           forecast_units)
     from .reduce import check_made_for, read_surrogate
     from .safety import Indicator
     posterior_path, surrogate_path = Path(posterior_path), Path(surrogate_path)
@@ -361,13 +362,16 @@ def backtest(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
                             f"differ from the config's inputs {cfg.model.input_names}")
     directions = degrading_directions(cfg, sur)
     box_ok = box_is_physical(cfg)
+    # Built once for every cut: it depends on the config and the FMU, not on the units.
+    limit_state = forecast_limit_state(cfg, directions, box_ok)[0]
     h = cfg.forecast.horizon
     c = cfg.forecast.confidence
     q = [(1 - c) / 2, 0.5, (1 + c) / 2]
 
     # The whole history once: the observed indicator and unsafe years.
     full, _, _ = forecast_units(cfg, post, sur, posterior_path=posterior_path,
-                                executor=executor, directions=directions, box_ok=box_ok)
+                                executor=executor, directions=directions, box_ok=box_ok,
+                                limit_state=limit_state)
     units = {}
     years_of = {u: np.asarray(post.units[u].years, int) for u in post.units}
     cuts_of = {u: y[bt.min_years - 1:-1] for u, y in years_of.items()}
@@ -395,7 +399,8 @@ def backtest(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
                    if recalibrate else {u: truncate(post.units[u], k) for u in at})
             cut_post = Posterior(post.input_names, sub, post.path, post.fit_windows)
             res, _, _ = forecast_units(cfg, cut_post, sur, posterior_path=posterior_path,
-                                       executor=executor, directions=directions, box_ok=box_ok)
+                                       executor=executor, directions=directions, box_ok=box_ok,
+                                       limit_state=limit_state)
             for u, uf in res.items():
                 preds[u][k] = (uf.indicator_quantiles(q),
                                -1 if uf.failure_year is None else int(uf.failure_year))

@@ -244,14 +244,18 @@ def test_points_outside_the_box_go_through_the_fmu(setup):
     assert r.value[0] == ind(sur.time, sur.predict(X[:1]))[0]
     assert list(r.nonphysical) == [False, False, False, True]
     assert list(r.unsafe(cfg.safety)) == [False, True, True, True]
-    # A degrading unit leaves the box in the later years: those samples used the FMU. (The
-    # summary keeps each unit's figures; its Monte Carlo arrays are in the artifact.)
+    # A degrading unit leaves the box in the later years: those samples used the FMU, or the
+    # limit-state model where it is sure they are unsafe. (The summary keeps each unit's
+    # figures; its Monte Carlo arrays are in the artifact.)
     f = read_forecast(tmp / "fc.h5").units["Bothy"]
     assert s.units["Bothy"].samples is None
     assert s.units["Bothy"].fmu_fraction == f.fmu_fraction
+    assert s.units["Bothy"].model_fraction == f.model_fraction
     outside = ~sur.in_box(f.samples.reshape(-1, 2))
-    assert f.fmu_fraction > 0 and f.fmu_fraction == pytest.approx(outside.mean())
+    assert f.fmu_fraction > 0 and f.model_fraction > 0
+    assert f.fmu_fraction + f.model_fraction == pytest.approx(outside.mean())
     assert np.all(f.source.ravel()[outside] != SOURCE_SURROGATE)
+    assert np.all(f.source.ravel()[~outside] == SOURCE_SURROGATE)
 
 
 def test_a_repeated_point_is_evaluated_once_with_the_result_of_every_point(setup):

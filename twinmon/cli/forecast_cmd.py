@@ -73,7 +73,8 @@ def forecast(config_path, overrides, posterior, surrogate, output, truth, worker
         label = {"withheld": " [FORCED: the twin misses the plant]",
                  "unreliable": " [UNRELIABLE]"}.get(u.status, "")
         say(f"{unit}: {u.root_cause}{label}; failure year (P(unsafe) > {limit:g}) {fy}{true}; "
-            f"{tests}; FMU share {100 * u.fmu_fraction:.1f} %")
+            f"{tests}; FMU share {100 * u.fmu_fraction:.1f} %"
+            + (f", limit-state model {100 * u.model_fraction:.1f} %" if u.model_fraction else ""))
         say(f"  plan: {u.plan}")
         if u.fmu_failures:
             say(f"  warning: {u.fmu_failures} FMU run(s) failed and were counted unsafe")
@@ -83,4 +84,7 @@ def forecast(config_path, overrides, posterior, surrogate, output, truth, worker
         med = ", ".join(f"{n} {v:.3g}" for n, v in s.pooling["median"].items())
         say(f"forecast: year-to-year sd pooled over {s.pooling['units']} jointly calibrated "
             f"units (fleet median: {med})")
+    if s.limit_state.get("used"):
+        say(f"forecast: outside the design box, a limit-state model learnt from "
+            f"{s.limit_state['runs']} FMU runs answered the points it is sure are unsafe")
     say(f"forecast: {len(s.units)} units in {s.wall_time:.1f} s -> {output}")

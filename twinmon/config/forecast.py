@@ -58,6 +58,11 @@ class ForecastConfig:
     #: calibrate for the joint method (which therefore records this level), in forecast for
     #: yearly estimates calibrated one year at a time. 0: off.
     repair_alpha: float = 0.01
+    #: Monte Carlo points outside the surrogate's box: ``learn`` (a model of the margin to
+    #: the safety limit, learnt from FMU runs once per forecast, answers the points it is
+    #: sure are unsafe; the others run through the FMU; twinmon/forecast/limitstate.py) or
+    #: ``fmu`` (every one through the FMU). P(unsafe) is the same within Monte Carlo error.
+    outside_box: Literal["learn", "fmu"] = "learn"
 
     def _check(self):
         if self.pool_min_units < 2:

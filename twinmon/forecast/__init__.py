@@ -41,8 +41,11 @@ Layout: one concern per file; each imports only those above it in this table.
                    channel that would separate an ambiguous verdict
 ``judge.py``       :func:`judge` (detection, then attribution), :func:`verdict`,
                    :func:`prognosis_status` and the ``STATUS_*`` values
-``twin.py``        :func:`evaluate_twin` (surrogate in the box, FMU outside),
-                   :class:`TwinResult`, :func:`box_is_physical`, the ``SOURCE_*`` values
+``limitstate.py``  :func:`~.limitstate.build_limit_state`: outside the box, a model of
+                   the margin to the safety limit learnt from FMU runs
+``twin.py``        :func:`evaluate_twin` (surrogate in the box; outside, the limit-state
+                   model where it is sure, else the FMU), :class:`TwinResult`,
+                   :func:`box_is_physical`, the ``SOURCE_*`` values
 ``directions.py``  :class:`Direction`, :func:`degrading_directions`
 ``predictive.py``  the future inputs' distribution and its draws (``forecast.predictive``)
 ``plan.py``        :func:`maintenance_plan`
@@ -82,15 +85,17 @@ from .predictive import (StatePredictive, residual_correlation, sample_predictiv
 from .streams import SEED_OFFSET
 from .trend import (POSTERIOR_DOF, SLOPE_CI, Trend, fit_trend, posterior_slope_test,
                     repair_years, segment_trend, slope_test)
-from .twin import (SOURCE_FAILED, SOURCE_FMU, SOURCE_SURROGATE, TwinResult, box_is_physical,
-                   evaluate_twin)
+from .limitstate import LimitState, build_limit_state, forecast_limit_state
+from .twin import (SOURCE_FAILED, SOURCE_FMU, SOURCE_MODEL, SOURCE_SURROGATE, TwinResult,
+                   box_is_physical, evaluate_twin)
 from .unit import ForecastSummary, UnitForecast
 from .workers import iter_forecast
 
 __all__ = ["forecast", "forecast_units", "iter_forecast", "read_forecast", "Forecast",
            "ForecastSummary", "UnitForecast", "SECTIONS", "SEED_OFFSET", "POOL_MIN_ESS",
            "STATUS_OK", "STATUS_WITHHELD", "STATUS_UNRELIABLE", "SOURCE_SURROGATE",
-           "SOURCE_FMU", "SOURCE_FAILED", "SLOPE_CI", "POSTERIOR_DOF", "Trend", "fit_trend",
+           "SOURCE_FMU", "SOURCE_FAILED", "SOURCE_MODEL", "LimitState", "build_limit_state",
+           "forecast_limit_state", "SLOPE_CI", "POSTERIOR_DOF", "Trend", "fit_trend",
            "repair_years", "segment_trend", "slope_test", "posterior_slope_test", "verdict",
            "judge", "prognosis_status", "Direction", "degrading_directions",
            "indicator_noise", "TwinResult", "evaluate_twin", "box_is_physical",
@@ -170,18 +175,24 @@ def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
     directions = degrading_directions(cfg, sur)
     box_ok = box_is_physical(cfg)
     fleet = fleet_sigma_prior(cfg, post)
+    limit_state, why = forecast_limit_state(cfg, directions, box_ok)
     units = {}
     with _open_forecast(output, cfg, names, directions, box_ok, seed=cfg.seed + SEED_OFFSET,
                         inputs=[posterior_path, surrogate_path] +
                         ([truth_path] if truth_path else [])) as f:
         f.attrs["sigma_pooling"] = artifacts.json_attr(_pooling_dict(fleet, names))
+        f.attrs["limit_state"] = artifacts.json_attr(_limit_state_dict(limit_state, why))
         for unit, uf in iter_forecast(cfg, post, sur, posterior_path=posterior_path,
                                       truth=truth, truth_path=truth_path, executor=executor,
                                       workers=workers, progress=progress,
-                                      directions=directions, box_ok=box_ok, fleet=fleet):
+                                      directions=directions, box_ok=box_ok, fleet=fleet,
+                                      limit_state=limit_state):
             _write_unit(f, cfg, unit, uf, names)
             units[unit] = uf.slim()
     warnings = [d.note for d in directions.values() if d.note]
+    if why:
+        warnings.append(f"{why}: every Monte Carlo point outside the design box ran through "
+                        "the FMU")
     fell = [u + " (" + ", ".join(f"{' or '.join(r['components'])} year {r['year']}"
                                  for r in uf.repairs) + ")"
             for u, uf in units.items() if uf.repairs]
@@ -197,16 +208,28 @@ def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
             f"{few[worst]:.0f}): their forecast rests on few trend draws; a larger "
             "calibrate.keep_draws keeps more")
     return ForecastSummary(units, str(output), _time.perf_counter() - start, box_ok,
-                           warnings, _pooling_dict(fleet, names))
+                           warnings, _pooling_dict(fleet, names),
+                           _limit_state_dict(limit_state, why))
+
+
+def _limit_state_dict(model: Optional[LimitState], why: str) -> dict:
+    """What ``--json`` and ``forecast.h5`` say of the limit-state model (``used`` false with
+    the reason when it was asked for and not used)."""
+    if model is None:
+        return {"used": False, "reason": why}
+    return {"used": True, **model.as_dict()}
 
 
 def forecast_units(cfg: Config, post, sur, *, posterior_path="<memory>", truth=None,
                    truth_path=None, executor=None, workers: Optional[int] = None,
-                   progress=None, directions=None, box_ok=None) -> tuple[dict, dict, bool]:
+                   progress=None, directions=None, box_ok=None,
+                   limit_state=False) -> tuple[dict, dict, bool]:
     """The forecast of every unit of a loaded posterior, in memory (no file written).
 
     ``backtest`` (which calls it on truncated histories) and the benchmarks use it; the
-    arguments are those of :func:`iter_forecast`.
+    arguments are those of :func:`iter_forecast`. ``limit_state``: the model of the points
+    outside the box (None: every one through the FMU); by default built here as
+    :func:`forecast` builds it (a caller forecasting several times builds it once).
 
     Returns
     -------
@@ -218,8 +241,10 @@ def forecast_units(cfg: Config, post, sur, *, posterior_path="<memory>", truth=N
         directions = degrading_directions(cfg, sur)
     if box_ok is None:
         box_ok = box_is_physical(cfg)
+    if limit_state is False:
+        limit_state = forecast_limit_state(cfg, directions, box_ok)[0]
     units = dict(iter_forecast(cfg, post, sur, posterior_path=posterior_path, truth=truth,
                                truth_path=truth_path, executor=executor, workers=workers,
                                progress=progress, directions=directions, box_ok=box_ok,
-                               fleet=fleet_sigma_prior(cfg, post)))
+                               fleet=fleet_sigma_prior(cfg, post), limit_state=limit_state))
     return units, directions, box_ok

@@ -77,6 +77,7 @@ def _write_unit(f, cfg: Config, unit: str, u: UnitForecast, names: list) -> None
     g.attrs["failure_year"] = -1 if u.failure_year is None else u.failure_year
     g.attrs["plan"] = u.plan
     g.attrs["fmu_fraction"] = u.fmu_fraction
+    g.attrs["model_fraction"] = u.model_fraction
     g.attrs["fmu_failures"] = u.fmu_failures
     put(g, "years_observed", u.years_observed.astype(np.int64), "year",
         "observed years (1 = first year of service)")
@@ -103,11 +104,13 @@ def _write_unit(f, cfg: Config, unit: str, u: UnitForecast, names: list) -> None
     _put_per_year(g, "samples", u.samples, "input units",
                   "Monte Carlo input samples [future year, sample, input]")
     _put_per_year(g, "indicator", u.indicator, ind.units, f"{ind.name} per future "
-                  "year and sample; inf = level never reached, NaN = FMU run failed")
+                  "year and sample; inf = level never reached, NaN = FMU run failed; the "
+                  "limit-state model's estimate where source is 3")
     _put_per_year(g, "nonphysical", u.nonphysical.astype(np.int8), "1",
                   "1 where the FMU reported the non-physical mode")
     _put_per_year(g, "source", u.source, "1", "0 surrogate, 1 FMU (outside the box), "
-                  "2 FMU run failed (counted unsafe)")
+                  "2 FMU run failed (counted unsafe), 3 limit-state model (outside the box, "
+                  "surely unsafe)")
     put(g, "p_unsafe", u.p_unsafe, "1", "probability of being unsafe per future year")
     _put_per_year(g, "indicator_observed", u.indicator_observed, ind.units,
                   f"{ind.name} of posterior samples per observed year [year, sample]")
@@ -276,4 +279,5 @@ def _read_unit(f, unit: str, path: Path, names: list, arrays: bool = True) -> Un
         true_inputs={n: get(g, f"truth/inputs/{n}") for n in names} if has_truth
         else None,
         _slim=None if arrays else {"fmu_fraction": float(g.attrs["fmu_fraction"]),
+                                   "model_fraction": float(g.attrs.get("model_fraction", 0.0)),
                                    "quantiles": {}, "n_samples": _n_samples(g, path)})

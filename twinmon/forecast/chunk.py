@@ -40,12 +40,14 @@ from .unit import UnitForecast
 class _TwinState:
     """What forecasting a chunk needs once per process: the config, the surrogate and its
     numpy form (:class:`~twinmon.calibrate.samplers.gpbatch.GPBatch`, checked against OpenTURNS
-    when built), the FMU spec and the executor of the FMU runs."""
+    when built), the FMU spec, the executor of the FMU runs and the limit-state model of the
+    points outside the box (:class:`~.limitstate.LimitState`, or None)."""
 
-    def __init__(self, cfg: Config, sur, spec, executor):
+    def __init__(self, cfg: Config, sur, spec, executor, limit_state=None):
         from ..calibrate.samplers.gpbatch import make_predictor
         self.cfg, self.sur, self.spec, self.executor = cfg, sur, spec, executor
         self.predict = make_predictor(sur)[0]
+        self.limit_state = limit_state
 
 
 def _check_unit(cfg: Config, posterior_path, unit: str, up) -> None:
@@ -94,7 +96,8 @@ def _forecast_chunk(state: _TwinState, units: list, *, directions: dict, box_ok:
         plans.append(p)
         points += pts
     twin = evaluate_twin(cfg, state.sur, np.concatenate(points), state.executor,
-                         fmu_everywhere=not box_ok, predict=state.predict, spec=state.spec)
+                         fmu_everywhere=not box_ok, predict=state.predict, spec=state.spec,
+                         limit_state=state.limit_state)
     unsafe_all = twin.unsafe(cfg.safety)
     out, offset = [], 0
     for (unit, up, tr), p in zip(units, plans):

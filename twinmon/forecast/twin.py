@@ -2,11 +2,13 @@
 
 :func:`evaluate_twin` computes the health indicator of input points through the Gaussian
 process surrogate where it was trained (vectorised) and through the FMU itself elsewhere, so
-a Gaussian process is never extrapolated. A point is unsafe (:meth:`TwinResult.unsafe`) when
-its indicator passes ``safety.unsafe_if``, when the FMU reports the non-physical mode, or
-when the FMU run fails. The surrogate has no non-physical output: :func:`box_is_physical`
-checks the box's corners on the FMU, and the forecast sends every point to the FMU when one
-is not physical.
+the surrogate is never extrapolated; outside the box, a limit-state model
+(:mod:`.limitstate`, ``forecast.outside_box: learn``) answers the points it is sure are
+unsafe, and only the others run through the FMU. A point is unsafe
+(:meth:`TwinResult.unsafe`) when its indicator passes ``safety.unsafe_if``, when the FMU
+reports the non-physical mode, when the FMU run fails, or when the limit-state model is sure
+of it. The surrogate has no non-physical output: :func:`box_is_physical` checks the box's
+corners on the FMU, and the forecast sends every point to the FMU when one is not physical.
 """
 from __future__ import annotations
 
@@ -17,8 +19,9 @@ import numpy as np
 
 from ..config import Config
 
-#: Where a Monte Carlo point was evaluated.
-SOURCE_SURROGATE, SOURCE_FMU, SOURCE_FAILED = 0, 1, 2
+#: Where a Monte Carlo point was evaluated: the surrogate (in the box), the FMU, a failed FMU
+#: run, the limit-state model (outside the box, surely unsafe; its indicator an estimate).
+SOURCE_SURROGATE, SOURCE_FMU, SOURCE_FAILED, SOURCE_MODEL = 0, 1, 2, 3
 
 
 @dataclass
@@ -29,10 +32,10 @@ class TwinResult:
     ----------
     value : ndarray, shape [m]
         The health indicator (its units); ``inf`` for a level never reached, NaN if the FMU
-        failed.
+        failed; the limit-state model's estimate at its points.
     nonphysical : ndarray of bool, shape [m]
     source : ndarray of int8, shape [m]
-        0 surrogate, 1 FMU, 2 FMU run failed.
+        0 surrogate, 1 FMU, 2 FMU run failed, 3 limit-state model.
     messages : list of str
         One message per failed FMU run.
     """
@@ -43,18 +46,18 @@ class TwinResult:
     messages: list = field(default_factory=list)
 
     def unsafe(self, safety) -> np.ndarray:
-        """Unsafe per point [m]: the indicator passes its limit, non-physical, or a failed
-        run."""
+        """Unsafe per point [m]: the indicator passes its limit, non-physical, a failed run,
+        or a point the limit-state model is sure of."""
         from ..safety import is_unsafe
-        failed = self.source == SOURCE_FAILED
-        return is_unsafe(self.value, safety, self.nonphysical) | failed
+        told = (self.source == SOURCE_FAILED) | (self.source == SOURCE_MODEL)
+        return is_unsafe(self.value, safety, self.nonphysical) | told
 
 
 def evaluate_twin(cfg: Config, surrogate, X: np.ndarray, executor=None,
                   fmu_everywhere: bool = False,
                   progress: Optional[Callable[[int, int], None]] = None,
                   predict: Optional[Callable[[np.ndarray], np.ndarray]] = None,
-                  spec=None) -> TwinResult:
+                  spec=None, limit_state=None) -> TwinResult:
     """Health indicator and non-physical flag of input points [m, d]: surrogate in its box,
     FMU outside.
 
@@ -63,7 +66,8 @@ def evaluate_twin(cfg: Config, surrogate, X: np.ndarray, executor=None,
     every point to the FMU; so does an indicator computed from another variable than the
     output the surrogate learnt. ``predict`` replaces ``surrogate.predict`` (its numpy form,
     :func:`~twinmon.calibrate.samplers.gpbatch.make_predictor`); ``spec`` the config's FMU spec (a
-    worker's copy of the FMU).
+    worker's copy of the FMU); ``limit_state`` a :class:`~.limitstate.LimitState`, which
+    answers the points outside the box it is sure are unsafe (the others go to the FMU).
 
     Each distinct point is evaluated once (:func:`distinct_rows`) and its result copied to
     its repeats: a joint posterior's future points are drawn with replacement from its
@@ -77,9 +81,9 @@ def evaluate_twin(cfg: Config, surrogate, X: np.ndarray, executor=None,
     U, inv = distinct_rows(X)
     if len(U) == len(X):
         return _evaluate_distinct(cfg, surrogate, X, executor, fmu_everywhere, progress,
-                                  predict, spec)
+                                  predict, spec, limit_state)
     out = _evaluate_distinct(cfg, surrogate, U, executor, fmu_everywhere, progress, predict,
-                             spec)
+                             spec, limit_state)
     return TwinResult(out.value[inv], out.nonphysical[inv], out.source[inv], out.messages)
 
 
@@ -98,7 +102,7 @@ def distinct_rows(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _evaluate_distinct(cfg: Config, surrogate, X: np.ndarray, executor, fmu_everywhere: bool,
-                       progress, predict, spec) -> TwinResult:
+                       progress, predict, spec, limit_state=None) -> TwinResult:
     """:func:`evaluate_twin` at every row of ``X`` [m, d] (input units)."""
     from ..safety import Indicator
     from ..simulate import as_parameters, run_batch, spec_for
@@ -117,6 +121,12 @@ def _evaluate_distinct(cfg: Config, surrogate, X: np.ndarray, executor, fmu_ever
             value[j] = ind(surrogate.time, (predict or surrogate.predict)(X[j]))
     messages = []
     out = np.flatnonzero(~inside)
+    if out.size and on_surrogate and limit_state is not None:
+        # The model decides each point on its own (row-wise sums): the same whatever batch.
+        sure, estimate = limit_state.classify(X[out])
+        value[out[sure]] = estimate[sure]
+        source[out[sure]] = SOURCE_MODEL
+        out = out[~sure]
     if out.size:
         spec = spec or spec_for(cfg)
         batch = run_batch(spec, as_parameters(cfg, X[out]), executor,

@@ -10,7 +10,7 @@ import numpy as np
 from .attribution import Attribution
 from .detection import IndicatorDrift
 from .judge import STATUS_OK, STATUS_WITHHELD
-from .twin import SOURCE_SURROGATE
+from .twin import SOURCE_FAILED, SOURCE_FMU, SOURCE_MODEL
 
 
 @dataclass
@@ -111,7 +111,15 @@ class UnitForecast:
         """Share of the future Monte Carlo points that went through the FMU (outside the box)."""
         if self._slim is not None:
             return self._slim["fmu_fraction"]
-        return float(np.mean(self.source != SOURCE_SURROGATE))
+        return float(np.mean((self.source == SOURCE_FMU) | (self.source == SOURCE_FAILED)))
+
+    @property
+    def model_fraction(self) -> float:
+        """Share of the future Monte Carlo points the limit-state model answered (outside the
+        box, surely unsafe)."""
+        if self._slim is not None:
+            return self._slim.get("model_fraction", 0.0)
+        return float(np.mean(self.source == SOURCE_MODEL))
 
     @property
     def n_samples(self) -> int:
@@ -144,7 +152,8 @@ class UnitForecast:
         keeping what :meth:`as_dict` and the command's lines read (a fleet's summary)."""
         from dataclasses import replace
         q = (0.05, 0.5, 0.95)
-        keep = {"fmu_fraction": self.fmu_fraction, "n_samples": self.n_samples,
+        keep = {"fmu_fraction": self.fmu_fraction, "model_fraction": self.model_fraction,
+                "n_samples": self.n_samples,
                 "quantiles": {q: self.indicator_quantiles(list(q))}}
         return replace(self, samples=None, indicator=None, nonphysical=None, source=None,
                        indicator_observed=None, _slim=keep)
@@ -174,6 +183,7 @@ class UnitForecast:
                              "separating_channel": self.attribution.separating_channel or None}
                             if self.attribution is not None else None),
             "fmu_fraction": round(self.fmu_fraction, 4),
+            "model_fraction": round(self.model_fraction, 4),
             "fmu_failures": self.fmu_failures,
         }
         if np.isfinite(self.pool_ess):
@@ -219,8 +229,12 @@ class ForecastSummary:
     warnings: list = field(default_factory=list)
     #: The fleet's prior of the joint method's year-to-year sd (:func:`~.pooling._pooling_dict`).
     pooling: dict = field(default_factory=lambda: {"pooled": False})
+    #: The limit-state model of the points outside the box (its runs, rounds, region), or
+    #: ``used`` false with the reason.
+    limit_state: dict = field(default_factory=lambda: {"used": False, "reason": ""})
 
     def as_dict(self) -> dict:
         return {"units": {u: f.as_dict() for u, f in self.units.items()},
                 "output": self.output, "wall_time": round(self.wall_time, 3),
-                "warnings": list(self.warnings), "sigma_pooling": self.pooling}
+                "warnings": list(self.warnings), "sigma_pooling": self.pooling,
+                "limit_state": self.limit_state}

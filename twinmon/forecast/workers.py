@@ -28,7 +28,8 @@ TASKS_PER_WORKER = 2
 
 def iter_forecast(cfg: Config, post, sur, *, directions: dict, box_ok: bool,
                   posterior_path="<memory>", truth=None, truth_path=None, executor=None,
-                  workers: Optional[int] = None, progress=None, fleet=None):
+                  workers: Optional[int] = None, progress=None, fleet=None,
+                  limit_state=None):
     """Forecast the units of ``post`` one chunk at a time; yields ``(unit, UnitForecast)`` in
     the posterior's order.
 
@@ -60,6 +61,9 @@ def iter_forecast(cfg: Config, post, sur, *, directions: dict, box_ok: bool,
         From :func:`~.pooling.fleet_sigma_prior`: the jointly calibrated units' draws are
         resampled to the fleet's prior of their year-to-year sd. The one thing a unit's
         forecast takes from the rest of its fleet.
+    limit_state : LimitState, optional
+        From :func:`~.limitstate.build_limit_state`: answers the points outside the box it
+        is sure are unsafe (the others run through the FMU).
 
     Raises
     ------
@@ -102,7 +106,7 @@ def iter_forecast(cfg: Config, post, sur, *, directions: dict, box_ok: bool,
         try:
             # One unit, or one worker: the FMU runs fan out on the executor instead. The
             # units' small factorisations on one BLAS thread, as in a pool's worker.
-            state = _TwinState(cfg, sur, spec, executor)
+            state = _TwinState(cfg, sur, spec, executor, limit_state)
             for names_ in chunks:
                 with one_blas_thread():
                     results = _forecast_chunk(state, chunk_of(names_), **context)
@@ -115,7 +119,8 @@ def iter_forecast(cfg: Config, post, sur, *, directions: dict, box_ok: bool,
             if own:
                 executor.__exit__(None, None, None)
         return
-    yield from _pooled(cfg, sur, spec, chunks, chunk_of, context, n_workers, progress)
+    yield from _pooled(cfg, sur, spec, chunks, chunk_of, context, n_workers, progress,
+                       limit_state)
 
 
 def _chunk_size(n_units: int, n_workers: int) -> int:
@@ -124,14 +129,14 @@ def _chunk_size(n_units: int, n_workers: int) -> int:
     return max(1, min(CHUNK_UNITS, -(-n_units // (4 * max(n_workers, 1)))))
 
 
-def _pooled(cfg, sur, spec, chunks, chunk_of, context, n_workers, progress):
+def _pooled(cfg, sur, spec, chunks, chunk_of, context, n_workers, progress, limit_state):
     """:func:`iter_forecast` on a pool: ``TASKS_PER_WORKER`` chunks in flight per worker,
     results yielded in the chunks' order."""
     from collections import deque
 
     from ..errors import Interrupted, SimulationError
     from ..executors import closing_pool, open_pool
-    pool = open_pool(cfg, "simulate", n_workers, _init_worker, (cfg, sur, spec),
+    pool = open_pool(cfg, "simulate", n_workers, _init_worker, (cfg, sur, spec, limit_state),
                      files=(spec.fmu,))
     n, done = sum(len(c) for c in chunks), 0
     with closing_pool(pool, SimulationError(
@@ -158,14 +163,14 @@ def _pooled(cfg, sur, spec, chunks, chunk_of, context, n_workers, progress):
 _worker_state: Optional[_TwinState] = None
 
 
-def _init_worker(cfg: Config, sur, spec) -> None:
+def _init_worker(cfg: Config, sur, spec, limit_state=None) -> None:
     """Pool initializer: the worker's twin, its FMU instance kept open from chunk to chunk."""
     global _worker_state
     from multiprocessing.util import Finalize
 
     from ..executors import SerialExecutor
     ex = SerialExecutor(keep_open=True)
-    _worker_state = _TwinState(cfg, sur, spec, ex)
+    _worker_state = _TwinState(cfg, sur, spec, ex, limit_state)
     # Pool workers leave by os._exit: only multiprocessing's finalizers close the FMU.
     Finalize(ex, ex.close, exitpriority=10)
 
