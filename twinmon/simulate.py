@@ -123,6 +123,13 @@ def check_model(cfg: Config) -> None:
 
     for key, spec in cfg.model.inputs.items():
         need(f"model.inputs.{key}.variable", spec.variable, params, "a settable parameter")
+        v = info.variables[spec.variable]
+        if v.min is not None and spec.low < v.min:
+            raise SimulationError(f"{src}: model.inputs.{key}.low: {spec.low:g} is below the "
+                                  f"min {v.min:g} {info.path.name} declares for {v.name}")
+        if v.max is not None and spec.high > v.max:
+            raise SimulationError(f"{src}: model.inputs.{key}.high: {spec.high:g} is above "
+                                  f"the max {v.max:g} {info.path.name} declares for {v.name}")
     need("model.output.variable", cfg.model.output.variable, values, "a recordable output")
     for ch in cfg.model.channels:
         need(f"model.channels.{ch}", ch, values, "a recordable output")
@@ -150,6 +157,21 @@ def spec_for(cfg: Config, outputs: Sequence[str] | None = None,
     return SimulationSpec(fmu=resolve_fmu(cfg.model.fmu), outputs=tuple(outputs),
                           times=cfg.model.output.times.times if times is None else times,
                           fmi_type=cfg.model.fmi_type, fixed=dict(cfg.model.fixed))
+
+
+def declared_range(cfg: Config) -> np.ndarray:
+    """The range the FMU's model description declares for each input (``min``, ``max``),
+    shape [d, 2], -inf / inf where it declares none: beyond it a value is not a state of
+    the model (FMI forbids setting it; a hand-written FMU may run it anyway, slowly or to a
+    failure)."""
+    from .fmu import describe_fmu
+    info = describe_fmu(cfg.model.fmu)
+    out = np.tile([-np.inf, np.inf], (len(cfg.model.inputs), 1))
+    for i, spec in enumerate(cfg.model.inputs.values()):
+        v = info.variables.get(spec.variable)
+        if v is not None:
+            out[i] = (-np.inf if v.min is None else v.min, np.inf if v.max is None else v.max)
+    return out
 
 
 def as_parameters(cfg: Config, X: np.ndarray) -> list[dict[str, float]]:

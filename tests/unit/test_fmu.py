@@ -396,7 +396,7 @@ def test_describe_fmu_fields(fmu_path, dc3_fmu):
     b = info.variables["bearing.b"]
     assert b == VariableInfo(name="bearing.b", causality="parameter", variability="fixed",
                              type="Float64", start=0.001, unit="N.m.s/rad",
-                             description=b.description, initial="exact")
+                             description=b.description, initial="exact", min=0.0)
     assert b.is_float and b.is_numeric and "bearing" in b.description
     stalled = info.variables["stalled"]
     assert (stalled.type, stalled.causality, stalled.is_float, stalled.is_numeric) == \
@@ -413,6 +413,9 @@ def test_describe_fmu_fields(fmu_path, dc3_fmu):
     assert (pump.fmi_version, pump.model_name) == ("2.0", "PumpCircuit")
     d = pump.variables["motor.D"]
     assert (d.type, d.start, d.unit, d.variability) == ("Real", 10.0, "N.m.s/rad", "fixed")
+    # The declared range: a damping has min 0, the pump coefficient no declared bound.
+    assert (d.min, d.max) == (0.0, None)
+    assert (pump.variables["pump.b2"].min, pump.variables["pump.b2"].max) == (None, None)
     assert {v.name for v in pump.tunable_parameters()} == set(DEFAULTS)
     assert [v.name for v in pump.recordable()][:6] == OUTPUTS
 

@@ -74,9 +74,13 @@ def test_process_executor_matches_serial(small_config, tmp_path):
 
 
 def test_failing_runs_are_recorded_and_do_not_stop_the_batch(tmp_path, small_config):
-    # Strongly negative damping makes the motor run away: the FMU's step guard fails the run.
-    cfg = load_config(small_config, ["model.inputs.motor_damping.low=-400",
-                                     "model.inputs.motor_damping.nominal=10"])
+    # An input reaching where the circuit's losses turn negative (pipe.fouling below -1,
+    # a range the FMU does not bound): the flow runs away and the FMU's step guard fails
+    # the run.
+    cfg = load_config(small_config, ["model.inputs.motor_damping.variable=pipe.fouling",
+                                     "model.inputs.motor_damping.low=-3",
+                                     "model.inputs.motor_damping.high=0.5",
+                                     "model.inputs.motor_damping.nominal=0"])
     out = tmp_path / "fail.h5"
     summary = simulate(cfg, out)
     sims = read_simulations(out)
@@ -87,7 +91,7 @@ def test_failing_runs_are_recorded_and_do_not_stop_the_batch(tmp_path, small_con
     assert 0 < summary.failures < 32
     assert failed.any() and (status == STATUS_OK).any()
     assert np.isnan(sims.Y["train"][failed]).all()
-    assert all("motor.D=" in m for m, bad in zip(messages, failed) if bad)
+    assert all("pipe.fouling=" in m for m, bad in zip(messages, failed) if bad)
     assert all(m == "" for m, bad in zip(messages, failed) if not bad)
 
 
@@ -172,3 +176,20 @@ def test_a_variable_fmi_does_not_let_a_tool_set_is_refused_with_the_reason(tmp_p
     with pytest.raises(SimulationError, match=rf"model.effects.{re.escape(name)}: {reason}.*FMI lets no tool") as e:
         check_model(cfg)
     assert e.value.exit_code == 6 and "\n" not in str(e.value)
+
+
+def test_a_design_box_beyond_the_range_the_fmu_declares_is_refused(tmp_path):
+    """motor.D declares min 0: a box reaching below it asks for states the model cannot be
+    in; one line names the config key, the value and the declared bound."""
+    from twinmon.errors import SimulationError
+    from twinmon.simulate import check_model, declared_range
+    from ..conftest import CONFIGS
+    ok = load_config(CONFIGS / "pump.yaml")
+    rng = declared_range(ok)
+    assert rng[0, 0] == 0.0 and np.isinf(rng[0, 1]) and np.all(np.isinf(rng[1]))
+    cfg = load_config(write_yaml(tmp_path / "p.yaml", {
+        "extends": str(CONFIGS / "pump.yaml"),
+        "model": {"inputs": {"motor_damping": {"low": -1.0}}}}))
+    with pytest.raises(SimulationError, match=r"model.inputs.motor_damping.low: -1 is below "
+                                              r"the min 0 PumpCircuit.fmu declares for motor.D"):
+        check_model(cfg)

@@ -62,6 +62,15 @@ def _start_value(v) -> float | None:
         return None
 
 
+def _bound(text) -> float | None:
+    """A declared ``min`` / ``max`` as a float (None when absent or not a finite number)."""
+    try:
+        value = float(text)
+    except (TypeError, ValueError):
+        return None
+    return value if value == value and abs(value) != float("inf") else None
+
+
 def _unit(v) -> str:
     if v.unit:
         return v.unit
@@ -132,7 +141,9 @@ class VariableInfo:
     ``Float64``, ``Int32``... in FMI 3.0); ``start`` is its start value as a float
     (Boolean: 0/1), or None when it has none; ``unit`` is "" when undeclared.
     ``shape`` is () for a scalar (FMI 3.0 arrays have their dimensions there);
-    ``initial`` is the declared ``initial`` attribute ("" when not given).
+    ``initial`` is the declared ``initial`` attribute ("" when not given); ``min`` and
+    ``max`` the declared range (None where not declared): a value outside it is not a state
+    of the model (FMI forbids setting it).
     """
 
     name: str
@@ -144,6 +155,8 @@ class VariableInfo:
     description: str
     shape: tuple[int, ...] = ()
     initial: str = ""
+    min: float | None = None
+    max: float | None = None
 
     @property
     def dimensions(self) -> tuple[int, ...]:
@@ -247,7 +260,8 @@ def describe_fmu(path) -> FMUInfo:
             type=v.type, start=_start_value(v) if not v.dimensions else None, unit=_unit(v),
             description=v.description or "",
             shape=tuple(d.start if d.start is not None else -1 for d in v.dimensions),
-            initial=v.initial or "")
+            initial=v.initial or "", min=_bound(getattr(v, "min", None)),
+            max=_bound(getattr(v, "max", None)))
     de = md.defaultExperiment
 
     def number(text) -> float | None:

@@ -77,13 +77,17 @@ def _truth_of(truth, truth_path, unit: str):
 
 def _forecast_chunk(state: _TwinState, units: list, *, directions: dict, box_ok: bool,
                     fit_windows: list, truth_path, fleet=None,
-                    shape_priors: Optional[dict] = None) -> list:
+                    shape_priors: Optional[dict] = None,
+                    input_range: Optional[np.ndarray] = None) -> list:
     """Forecast a chunk of units: their Monte Carlo points go through the twin in one batch.
 
     Parameters
     ----------
     state : _TwinState
     units : list of (unit, UnitPosterior, truth or None)
+    input_range : ndarray, shape [d, 2], optional
+        The range the FMU declares for each input (:func:`~twinmon.simulate.declared_range`):
+        future draws beyond it are held at its bound.
 
     Returns
     -------
@@ -92,7 +96,7 @@ def _forecast_chunk(state: _TwinState, units: list, *, directions: dict, box_ok:
     cfg = state.cfg
     plans, points = [], []
     for unit, up, _ in units:
-        p, pts = _plan_unit(cfg, unit, up, directions, fleet, shape_priors)
+        p, pts = _plan_unit(cfg, unit, up, directions, fleet, shape_priors, input_range)
         plans.append(p)
         points += pts
     twin = evaluate_twin(cfg, state.sur, np.concatenate(points), state.executor,
@@ -110,7 +114,8 @@ def _forecast_chunk(state: _TwinState, units: list, *, directions: dict, box_ok:
 
 
 def _plan_unit(cfg: Config, unit: str, up, directions: dict, fleet=None,
-               shape_priors: Optional[dict] = None) -> tuple[dict, list]:
+               shape_priors: Optional[dict] = None,
+               input_range: Optional[np.ndarray] = None) -> tuple[dict, list]:
     """A unit's trends, tests and Monte Carlo points (future states, posterior draws of the
     observed years, the probes of the indicator's gradient) before the twin runs.
 
@@ -118,7 +123,9 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict, fleet=None,
     years' and the trend's, which are the same chain states -- are first resampled to its
     posterior under the fleet's prior of the year-to-year sd; its yearly estimates are then
     those draws' means. ``shape_priors``: ``calibrate.shapes`` as the posterior recorded it
-    (:func:`~.trendfit.recorded_shapes`; default the config's)."""
+    (:func:`~.trendfit.recorded_shapes`; default the config's). ``input_range`` [d, 2]: the
+    FMU's declared range of each input; a future draw beyond it (a trend extended to a
+    negative damping, say) is held at the bound, the nearest state the model can be in."""
     fc = cfg.forecast
     shape_priors = dict(cfg.calibrate.shapes) if shape_priors is None else shape_priors
     names = cfg.model.input_names
@@ -187,6 +194,8 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict, fleet=None,
     else:
         X = sample_predictive([trends[n] for n in names], fut, corr, fc.samples,
                               unit_rng(cfg, unit, 0))
+    if input_range is not None:
+        X = np.clip(X, input_range[:, 0], input_range[:, 1])
     n_o = min(fc.observed_samples, samples_post.shape[1])
     pick = np.sort(unit_rng(cfg, unit, 1).choice(samples_post.shape[1], n_o, replace=False))
     Xo = samples_post[:, pick, :]

@@ -232,7 +232,8 @@ class LimitState:
 
 def region(cfg: Config, directions: dict) -> tuple[np.ndarray, np.ndarray]:
     """The region around the design box the model covers (input units), from each input's
-    degrading direction (:data:`DEGRADING_WIDTHS`, :data:`HEALTHY_WIDTHS`)."""
+    degrading direction (:data:`DEGRADING_WIDTHS`, :data:`HEALTHY_WIDTHS`), within the range
+    the FMU declares for it."""
     box = np.asarray(cfg.model.bounds, float)
     width = box[:, 1] - box[:, 0]
     sign = np.array([getattr(directions.get(n), "sign", 0) for n in cfg.model.input_names])
@@ -246,7 +247,10 @@ def region(cfg: Config, directions: dict) -> tuple[np.ndarray, np.ndarray]:
     # below zero is no machine at all, and its runs say nothing of the machine's limit).
     lo = np.where((box[:, 0] > 0) & (lo <= 0), box[:, 0] / 2, lo)
     hi = np.where((box[:, 1] < 0) & (hi >= 0), box[:, 1] / 2, hi)
-    return lo, hi
+    # Nor beyond the range the FMU declares (the forecast holds its draws there too).
+    from ..simulate import declared_range
+    declared = declared_range(cfg)
+    return np.maximum(lo, declared[:, 0]), np.minimum(hi, declared[:, 1])
 
 
 def forecast_limit_state(cfg: Config, directions: dict, box_ok: bool, spec=None

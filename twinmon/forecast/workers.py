@@ -73,7 +73,7 @@ def iter_forecast(cfg: Config, post, sur, *, directions: dict, box_ok: bool,
         A worker process died.
     """
     from ..executors import check_workers, make_executor, one_blas_thread
-    from ..simulate import spec_for
+    from ..simulate import declared_range, spec_for
     unit_names = list(post.units)
     n = len(unit_names)
     n_workers = cfg.simulate.workers if workers is None else workers
@@ -84,7 +84,8 @@ def iter_forecast(cfg: Config, post, sur, *, directions: dict, box_ok: bool,
     spec = spec_for(cfg)
     context = dict(directions=directions, box_ok=box_ok, fit_windows=post.fit_windows,
                    truth_path=truth_path, fleet=fleet,
-                   shape_priors=recorded_shapes(cfg, posterior_path))
+                   shape_priors=recorded_shapes(cfg, posterior_path),
+                   input_range=declared_range(cfg))
 
     def chunk_of(names_):
         ups = []
