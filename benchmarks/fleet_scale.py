@@ -226,8 +226,10 @@ def accuracy(calib_json: str) -> tuple[dict, int]:
 
 
 def forecast_figures(fc_json: str, kinds: dict[str, str]) -> str:
-    """Root-cause agreement with the fabricated kind, and failure years within 1 of true."""
-    units = json.loads(fc_json)["units"]
+    """Root-cause agreement with the fabricated kind, failure years within 1 of true, and
+    the shares of future points the FMU and the limit-state model answered."""
+    whole = json.loads(fc_json)
+    units = whole["units"]
     right, n, years_ok, years_n = 0, 0, 0, 0
     for u, f in units.items():
         # Verdicts: healthy, pump, motor (the components' names), both, ambiguous, withheld.
@@ -238,8 +240,13 @@ def forecast_figures(fc_json: str, kinds: dict[str, str]) -> str:
             years_n += 1
             fy = f.get("failure_year")
             years_ok += fy is not None and abs(fy - t) <= 1
+    fmu = np.mean([f.get("fmu_fraction", 0.0) for f in units.values()])
+    model = np.mean([f.get("model_fraction", 0.0) for f in units.values()])
+    ls = whole.get("limit_state", {})
+    learnt = (f"limit-state model {100 * model:.1f} % ({ls.get('runs')} runs)"
+              if ls.get("used") else "no limit-state model")
     return (f"root cause {100 * right / n:.0f} %; failure year +-1 "
-            f"{years_ok}/{years_n}")
+            f"{years_ok}/{years_n}; FMU {100 * fmu:.1f} % of future points, {learnt}")
 
 
 def diagnose_figures(gap_json: str) -> str:
