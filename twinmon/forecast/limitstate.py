@@ -51,10 +51,10 @@ HEALTHY_WIDTHS = 0.5
 #: that the model is not used).
 SURE = 3.0
 MAX_SURE = 8.0
-#: ... and its indicator known to this many margin units (one sd; a tenth of the scale ``S``):
-#: a point sure of its side but not of its value (near the level where the indicator stops
-#: being finite, say) goes to the FMU, so the quantiles past the limit stay the FMU's to
-#: about that.
+#: ... and its indicator known to this many margin units (one sd; a twentieth of the scale
+#: ``S``, 0.6 s of t90 for the pump): a point sure of its side but not of its value (near
+#: the level where the indicator stops being finite, say) goes to the FMU, so the quantiles
+#: past the limit stay the FMU's to about that.
 VALUE_SD = 0.05
 #: Latin hypercube runs per input before the model's first fit.
 INITIAL_RUNS_PER_INPUT = 24
