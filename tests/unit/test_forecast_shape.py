@@ -169,10 +169,13 @@ def test_an_unrecorded_repair_is_found_and_restarts_the_trend(dcdrive_fleet):
     assert off.units["Rep"].repairs == [] and off.units["Rep"].trends["bearing_friction"].n == 10
 
 
-def test_the_joint_method_starts_a_segment_at_an_unrecorded_repair(dcdrive_fleet):
+def test_the_fleet_method_starts_a_segment_at_an_unrecorded_repair(dcdrive_fleet):
+    """The method a fleet is calibrated with (laplace, which shares the repair scan of the
+    years' sites with the joint method: calibrate.trend.with_found_repairs) restarts the
+    bearing's trend at its hidden replacement, and the forecast says so."""
     cfg_path, tmp = dcdrive_fleet
     from twinmon.calibrate import read_posterior
-    cfg = load_config(cfg_path, ["calibrate.method=joint"])
+    cfg = load_config(cfg_path, ["calibrate.method=laplace"])
     summary = calibrate(cfg, tmp / "sur.h5", tmp / "obs.h5", tmp / "post_joint.h5")
     assert summary.as_dict()["units"]["Rep"]["found_repairs"][0]["year"] == 6
     post = read_posterior(tmp / "post_joint.h5")
