@@ -14,6 +14,13 @@ direction: a repair makes the estimates *fall back*, which accelerating wear or 
 wear never does. The smallest p-value over the years tried, times their number and the
 number of inputs tested (Bonferroni), is compared with ``forecast.repair_alpha``.
 
+A finding names the component of the input whose own fall that year is the strongest, and
+of every other input whose own step there is a fall of at least :data:`NAME_T` sds: inputs
+that trade off in the likelihood cannot be told apart (on the flow alone a pump's repair
+moves the damping's estimate as much as the pump coefficient's, and its step in sds is often
+the larger), and naming the strongest alone named the wrong part for 3 of the 22 repaired
+pumps found on ``benchmarks/repair_scan.py``'s seed 11. The user's work order tells which.
+
 Who acts on a finding: ``calibrate``'s joint method scans the years' maximum-likelihood
 points (with their Laplace covariances) before it samples, and starts a trend segment at
 each repair found (``found_repairs`` of the posterior); ``forecast`` scans the yearly
@@ -23,6 +30,7 @@ Either way the forecast reports the finding with the command that records the ev
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Optional
 
 import numpy as np
 
@@ -32,6 +40,9 @@ from .config import Config
 MIN_BEFORE = 3
 #: Years of the current part for a scan at all (a line, a step and two degrees of freedom).
 MIN_YEARS = 5
+#: A found repair names the input whose own fall that year is the strongest, and every
+#: other whose own step there is a fall of at least this many sds.
+NAME_T = 1.0
 
 
 @dataclass
@@ -119,58 +130,99 @@ def fall_test(years: np.ndarray, est: np.ndarray, cov: np.ndarray, i: int,
     tried : int
         Number of candidate years (for the Bonferroni adjustment).
     """
-    from scipy import stats
     years = np.asarray(years)
+    est = np.asarray(est, float)
+    if est.shape[0] < MIN_YEARS or direction == 0:
+        return 1.0, -1, 0.0, 0
+    best = (1.0, -1, 0.0)
+    cands = [int(c) for c in years[MIN_BEFORE:]]
+    for c in cands:
+        fit = step_fit(years, est, cov, i, c)
+        if fit is None:
+            continue
+        p = fit.p_value(direction)
+        if p < best[0]:
+            best = (p, c, fit.step)
+    return (*best, len(cands))
+
+
+@dataclass
+class StepFit:
+    """Lines for every input plus a step of one input at one year, fitted by generalised
+    least squares (:func:`step_fit`).
+
+    Attributes
+    ----------
+    step : float
+        The fitted step (input units).
+    change : float
+        The fitted change from the year before the step to its year: one year's wear plus
+        the step (what a repair makes fall back; accelerating wear never does, though a
+        line plus a step would fit its bend).
+    sd : float
+        Standard deviation of ``change``, the overdispersion beyond the stated errors and
+        year-to-year variances included.
+    dof : int
+    """
+
+    step: float
+    change: float
+    sd: float
+    dof: int
+
+    def t(self, direction: int) -> float:
+        """The change in sds, positive for a fall against the degrading ``direction``."""
+        return -direction * self.change / self.sd
+
+    def p_value(self, direction: int) -> float:
+        """One-sided p-value of a fall against the degrading ``direction``."""
+        from scipy import stats
+        return float(stats.t.sf(self.t(direction), self.dof))
+
+
+def step_fit(years: np.ndarray, est: np.ndarray, cov: np.ndarray, i: int,
+             c: int) -> Optional[StepFit]:
+    """Every input's line and input ``i``'s step at year ``c`` (:func:`fall_test`'s model);
+    None when the fit is not possible (an input that does not vary at all, a singular
+    design)."""
     est = np.asarray(est, float)
     cov = np.asarray(cov, float)
     n, d = est.shape
-    if n < MIN_YEARS or direction == 0:
-        return 1.0, -1, 0.0, 0
     t = years - years.mean()
     lines = [np.column_stack([np.ones(n), t]) for _ in range(d)]
-    cands = [int(c) for c in years[MIN_BEFORE:]]
-    best = (1.0, -1, 0.0)
-    for c in cands:
-        jump = (years >= c).astype(float)
-        design = [np.column_stack([x, jump]) if j == i else x for j, x in enumerate(lines)]
-        # Each input's year-to-year variance: its scatter about its own fit beyond the
-        # errors' variance (0 when the errors explain it).
-        jitter = np.empty(d)
-        for j, x in enumerate(design):
-            r = est[:, j] - x @ np.linalg.lstsq(x, est[:, j], rcond=None)[0]
-            jitter[j] = max(float(r @ r) / (n - x.shape[1]) - float(np.mean(cov[:, j, j])), 0)
-        try:
-            W = np.linalg.inv(cov + np.diag(jitter))                     # [n, d, d]
-        except np.linalg.LinAlgError:      # an input that does not vary at all: no test
-            return 1.0, -1, 0.0, 0
-        # Stacked by year, then input: column blocks per input's design.
-        X = np.zeros((n, d, 2 * d + 1))
-        for j in range(d):
-            X[:, j, 2 * j:2 * j + 2] = lines[j]
-        X[:, i, 2 * d] = jump
-        A = np.einsum("kap,kab,kbq->pq", X, W, X)
-        b = np.einsum("kap,kab,kb->p", X, W, est)
-        try:
-            coef = np.linalg.solve(A, b)
-        except np.linalg.LinAlgError:
-            continue
-        resid = est - np.einsum("kap,p->ka", X, coef)
-        dof = n * d - (2 * d + 1)
-        # Overdispersion beyond the stated errors and jitter (never below 1).
-        phi = max(1.0, float(np.einsum("ka,kab,kb->", resid, W, resid)) / dof)
-        # The change from the year before c to c: one year's wear plus the step. A repair
-        # makes the estimates fall back; accelerating wear never does, though a line plus a
-        # step would fit its bend (a step down after its flat first years).
-        contrast = np.zeros(2 * d + 1)
-        contrast[2 * i + 1] = contrast[2 * d] = 1.0
-        var = phi * float(contrast @ np.linalg.solve(A, contrast))
-        if var <= 0:
-            continue
-        # Positive t: a fall against the degrading direction, as a repair makes.
-        p = float(stats.t.sf(-direction * float(contrast @ coef) / np.sqrt(var), dof))
-        if p < best[0]:
-            best = (p, c, float(coef[2 * d]))
-    return (*best, len(cands))
+    jump = (years >= c).astype(float)
+    design = [np.column_stack([x, jump]) if j == i else x for j, x in enumerate(lines)]
+    # Each input's year-to-year variance: its scatter about its own fit beyond the errors'
+    # variance (0 when the errors explain it).
+    jitter = np.empty(d)
+    for j, x in enumerate(design):
+        r = est[:, j] - x @ np.linalg.lstsq(x, est[:, j], rcond=None)[0]
+        jitter[j] = max(float(r @ r) / (n - x.shape[1]) - float(np.mean(cov[:, j, j])), 0)
+    try:
+        W = np.linalg.inv(cov + np.diag(jitter))                     # [n, d, d]
+    except np.linalg.LinAlgError:
+        return None
+    # Stacked by year, then input: column blocks per input's design.
+    X = np.zeros((n, d, 2 * d + 1))
+    for j in range(d):
+        X[:, j, 2 * j:2 * j + 2] = lines[j]
+    X[:, i, 2 * d] = jump
+    A = np.einsum("kap,kab,kbq->pq", X, W, X)
+    b = np.einsum("kap,kab,kb->p", X, W, est)
+    try:
+        coef = np.linalg.solve(A, b)
+    except np.linalg.LinAlgError:
+        return None
+    resid = est - np.einsum("kap,p->ka", X, coef)
+    dof = n * d - (2 * d + 1)
+    # Overdispersion beyond the stated errors and jitter (never below 1).
+    phi = max(1.0, float(np.einsum("ka,kab,kb->", resid, W, resid)) / dof)
+    contrast = np.zeros(2 * d + 1)
+    contrast[2 * i + 1] = contrast[2 * d] = 1.0
+    var = phi * float(contrast @ np.linalg.solve(A, contrast))
+    if not var > 0:
+        return None
+    return StepFit(float(coef[2 * d]), float(contrast @ coef), float(np.sqrt(var)), dof)
 
 
 def find_repairs(cfg: Config, years: np.ndarray, mean: np.ndarray, since: dict,
@@ -203,18 +255,32 @@ def find_repairs(cfg: Config, years: np.ndarray, mean: np.ndarray, since: dict,
         return []
     names = cfg.model.input_names
     seg = years >= max(since.values())
-    scans = {name: fall_test(years[seg], mean[seg], cov[seg], i, signs[name])
-             for i, name in enumerate(names)}
+    y, x, c = years[seg], mean[seg], cov[seg]
+    scans = {name: fall_test(y, x, c, i, signs[name]) for i, name in enumerate(names)}
     tested = sum(1 for s in scans.values() if s[3])
     found: dict[int, FoundRepair] = {}
-    for name, (p, year, step, tried) in scans.items():
+    for name, (p, year, _, tried) in scans.items():
         if not tried or min(1.0, p * tried * tested) >= alpha:
             continue
-        # Inputs that fell the same year make one finding, whatever their components.
         rep = found.setdefault(year, FoundRepair(year, [], {}, 1.0))
-        comp = cfg.model.inputs[name].component or name
-        if comp not in rep.components:
-            rep.components.append(comp)
-        rep.steps[name] = step
         rep.p_value = min(rep.p_value, min(1.0, p * tried * tested))
-    return [found[y] for y in sorted(found)]
+    for year, rep in found.items():
+        # Which part: every input whose own step that year is a fall of at least NAME_T sds,
+        # the strongest always. Inputs that trade off in the likelihood cannot be told apart
+        # (on the flow alone a pump's repair reads as the motor's, its step the larger in
+        # sds); the user's work order can.
+        falls = {}
+        for i, name in enumerate(names):
+            f = step_fit(y, x, c, i, year) if signs[name] != 0 else None
+            if f is not None:
+                falls[name] = f
+        if not falls:
+            continue
+        top = max(falls, key=lambda n: falls[n].t(signs[n]))
+        for n, f in falls.items():
+            if n == top or f.t(signs[n]) >= NAME_T:
+                comp = cfg.model.inputs[n].component or n
+                if comp not in rep.components:
+                    rep.components.append(comp)
+                rep.steps[n] = f.step
+    return [found[y] for y in sorted(found) if found[y].components]
