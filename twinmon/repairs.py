@@ -136,13 +136,17 @@ def fall_test(years: np.ndarray, est: np.ndarray, cov: np.ndarray, i: int,
         return 1.0, -1, 0.0, 0
     best = (1.0, -1, 0.0)
     cands = [int(c) for c in years[MIN_BEFORE:]]
+    fitted = 0
     for c in cands:
         fit = step_fit(years, est, cov, i, c)
         if fit is None:
             continue
+        fitted += 1
         p = fit.p_value(direction)
         if p < best[0]:
             best = (p, c, fit.step)
+    if not fitted:      # an input that does not vary at all: no test
+        return 1.0, -1, 0.0, 0
     return (*best, len(cands))
 
 
