@@ -150,7 +150,10 @@ def test_outside_box_fmu_sends_every_point_to_the_fmu_and_bad_values_are_refused
     off = dataclasses.replace(cfg, forecast=dataclasses.replace(cfg.forecast,
                                                                 outside_box="fmu"))
     assert limitstate.forecast_limit_state(off, dirs, True) == (None, "")
-    assert limitstate.forecast_limit_state(cfg, dirs, False) == (None, "")
+    # An indicator of another variable than the surrogate's output: every point is the FMU's.
+    speed = dataclasses.replace(cfg, safety=dataclasses.replace(
+        cfg.safety, indicator=dataclasses.replace(cfg.safety.indicator, variable="motor.w")))
+    assert limitstate.forecast_limit_state(speed, dirs, True) == (None, "")
     path = write_yaml(tmp_path / "bad.yaml", {"extends": str(CONFIGS / "pump.yaml"),
                                               "forecast": {"outside_box": "guess"}})
     with pytest.raises(ConfigError, match="outside_box"):
@@ -172,3 +175,41 @@ def test_another_machine_below_its_limit(tmp_path):
     sure, value = model.classify(X)
     unsafe, _ = _fmu_unsafe(cfg, X)
     assert sure.sum() > 20 and not np.any(sure & ~unsafe)
+
+
+def test_a_box_that_is_not_physical_is_learnt_too(tmp_path):
+    """The DC drive stalls in its box's top corner, so the surrogate cannot be trusted
+    everywhere in it: the model learns the box too, the surrogate answers only the points
+    the model is sure are safe, and P(unsafe) is the all-FMU forecast's within Monte Carlo
+    error."""
+    from twinmon.calibrate import read_posterior
+    from twinmon.forecast import box_is_physical, forecast_limit_state
+    cfg = load_config(write_yaml(tmp_path / "dc.yaml", {
+        "extends": str(CONFIGS / "dcdrive.yaml"), "simulate": {"executor": "serial"},
+        "forecast": {"samples": 300, "observed_samples": 40}}))
+    assert not box_is_physical(cfg)
+    simulate(cfg, tmp_path / "sims.h5")
+    reduce(cfg, tmp_path / "sims.h5", tmp_path / "sur.h5")
+    sur = read_surrogate(tmp_path / "sur.h5")
+    write_synthetic_posterior(tmp_path / "post.h5", cfg, {
+        "Sound": [(0.001, 0.0), (1.0, 0.003)],
+        "Bearing": [(0.001, 4e-4), (1.0, 0.003)],          # leaves the box in the horizon
+        "Winding": [(0.001, 0.0), (1.0, 0.25)]}, scatter=(5e-5, 0.02),
+        post_std=(1e-4, 0.03))
+    dirs = degrading_directions(cfg, sur)
+    model, why = forecast_limit_state(cfg, dirs, False)
+    assert model is not None and model.covers_box, why
+    post = read_posterior(tmp_path / "post.h5")
+    learnt, _, _ = forecast_units(cfg, post, sur, workers=1, directions=dirs, box_ok=False,
+                                  limit_state=model)
+    fmu, _, _ = forecast_units(cfg, post, sur, workers=1, directions=dirs, box_ok=False,
+                               limit_state=None)
+    n = cfg.forecast.samples
+    from twinmon.forecast import SOURCE_SURROGATE
+    for unit, a in learnt.items():
+        p = fmu[unit].p_unsafe
+        assert np.all(np.abs(a.p_unsafe - p) <= 3 * np.sqrt(p * (1 - p) / n) + 2.0 / n), unit
+        assert a.failure_year == fmu[unit].failure_year, unit
+        assert np.all(fmu[unit].source != SOURCE_SURROGATE)        # every point to the FMU
+    assert any(np.any(a.source == SOURCE_SURROGATE) for a in learnt.values())
+    assert any(np.any(a.source == SOURCE_MODEL) for a in learnt.values())

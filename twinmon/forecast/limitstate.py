@@ -100,7 +100,10 @@ class LimitState:
     lo, hi : ndarray, shape [d]
         The region it covers (input units); the design box lies inside.
     box_lo, box_hi : ndarray, shape [d]
-        The surrogate's box: points inside it are the surrogate's, never this model's.
+        The surrogate's box. With a physical box its points are the surrogate's, never this
+        model's; with a box that is not (``covers_box``), the model learnt it too, and tells
+        which of its points are surely safe (hence physical: the surrogate's) and surely
+        unsafe (its own).
     U : ndarray, shape [n, d]
         The runs' inputs on the region's unit cube.
     scale : ndarray, shape [d]; amplitude : float; beta : float
@@ -117,9 +120,9 @@ class LimitState:
     cap : float
         The largest finite margin the first runs saw (margin units): margins are clipped
         there, and a failed, non-physical or never-reached run has margin ``cap``.
-    sure_sd : float
-        How many sds past the limit the mean margin must lie for a point to be surely
-        unsafe: ``SURE``, or more where the leave-one-out check asked for it.
+    sure_sd, safe_sd : float
+        How many sds past the limit (short of it) the mean margin must lie for a point to be
+        surely unsafe (safe): ``SURE``, or more where the leave-one-out check asked for it.
     value_sd_factor : float
         The model's sd times this is the sd of its value (at least 1): the root mean square
         of the leave-one-out errors in their own sds, over the runs past the limit and below
@@ -147,7 +150,9 @@ class LimitState:
     scale_ind: float
     cap: float
     sure_sd: float = SURE
+    safe_sd: float = SURE
     value_sd_factor: float = 1.0
+    covers_box: bool = False
     runs: int = 0
     rounds: int = 0
     unsure: float = float("nan")
@@ -219,6 +224,21 @@ class LimitState:
                             self.limit + self.sense * self.scale_ind * np.minimum(m, self.cap))
         return sure, value
 
+    def surely_safe(self, X: np.ndarray) -> np.ndarray:
+        """True per row [m] of X [m, d] (input units) inside the region whose mean margin
+        lies ``safe_sd`` sds short of the limit: safe, and physical (a non-physical or
+        failed run has the unsafe cap for margin). Row by row, as :meth:`classify`."""
+        X = np.atleast_2d(np.asarray(X, float))
+        out = np.zeros(len(X), bool)
+        idx = np.flatnonzero(self.in_region(X))
+        if idx.size:
+            k = self._kernel(X[idx])
+            mu = self.mean(X[idx], k)
+            neg = np.flatnonzero(mu < 0)
+            if neg.size:
+                out[idx[neg]] = mu[neg] + self.safe_sd * self.sd(X[idx[neg]], k[neg]) < 0
+        return out
+
     def as_dict(self) -> dict:
         """What the forecast's summary and artifact record of the model."""
         return {"runs": int(self.runs), "rounds": int(self.rounds),
@@ -226,6 +246,7 @@ class LimitState:
                 "region": {"low": [float(v) for v in self.lo],
                            "high": [float(v) for v in self.hi]},
                 "sure_sd": round(float(self.sure_sd), 3),
+                "safe_sd": round(float(self.safe_sd), 3), "covers_box": bool(self.covers_box),
                 "value_sd_factor": round(float(self.value_sd_factor), 3),
                 "notes": list(self.notes)}
 
@@ -255,20 +276,20 @@ def region(cfg: Config, directions: dict) -> tuple[np.ndarray, np.ndarray]:
 
 def forecast_limit_state(cfg: Config, directions: dict, box_ok: bool, spec=None
                          ) -> tuple[Optional[LimitState], str]:
-    """The forecast's model of the points outside the box: built when
-    ``forecast.outside_box`` is ``learn``, the box is physical (otherwise every point goes
-    to the FMU) and the indicator is computed from the output the surrogate learnt; None
-    otherwise, or when it failed its check (with the reason, "" when it was not asked for).
-    """
+    """The forecast's model of the points the surrogate cannot answer: built when
+    ``forecast.outside_box`` is ``learn`` and the indicator is computed from the output the
+    surrogate learnt; over the box too when the box is not physical (``box_ok`` false: the
+    surrogate then answers only the points the model is sure are safe). None otherwise, or
+    when it failed its check (with the reason, "" when it was not asked for)."""
     from ..safety import Indicator
-    if (cfg.forecast.outside_box != "learn" or not box_ok
+    if (cfg.forecast.outside_box != "learn"
             or Indicator.from_config(cfg).variable != cfg.model.output.variable):
         return None, ""
-    return build_limit_state(cfg, directions, spec)
+    return build_limit_state(cfg, directions, spec, covers_box=not box_ok)
 
 
-def build_limit_state(cfg: Config, directions: dict, spec=None,
-                      seed: Optional[int] = None) -> tuple[Optional[LimitState], str]:
+def build_limit_state(cfg: Config, directions: dict, spec=None, seed: Optional[int] = None,
+                      covers_box: bool = False) -> tuple[Optional[LimitState], str]:
     """Learn the margin to the safety limit around the design box from FMU runs.
 
     Parameters
@@ -281,6 +302,9 @@ def build_limit_state(cfg: Config, directions: dict, spec=None,
         The FMU (default the config's).
     seed : int, optional
         Seed of the design and candidates (default ``cfg.seed``).
+    covers_box : bool
+        Learn the box as well (a box that is not physical: every point is the model's or
+        the FMU's, but for those it is sure are safe).
 
     Returns
     -------
@@ -294,10 +318,11 @@ def build_limit_state(cfg: Config, directions: dict, spec=None,
     from ..simulate import spec_for
     spec = spec or spec_for(cfg)
     with one_blas_thread():
-        return _build(cfg, directions, spec, seed)
+        return _build(cfg, directions, spec, seed, covers_box)
 
 
-def _build(cfg: Config, directions: dict, spec, seed) -> tuple[Optional[LimitState], str]:
+def _build(cfg: Config, directions: dict, spec, seed, covers_box: bool
+           ) -> tuple[Optional[LimitState], str]:
     from ..executors import SerialExecutor
     rng = np.random.default_rng([cfg.seed if seed is None else seed, 8191])
     lo, hi = region(cfg, directions)
@@ -318,7 +343,7 @@ def _build(cfg: Config, directions: dict, spec, seed) -> tuple[Optional[LimitSta
             return None, ("the limit-state model could not be fitted (a kernel scale at its "
                           "lower bound: the margin looks like noise at the scale of its runs)")
         model = _condition(lo, hi, box, X, z, hyper, runs, scale_ind, cap)
-        cand = _candidates(lo, hi, box, CANDIDATES_PER_INPUT * d, rng)
+        cand = _candidates(lo, hi, box, CANDIDATES_PER_INPUT * d, rng, covers_box)
         rounds = 0
         for goal in ("side", "value"):
             # First where the model is least sure of the side (AK-MCS's learning function),
@@ -375,6 +400,15 @@ def _build(cfg: Config, directions: dict, spec, seed) -> tuple[Optional[LimitSta
         model.notes.append(f"its leave-one-out errors ask for {need:.2f} sds past the limit "
                            f"instead of {SURE:g}")
     model.value_sd_factor = _loo_value_factor(model, z)
+    model.covers_box = covers_box
+    if covers_box:
+        # It also says which points are safe: none of its unsafe runs may read so.
+        need = _loo_sure_sd(model, z, safe=True)
+        if need > MAX_SURE:
+            return None, ("the limit-state model would have called some of its own FMU runs "
+                          f"surely safe ({MAX_SURE:g} sds short of the limit) when they were "
+                          "not (leave-one-out)")
+        model.safe_sd = need
     return model, ""
 
 
@@ -427,16 +461,18 @@ def _lhs(n: int, d: int, rng) -> np.ndarray:
     return (perm + rng.random((n, d))) / n
 
 
-def _candidates(lo, hi, box, n, rng) -> np.ndarray:
-    """n points over the region outside the box, denser near the box: a point's density
-    falls as ``exp(-e / CANDIDATE_DECAY)`` with its distance e beyond the box (in box widths,
-    the largest over the inputs), as a trend's draws thin out away from where it stands."""
+def _candidates(lo, hi, box, n, rng, covers_box: bool = False) -> np.ndarray:
+    """n points over the region outside the box (and in it, with ``covers_box``), denser
+    near the box: a point's density falls as ``exp(-e / CANDIDATE_DECAY)`` with its distance
+    e beyond the box (in box widths, the largest over the inputs), as a trend's draws thin
+    out away from where it stands."""
     width = box[:, 1] - box[:, 0]
     out = []
     while sum(len(c) for c in out) < n:
         C = lo + rng.random((4 * n, len(lo))) * (hi - lo)
         e = np.max(np.maximum(box[:, 0] - C, C - box[:, 1]) / width, axis=1)
-        keep = (e > 0) & (rng.random(len(C)) < np.exp(-np.maximum(e, 0) / CANDIDATE_DECAY))
+        keep = ((e > 0) | covers_box) & (rng.random(len(C)) <
+                                          np.exp(-np.maximum(e, 0) / CANDIDATE_DECAY))
         out.append(C[keep])
     return np.concatenate(out)[:n]
 
@@ -512,9 +548,10 @@ def _loo_value_factor(model: LimitState, z: np.ndarray) -> float:
     return max(1.0, float(np.sqrt(np.mean(err[past] ** 2)))) if past.sum() >= 3 else 1.0
 
 
-def _loo_sure_sd(model: LimitState, z: np.ndarray) -> float:
+def _loo_sure_sd(model: LimitState, z: np.ndarray, safe: bool = False) -> float:
     """The sds past the limit at which leave-one-out calls none of the safe runs (margin at
-    most 0) surely unsafe: ``SURE``, or a tenth more than the worst such run's."""
-    u = _loo_u(model, z)[z <= 0]
+    most 0) surely unsafe: ``SURE``, or a tenth more than the worst such run's. ``safe``:
+    the sds short of it at which it calls none of the unsafe runs surely safe."""
+    u = -_loo_u(model, z)[z > 0] if safe else _loo_u(model, z)[z <= 0]
     worst = float(u.max()) if u.size else -np.inf
     return max(SURE, 1.1 * worst)

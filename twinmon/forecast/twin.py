@@ -8,7 +8,9 @@ unsafe, and only the others run through the FMU. A point is unsafe
 (:meth:`TwinResult.unsafe`) when its indicator passes ``safety.unsafe_if``, when the FMU
 reports the non-physical mode, when the FMU run fails, or when the limit-state model is sure
 of it. The surrogate has no non-physical output: :func:`box_is_physical` checks the box's
-corners on the FMU, and the forecast sends every point to the FMU when one is not physical.
+corners on the FMU; when one is not physical, the limit-state model learns the box too, the
+surrogate answers only the points of the box the model is sure are safe (a non-physical run
+lies on the unsafe side of its margin), and the FMU the rest the model is not sure of.
 """
 from __future__ import annotations
 
@@ -111,8 +113,15 @@ def _evaluate_distinct(cfg: Config, surrogate, X: np.ndarray, executor, fmu_ever
     value = np.full(m, np.nan)
     nph = np.zeros(m, bool)
     source = np.full(m, SOURCE_SURROGATE, np.int8)
-    on_surrogate = not fmu_everywhere and ind.variable == cfg.model.output.variable
+    learnt = ind.variable == cfg.model.output.variable
+    on_surrogate = not fmu_everywhere and learnt
     inside = surrogate.in_box(X) if on_surrogate else np.zeros(m, bool)
+    if fmu_everywhere and learnt and getattr(limit_state, "covers_box", False):
+        # A box that is not physical: the surrogate answers the points of the box the
+        # model is sure are safe (a non-physical run is on the unsafe side of its margin).
+        box = np.flatnonzero(surrogate.in_box(X))
+        inside[box[limit_state.surely_safe(X[box])]] = True
+        on_surrogate = True
     if inside.any():
         # Chunks keep the [chunk, n_t] intermediate arrays small.
         idx = np.flatnonzero(inside)
