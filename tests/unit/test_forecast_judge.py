@@ -4,6 +4,7 @@ the back-test."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from twinmon.backtest import ttf_scores
 from twinmon.forecast.attribution import AMBIGUOUS, attribute
@@ -29,29 +30,43 @@ def test_indicator_drift_rejects_only_beyond_what_normal_ageing_produces():
     band = float(np.sum(np.abs(GRAD) * TOL))    # 0.37 per year either way
     p = []
     for slope in (normal, normal + 0.5 * band, normal + 2.5 * band):
-        d = indicator_drift(YEARS, _indicator(slope, 0.1, rng), GRAD, RATE, TOL, +1, 0.01,
-                            np.random.default_rng(1))
+        d = indicator_drift(YEARS, _indicator(slope, 0.1, rng), GRAD, RATE, TOL, +1, 0.01)
         p.append(d.p_value)
         assert abs(d.slope - slope) < 0.1
     assert p[0] > 0.3 and p[1] > 0.01 and p[2] < 1e-4
     # the unsafe side only: a falling indicator is not a fault when unsafe is above
-    d = indicator_drift(YEARS, _indicator(-1.0, 0.1, rng), GRAD, RATE, TOL, +1, 0.01,
-                        np.random.default_rng(1))
+    d = indicator_drift(YEARS, _indicator(-1.0, 0.1, rng), GRAD, RATE, TOL, +1, 0.01)
     assert d.p_value > 0.99 and not d.abnormal
     # sense -1 (unsafe below): the same falling indicator is abnormal
-    d = indicator_drift(YEARS, _indicator(-1.0, 0.1, rng), GRAD, RATE, TOL, -1, 0.01,
-                        np.random.default_rng(1))
+    d = indicator_drift(YEARS, _indicator(-1.0, 0.1, rng), GRAD, RATE, TOL, -1, 0.01)
     assert d.abnormal
+
+
+def test_the_null_of_normal_ageing_by_quadrature_is_the_monte_carlo_one():
+    """The sum of uniform terms by quadrature (two terms, and three, binned) gives the
+    p-value 10^6 Monte Carlo draws give, within their error."""
+    from scipy import stats
+
+    from twinmon.forecast.detection import uniform_sum
+    rng = np.random.default_rng(9)
+    for half in (np.array([0.3, 0.05]), np.array([0.2, 0.1, 0.15]), np.array([0.4, 0.0])):
+        u, w = uniform_sum(half)
+        assert w.sum() == pytest.approx(1.0) and float(w @ u) == pytest.approx(0.0, abs=1e-12)
+        mc = rng.uniform(-1, 1, (10 ** 6, half.size)) @ half
+        for excess, se in ((0.5, 0.1), (0.2, 0.15), (0.9, 0.2)):
+            p = float(w @ stats.t.sf((excess - u) / se, 8))
+            ref = stats.t.sf((excess - mc) / se, 8)
+            assert abs(p - ref.mean()) < 4 * ref.std() / 1e3 + 1e-6, (half, excess, p)
 
 
 def test_indicator_drift_skips_years_where_the_level_is_never_reached():
     rng = np.random.default_rng(2)
     v = _indicator(0.5, 0.1, rng)
     v[-3:] = np.inf
-    d = indicator_drift(YEARS, v, GRAD, RATE, TOL, +1, 0.01, rng)
+    d = indicator_drift(YEARS, v, GRAD, RATE, TOL, +1, 0.01)
     assert d.years.tolist() == list(range(1, 8))
     v[2:] = np.inf
-    d = indicator_drift(YEARS, v, GRAD, RATE, TOL, +1, 0.01, rng)
+    d = indicator_drift(YEARS, v, GRAD, RATE, TOL, +1, 0.01)
     assert np.isnan(d.p_value) and not d.abnormal
 
 
@@ -232,10 +247,9 @@ def test_indicator_drift_takes_a_joint_posteriors_slope_draws_over_its_smoothed_
     band = float(np.sum(np.abs(GRAD) * TOL))
     slope = normal + 1.05 * band                    # just past the band's edge
     smooth = _indicator(slope, 0.0, rng)            # years on the line: OLS se ~ 0
-    ols = indicator_drift(YEARS, smooth, GRAD, RATE, TOL, +1, 0.01, np.random.default_rng(1))
+    ols = indicator_drift(YEARS, smooth, GRAD, RATE, TOL, +1, 0.01)
     draws = slope + 0.15 * rng.standard_normal(4000)
-    post = indicator_drift(YEARS, smooth, GRAD, RATE, TOL, +1, 0.01, np.random.default_rng(1),
-                           slope_draws=draws)
+    post = indicator_drift(YEARS, smooth, GRAD, RATE, TOL, +1, 0.01, slope_draws=draws)
     assert ols.slope_se < 0.01 and ols.abnormal
     assert abs(post.slope - draws.mean()) < 1e-12
     assert abs(post.slope_se - draws.std(ddof=1)) < 1e-12

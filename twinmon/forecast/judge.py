@@ -140,8 +140,7 @@ def judge(cfg: Config, unit: str, plan: dict, ind_obs: np.ndarray, gradient: np.
     # segments, i.e. after any repair), through the gradient: the null is built on the same
     # linearisation.
     drift = indicator_drift(years[after], ind_obs[after], gradient, rate, tol,
-                            ind.sense, alpha, unit_rng(cfg, unit, 2),
-                            slope_draws=None if slope_draws is None
+                            ind.sense, alpha, slope_draws=None if slope_draws is None
                             else slope_draws @ np.asarray(gradient, float))
     trends = plan["trends"]
     tl = [trends[n] for n in names]
