@@ -76,12 +76,14 @@ from .directions import Direction, degrading_directions, indicator_noise
 from .judge import (STATUS_OK, STATUS_UNRELIABLE, STATUS_WITHHELD, judge, prognosis_status,
                     verdict)
 from .plan import maintenance_plan
-from .pooling import POOL_MIN_ESS, _pooling_dict, fleet_sigma_prior
+from .pooling import (POOL_MIN_ESS, _pooling_dict, _shapes_dict, fleet_shape_prior,
+                      fleet_sigma_prior)
 from .predictive import (StatePredictive, residual_correlation, sample_predictive,
                          sample_state, state_interval, state_predictive)
 from .streams import SEED_OFFSET
 from .trend import (POSTERIOR_DOF, SLOPE_CI, Trend, fit_trend, posterior_slope_test,
                     repair_years, segment_trend, slope_test)
+from .trendfit import recorded_shapes
 from .twin import (SOURCE_FAILED, SOURCE_FMU, SOURCE_SURROGATE, TwinResult, box_is_physical,
                    evaluate_twin)
 from .unit import ForecastSummary, UnitForecast
@@ -170,15 +172,18 @@ def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
     directions = degrading_directions(cfg, sur)
     box_ok = box_is_physical(cfg)
     fleet = fleet_sigma_prior(cfg, post)
+    shapes = fleet_shape_prior(cfg, post, recorded_shapes(cfg, posterior_path), fleet)
     units = {}
     with _open_forecast(output, cfg, names, directions, box_ok, seed=cfg.seed + SEED_OFFSET,
                         inputs=[posterior_path, surrogate_path] +
                         ([truth_path] if truth_path else [])) as f:
         f.attrs["sigma_pooling"] = artifacts.json_attr(_pooling_dict(fleet, names))
+        f.attrs["shape_pooling"] = artifacts.json_attr(_shapes_dict(shapes))
         for unit, uf in iter_forecast(cfg, post, sur, posterior_path=posterior_path,
                                       truth=truth, truth_path=truth_path, executor=executor,
                                       workers=workers, progress=progress,
-                                      directions=directions, box_ok=box_ok, fleet=fleet):
+                                      directions=directions, box_ok=box_ok, fleet=fleet,
+                                      shapes=shapes):
             _write_unit(f, cfg, unit, uf, names)
             units[unit] = uf.slim()
     warnings = [d.note for d in directions.values() if d.note]
@@ -197,16 +202,19 @@ def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
             f"{few[worst]:.0f}): their forecast rests on few trend draws; a larger "
             "calibrate.keep_draws keeps more")
     return ForecastSummary(units, str(output), _time.perf_counter() - start, box_ok,
-                           warnings, _pooling_dict(fleet, names))
+                           warnings, _pooling_dict(fleet, names), _shapes_dict(shapes))
 
 
 def forecast_units(cfg: Config, post, sur, *, posterior_path="<memory>", truth=None,
                    truth_path=None, executor=None, workers: Optional[int] = None,
-                   progress=None, directions=None, box_ok=None) -> tuple[dict, dict, bool]:
+                   progress=None, directions=None, box_ok=None,
+                   pool_over=None) -> tuple[dict, dict, bool]:
     """The forecast of every unit of a loaded posterior, in memory (no file written).
 
     ``backtest`` (which calls it on truncated histories) and the benchmarks use it; the
-    arguments are those of :func:`iter_forecast`.
+    arguments are those of :func:`iter_forecast`. ``pool_over``: the posterior whose units
+    the fleet's priors are fitted on (default ``post``), so that a few units are forecast
+    as their whole fleet's forecast would forecast them.
 
     Returns
     -------
@@ -218,8 +226,11 @@ def forecast_units(cfg: Config, post, sur, *, posterior_path="<memory>", truth=N
         directions = degrading_directions(cfg, sur)
     if box_ok is None:
         box_ok = box_is_physical(cfg)
+    pool_over = post if pool_over is None else pool_over
+    fleet = fleet_sigma_prior(cfg, pool_over)
+    shapes = fleet_shape_prior(cfg, pool_over, recorded_shapes(cfg, posterior_path), fleet)
     units = dict(iter_forecast(cfg, post, sur, posterior_path=posterior_path, truth=truth,
                                truth_path=truth_path, executor=executor, workers=workers,
                                progress=progress, directions=directions, box_ok=box_ok,
-                               fleet=fleet_sigma_prior(cfg, post)))
+                               fleet=fleet, shapes=shapes))
     return units, directions, box_ok
