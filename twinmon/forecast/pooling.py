@@ -104,7 +104,8 @@ def fleet_shape_prior(cfg: Config, post, shape_priors: dict, fleet=None):
     """The fleet's prior of the trend forms (:mod:`twinmon.calibrate.fleet_shapes`), fitted
     on the posterior's units that weighed shapes (a laplace posterior's); None when
     ``forecast.pool_shapes`` is off, the posterior weighed the line alone, or fewer than
-    ``forecast.pool_min_units`` units weighed shapes.
+    ``forecast.pool_min_units`` units weighed shapes on segments long enough for a shape
+    other than the line.
 
     Parameters
     ----------
@@ -138,7 +139,9 @@ def fleet_shape_prior(cfg: Config, post, shape_priors: dict, fleet=None):
         avail.append(available_forms((yrs[None, :] >= last[:, None]).sum(axis=1)))
     if len(shares) < cfg.forecast.pool_min_units:
         return None
-    return fit_fleet_shapes(np.array(shares), np.array(avail), base)
+    fit = fit_fleet_shapes(np.array(shares), np.array(avail), base)
+    # Units whose segments allow the line alone say nothing of the shapes.
+    return fit if fit.n_units >= cfg.forecast.pool_min_units else None
 
 
 def _pooling_dict(fleet, names: list) -> dict:
