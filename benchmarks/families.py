@@ -18,7 +18,12 @@ family differs from the linear one by the shape of its wear only:
   repair (a deposit washed off, a setting drifting back), then up again; its mean excess
   is about two thirds of the multiple's;
 * ``irregular``: 3-4 years of history, or ten with two years missing; 5-10 % of the samples
-  lost (NaN); otherwise the linear fleet's units.
+  lost (NaN); otherwise the linear fleet's units;
+* ``power``: power-law wear ``start + c a^1.5`` (wear growing as a power of the running
+  time, as sliding wear under rising contact stress does), none of the trend shapes'
+  forms: faster early than a quadratic, slower late than an exponential;
+* ``mixed``: each faulty unit's wear takes one of the shapes above at random (linear,
+  quadratic, exponential, step, power): a fleet whose units do not share one mechanism.
 
 Seeds: the same seed gives the same fleet in every family (same starts, same multiples).
 """
@@ -36,7 +41,14 @@ MULT = {"pump_coef": [1.25, 1.5, 2.0, 2.0, 2.25, 2.5, 2.75, 3.0, 3.0, 3.25, 3.5,
 JITTER = {"motor_damping": 0.15, "pump_coef": 0.01}
 YEARS = 10
 FAMILIES = ("linear", "quadratic", "exponential", "step", "repair", "repair_hidden",
-            "irregular", "reversing")
+            "irregular", "reversing", "power", "mixed")
+#: The shapes a ``mixed`` fleet's faulty units draw from.
+MIXED = ("linear", "quadratic", "exponential", "step", "power")
+#: Exponent of the ``power`` family's wear.
+POWER = 1.5
+#: Years of service the trajectories are written out to: the record and the forecast's
+#: horizon after it (fabricate extends a trajectory's last rate beyond its last change).
+SPAN = 20
 
 
 def shaped(family: str, start: float, rate: float, normal: float,
@@ -60,6 +72,13 @@ def shaped(family: str, start: float, rate: float, normal: float,
         size = rate * ages - normal * (year - 1) - after * (YEARS - year)
         tr.update(slope=normal, changes=[{"year": year, "size": float(size),
                                           "slope": float(after)}])
+    elif family == "power":
+        # c a^p has mean rate c 9^(p-1) over the record; the trajectory is written as its
+        # yearly increments (a change of rate each year), exact at every service year.
+        c = rate / ages ** (POWER - 1)
+        inc = c * np.diff(np.arange(SPAN) ** POWER)
+        tr.update(slope=float(inc[0]), changes=[
+            {"year": a + 1, "size": 0.0, "slope": float(inc[a])} for a in range(1, SPAN - 1)])
     elif family == "reversing":
         turn = int(rng.integers(3, 5))
         up, down = normal + 2 * (rate - normal), normal - 2 * (rate - normal)
@@ -88,9 +107,13 @@ def fleet(seed: int, family: str = "linear", n_healthy: int = 12, n_both: int = 
     def add(name, kind, rates, excess, faulty_inputs=()):
         start = {"motor_damping": rng.uniform(9.5, 10.5), "pump_coef": rng.uniform(3.55, 3.75)}
         spec, extra = {}, {}
+        # A mixed fleet's faulty unit draws its wear's shape (its own stream: the other
+        # families' draws are unchanged).
+        shape = (MIXED[np.random.default_rng([seed, 99, len(units)]).integers(len(MIXED))]
+                 if family == "mixed" and faulty_inputs else family)
         for n in TOL:
-            if n in faulty_inputs and family != "linear":
-                tr, more = shaped(family, float(start[n]), float(rates[n]), NORMAL[n], frng)
+            if n in faulty_inputs and shape != "linear":
+                tr, more = shaped(shape, float(start[n]), float(rates[n]), NORMAL[n], frng)
                 extra.update(more)
                 if "repair_year" in more:
                     extra.setdefault("repaired", []).append(COMPONENT[n])

@@ -90,24 +90,27 @@ def alpha_lambda(cfg, post, sur, truth_eol: dict, cuts, work: Path | None = None
                  name: str = "") -> tuple[dict, dict]:
     """Per unit failing after the first cut: TTF scores of forecasts made at each cut, of the
     failure year and of the median failure year. Only those units are forecast (a unit's
-    forecast does not depend on the others, except through a joint posterior's pooled sigma,
-    which is then fitted on these units, 17-20 a seed, instead of all 44: the fabricated
-    sigma is the same for every unit).
+    forecast does not depend on the others but through the fleet's priors of a trend
+    posterior, its sigma and its trend shapes).
 
     The sequential posterior truncated at a cut is what calibrating the years up to the cut
-    gives. A joint posterior's years were estimated knowing the later ones, so for the joint
-    method each cut's history is calibrated again (the scored units only, in ``work``,
-    files tagged ``name``)."""
+    gives. A joint or laplace posterior's years were estimated knowing the later ones, so
+    for those methods each cut's history is calibrated again, every unit of the fleet (in
+    ``work``, files tagged ``name``), and the fleet's priors are fitted on all of them, as
+    a forecast made at that cut would fit them: fitted on the failing units alone, the
+    fleet's prior of the trend shapes would learn that every unit wears as they do."""
     scored = [u for u, eol in truth_eol.items() if eol is not None and eol > min(cuts)]
     preds = {u: {} for u in scored}
     for k in cuts:
+        fleet = None
         if cfg.calibrate.method in ("joint", "laplace") and scored:
-            cut = recalibrate_cut(cfg, work, scored, k, name)
+            cut = recalibrate_cut(cfg, work, list(post.units), k, name)
             sub = {u: cut[u] for u in scored}
+            fleet = Posterior(post.input_names, cut, post.path, post.fit_windows)
         else:
             sub = {u: truncate(post.units[u], k) for u in scored}
         res, _, _ = forecast_units(cfg, Posterior(post.input_names, sub, post.path,
-                                                  post.fit_windows), sur)
+                                                  post.fit_windows), sur, pool_over=fleet)
         for u, uf in res.items():
             preds[u][k] = tuple(-1 if y is None else int(y)
                                 for y in (uf.failure_year, uf.median_failure_year))

@@ -129,6 +129,10 @@ def test_auto_samples_a_pooling_fleet_jointly_on_the_dc_drive(drive):
     pooling = fc["sigma_pooling"]
     assert pooling["pooled"] and pooling["units"] == 3
     assert set(pooling["median"]) == {"bearing_friction", "winding_resistance"}
+    # The trend shapes' prior is the fleet's too, over the forms the laplace method weighs.
+    shaped = fc["shape_pooling"]
+    assert shaped["pooled"] and shaped["units"] == 3
+    assert abs(sum(shaped["fleet"].values()) - 1) < 1e-3 and "quadratic" in shaped["fleet"]
     causes = {u: f["root_cause"] for u, f in fc["units"].items()}
     assert causes == {"Alder": "healthy", "Birch": "bearing", "Cedar": "winding"}
 

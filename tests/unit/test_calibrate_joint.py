@@ -391,11 +391,15 @@ def test_forecast_pools_the_year_to_year_sd_over_the_fleet(setup, tmp_path):
     n_ess = np.array([u.pool_ess for u in fc.units.values()])
     assert np.all((n_ess > 1) & (n_ess <= 200))        # of the 200 kept draws
 
+    # Four years a unit: too few for any shape but the line (acceleration needs five), so
+    # there is no fleet prior of the shapes to fit, pool_shapes on or off.
+    assert s.shape_pooling == {"pooled": False}
     off = forecast(load_config(cfg_path, quick + ["forecast.pool_sigma=false"]),
                    tmp_path / "post.h5", tmp / "sur.h5", tmp_path / "off.h5")
     few = forecast(load_config(cfg_path, quick + ["forecast.pool_min_units=6"]),
                    tmp_path / "post.h5", tmp / "sur.h5", tmp_path / "few.h5")
     assert off.pooling == few.pooling == {"pooled": False}
+    assert off.shape_pooling == few.shape_pooling == {"pooled": False}
     a, b = read_forecast(tmp_path / "off.h5"), read_forecast(tmp_path / "few.h5")
     for u in a.units:
         # The slopes reported and tested per input are the posterior's, not an OLS fit to

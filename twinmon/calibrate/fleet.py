@@ -114,11 +114,17 @@ class FleetPrior:
         rng : numpy Generator
             One uniform is drawn (the systematic comb's offset).
         """
-        w = self.weights(sigma)
-        n = w.size
-        comb = (rng.uniform() + np.arange(n)) / n
-        idx = np.minimum(np.searchsorted(np.cumsum(w), comb), n - 1)
-        return idx, float(1.0 / np.sum(w ** 2) / n)
+        return systematic_resample(self.weights(sigma), rng)
+
+
+def systematic_resample(w: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, float]:
+    """Indices [n] of draws resampled by their normalised weights ``w`` [n] (systematic
+    resampling: each draw kept about ``n * weight`` times; one uniform drawn from ``rng``),
+    and the weights' effective sample size as a fraction of ``n``."""
+    n = w.size
+    comb = (rng.uniform() + np.arange(n)) / n
+    idx = np.minimum(np.searchsorted(np.cumsum(w), comb), n - 1)
+    return idx, float(1.0 / np.sum(w ** 2) / n)
 
 
 #: Units per block of the marginal likelihood's arrays ([block, draws, d] each): a few tens

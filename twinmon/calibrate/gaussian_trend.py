@@ -109,6 +109,26 @@ def linear_gaussian(Wf: np.ndarray, logdet_v: np.ndarray, Mk: np.ndarray, x: np.
     return Pb, Lb, mean, ll
 
 
+def log_evidence_at(models: list, sigma: np.ndarray) -> np.ndarray:
+    """Each model's log marginal likelihood of the sites at sigma points ``sigma`` [P, d]
+    (:meth:`GaussianTrend._conditional`'s), the models of one size evaluated together (one
+    batched product each: a unit's dozens of shapes cost a few calls) [len(models), P].
+    The models share their sites."""
+    cov, x = models[0].cov, models[0].x
+    Wf, logdet_v = year_weights(cov, sigma)
+    out = np.empty((len(models), len(sigma)))
+    groups: dict = {}
+    for j, m in enumerate(models):
+        groups.setdefault(m.Mk.shape[2], []).append(j)
+    for idx in groups.values():
+        ms = [models[j] for j in idx]
+        out[idx] = linear_gaussian(Wf, logdet_v, np.stack([m.Mk for m in ms]), x,
+                                   np.stack([m.prior_P for m in ms]),
+                                   np.stack([np.asarray(m.prior_mean, float) for m in ms]),
+                                   np.array([m._log_norm for m in ms]))[3]
+    return out
+
+
 class SiteModel:
     """What a Gaussian model on the years' sites does with the exact likelihood, whatever
     its trend (:class:`GaussianTrend`, or a mixture of shapes,
@@ -260,7 +280,7 @@ class GaussianTrend(SiteModel):
     def _sigma(self, u: np.ndarray) -> np.ndarray:
         return self.A * np.tan(0.5 * np.pi * u)
 
-    def sigma_points(self, rng: np.random.Generator, start=None, first=None
+    def sigma_points(self, rng: np.random.Generator, start=None, first=None, first_ll=None
                      ) -> tuple[np.ndarray, np.ndarray, float, float]:
         """Weighted sigma points of sigma's posterior (the module docstring): points [P, d],
         normalised weights [P], their effective number, and the log evidence: the log
@@ -274,7 +294,8 @@ class GaussianTrend(SiteModel):
         within a spacing of an inner face holding more than ``SIGMA_EDGE`` of the largest
         weight) is dropped for the whole prior. ``first``: the first round's sigma points
         [P, d], spread evenly over ``start`` (another model's last round: models whose sigma
-        agree then cost one evaluation of them)."""
+        agree then cost one evaluation of them); ``first_ll``: this model's log-likelihood
+        at them [P], when already evaluated (:func:`log_evidence_at`, with other models)."""
         from scipy.stats import qmc
         d = self.x.shape[1]
         whole = (np.zeros(d), np.ones(d))
@@ -288,7 +309,8 @@ class GaussianTrend(SiteModel):
                 u = lo + (hi - lo) * qmc.Sobol(d, scramble=True, seed=seed).random(SIGMA_POINTS)
                 u = np.minimum(u, 1.0 - 1e-12)
                 sigma = self._sigma(u)
-            ll = self._conditional(sigma)[3]
+            ll = (first_ll if r == 0 and first is not None and first_ll is not None
+                  else self._conditional(sigma)[3])
             w = np.exp(ll - ll.max())
             log_z = float(ll.max() + np.log(w.mean()) + np.log(np.prod(hi - lo)))
             w /= w.sum()

@@ -39,7 +39,7 @@ from typing import Optional
 
 import numpy as np
 
-from .gaussian_trend import GaussianTrend, SiteModel
+from .gaussian_trend import GaussianTrend, SiteModel, log_evidence_at
 
 #: The shapes, in the order of their code in the posterior (``trend/shape``).
 SHAPES = ("line", "accelerating", "change")
@@ -274,15 +274,20 @@ class ShapeMixture(SiteModel):
             # Occam's window from one evaluation per shape at the line's mean sigma: a
             # shape far less probable there is not worth its sigma points.
             s_ref = (line[1] @ line[0])[None]
-            quick = np.array([s.log_prior + s.model._conditional(s_ref)[3][0]
-                              for s in self.shapes])
+            quick = np.array([s.log_prior for s in self.shapes]) + \
+                log_evidence_at([s.model for s in self.shapes], s_ref)[:, 0]
             line_box = self.shapes[0].model.box
-            for j, s in enumerate(self.shapes[1:], start=1):
-                if quick[j] < quick.max() + np.log(OCCAM):
-                    continue
-                # A shape's sigma sits near the line's: its first round is the line's last
-                # points (sigma_points zooms or widens from there when they do not fit).
-                points[j] = s.model.sigma_points(rng, line_box, first=line[0])
+            kept = [j for j in range(1, len(self.shapes))
+                    if quick[j] >= quick.max() + np.log(OCCAM)]
+            # A shape's sigma sits near the line's: its first round is the line's last
+            # points (sigma_points zooms or widens from there when they do not fit),
+            # evaluated for every shape kept at once.
+            first = log_evidence_at([self.shapes[j].model for j in kept], line[0]) \
+                if kept else None
+            for a, j in enumerate(kept):
+                s = self.shapes[j]
+                points[j] = s.model.sigma_points(rng, line_box, first=line[0],
+                                                 first_ll=first[a])
                 logp[j] = s.log_prior + points[j][3]
         p = np.exp(logp - logp.max())
         self.probs = p / p.sum()
@@ -319,6 +324,47 @@ class ShapeMixture(SiteModel):
         n = len(coef)
         return (coef[:, 0].astype(int), coef[:, 1:1 + K * d].reshape(n, K, d),
                 coef[:, 1 + K * d:].reshape(n, len(NOW_ROWS), d))
+
+
+def form_names() -> tuple:
+    """The forms a draw's trend may take on its current segment, as the fleet's prior of the
+    shapes (:mod:`.fleet_shapes`) tells them apart: the line, the quadratic, the
+    exponential at each of :data:`GROWTH_RATES`, the change (its years together)."""
+    return (("line", "quadratic") + tuple(f"exponential {r:g}" for r in GROWTH_RATES)
+            + ("change",))
+
+
+def form_of(code: np.ndarray, growth: np.ndarray) -> np.ndarray:
+    """Each draw's form, the index in :func:`form_names` [n], from its shape code
+    (``trend/shape``) [n] and growth rate (``trend/growth``, per year) [n]."""
+    code = np.asarray(code, int)
+    growth = np.asarray(growth, float)
+    out = np.where(code == 0, 0, np.where(code == 2, len(GROWTH_RATES) + 2, 1))
+    for j, r in enumerate(GROWTH_RATES):
+        out = np.where((code == 1) & np.isclose(growth, r), 2 + j, out)
+    return out
+
+
+def form_priors(priors: dict) -> np.ndarray:
+    """Prior probability of each of :func:`form_names` [F] as :func:`build_shapes` splits
+    ``calibrate.shapes``: the accelerating shape's equally over its forms, the change's
+    over its years (kept together here). Sums to 1."""
+    p = {k: max(float(v), 0.0) for k, v in priors.items()}
+    total = sum(p.values())
+    acc = p.get("accelerating", 0.0) / (1 + len(GROWTH_RATES))
+    return np.array([p.get("line", 0.0)] + [acc] * (1 + len(GROWTH_RATES))
+                    + [p.get("change", 0.0)]) / total
+
+
+def available_forms(segment_years: np.ndarray) -> np.ndarray:
+    """Which of :func:`form_names` a unit's current segments allow [F] (bool), from each
+    input's number of recorded years in its segment in force [d]: the line always, the
+    accelerating forms when one input has :data:`ACCELERATING_MIN_YEARS`, the change when
+    one has :data:`CHANGE_MIN_YEARS` before a year and from it."""
+    n = np.asarray(segment_years, int)
+    acc = bool(np.any(n >= ACCELERATING_MIN_YEARS))
+    change = bool(np.any(n >= 2 * CHANGE_MIN_YEARS))
+    return np.array([True] + [acc] * (1 + len(GROWTH_RATES)) + [change])
 
 
 def shape_probabilities(codes: np.ndarray) -> np.ndarray:

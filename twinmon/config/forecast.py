@@ -41,6 +41,11 @@ class ForecastConfig:
     #: jointly. false: each unit's own prior (``calibrate.prior_width``).
     pool_sigma: bool = True
     pool_min_units: int = 5
+    #: A laplace posterior's trend shapes: fit the fleet's prior probabilities of the
+    #: trend forms (line, quadratic, each exponential growth rate, change) on its units'
+    #: draws, and reweight each unit's draws to it (twinmon/calibrate/fleet_shapes.py), when
+    #: at least ``pool_min_units`` units weighed shapes. false: ``calibrate.shapes`` as is.
+    pool_shapes: bool = True
     #: Trend-shape gate: an input that drifts abnormally and whose yearly estimates
     #: accelerate in its degrading direction (one-sided test of a quadratic term over the
     #: current part's years, at this level, Bonferroni over the inputs tested) makes the

@@ -79,13 +79,15 @@ from .directions import Direction, degrading_directions, indicator_noise
 from .judge import (STATUS_OK, STATUS_UNRELIABLE, STATUS_WITHHELD, judge, prognosis_status,
                     verdict)
 from .plan import maintenance_plan
-from .pooling import POOL_MIN_ESS, _pooling_dict, fleet_sigma_prior
+from .pooling import (POOL_MIN_ESS, _pooling_dict, _shapes_dict, fleet_shape_prior,
+                      fleet_sigma_prior)
 from .predictive import (StatePredictive, residual_correlation, sample_predictive,
                          sample_state, state_interval, state_predictive)
 from .streams import SEED_OFFSET
 from .trend import (POSTERIOR_DOF, SLOPE_CI, Trend, fit_trend, posterior_slope_test,
                     repair_years, segment_trend, slope_test)
 from .limitstate import LimitState, build_limit_state, forecast_limit_state
+from .trendfit import recorded_shapes
 from .twin import (SOURCE_FAILED, SOURCE_FMU, SOURCE_MODEL, SOURCE_SURROGATE, TwinResult,
                    box_is_physical, evaluate_twin)
 from .unit import ForecastSummary, UnitForecast
@@ -176,17 +178,19 @@ def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
     box_ok = box_is_physical(cfg)
     fleet = fleet_sigma_prior(cfg, post)
     limit_state, why = forecast_limit_state(cfg, directions, box_ok)
+    shapes = fleet_shape_prior(cfg, post, recorded_shapes(cfg, posterior_path), fleet)
     units = {}
     with _open_forecast(output, cfg, names, directions, box_ok, seed=cfg.seed + SEED_OFFSET,
                         inputs=[posterior_path, surrogate_path] +
                         ([truth_path] if truth_path else [])) as f:
         f.attrs["sigma_pooling"] = artifacts.json_attr(_pooling_dict(fleet, names))
         f.attrs["limit_state"] = artifacts.json_attr(_limit_state_dict(limit_state, why))
+        f.attrs["shape_pooling"] = artifacts.json_attr(_shapes_dict(shapes))
         for unit, uf in iter_forecast(cfg, post, sur, posterior_path=posterior_path,
                                       truth=truth, truth_path=truth_path, executor=executor,
                                       workers=workers, progress=progress,
                                       directions=directions, box_ok=box_ok, fleet=fleet,
-                                      limit_state=limit_state):
+                                      limit_state=limit_state, shapes=shapes):
             _write_unit(f, cfg, unit, uf, names)
             units[unit] = uf.slim()
     warnings = [d.note for d in directions.values() if d.note]
@@ -208,7 +212,7 @@ def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
             f"{few[worst]:.0f}): their forecast rests on few trend draws; a larger "
             "calibrate.keep_draws keeps more")
     return ForecastSummary(units, str(output), _time.perf_counter() - start, box_ok,
-                           warnings, _pooling_dict(fleet, names),
+                           warnings, _pooling_dict(fleet, names), _shapes_dict(shapes),
                            _limit_state_dict(limit_state, why))
 
 
@@ -223,12 +227,14 @@ def _limit_state_dict(model: Optional[LimitState], why: str) -> dict:
 def forecast_units(cfg: Config, post, sur, *, posterior_path="<memory>", truth=None,
                    truth_path=None, executor=None, workers: Optional[int] = None,
                    progress=None, directions=None, box_ok=None,
-                   limit_state=False) -> tuple[dict, dict, bool]:
+                   pool_over=None, limit_state=False) -> tuple[dict, dict, bool]:
     """The forecast of every unit of a loaded posterior, in memory (no file written).
 
     ``backtest`` (which calls it on truncated histories) and the benchmarks use it; the
-    arguments are those of :func:`iter_forecast`. ``limit_state``: the model of the points
-    outside the box (None: every one through the FMU); by default built here as
+    arguments are those of :func:`iter_forecast`. ``pool_over``: the posterior whose units
+    the fleet's priors are fitted on (default ``post``), so that a few units are forecast
+    as their whole fleet's forecast would forecast them. ``limit_state``: the model of the
+    points outside the box (None: every one through the FMU); by default built here as
     :func:`forecast` builds it (a caller forecasting several times builds it once).
 
     Returns
@@ -243,8 +249,11 @@ def forecast_units(cfg: Config, post, sur, *, posterior_path="<memory>", truth=N
         box_ok = box_is_physical(cfg)
     if limit_state is False:
         limit_state = forecast_limit_state(cfg, directions, box_ok)[0]
+    pool_over = post if pool_over is None else pool_over
+    fleet = fleet_sigma_prior(cfg, pool_over)
+    shapes = fleet_shape_prior(cfg, pool_over, recorded_shapes(cfg, posterior_path), fleet)
     units = dict(iter_forecast(cfg, post, sur, posterior_path=posterior_path, truth=truth,
                                truth_path=truth_path, executor=executor, workers=workers,
                                progress=progress, directions=directions, box_ok=box_ok,
-                               fleet=fleet_sigma_prior(cfg, post), limit_state=limit_state))
+                               fleet=fleet, shapes=shapes, limit_state=limit_state))
     return units, directions, box_ok

@@ -181,6 +181,8 @@ class Forecast:
     indicator: dict = field(default_factory=dict)
     #: The fleet's prior of the joint method's year-to-year sd (:func:`~.pooling._pooling_dict`).
     sigma_pooling: dict = field(default_factory=lambda: {"pooled": False})
+    #: The fleet's prior of the trend forms (:func:`~.pooling._shapes_dict`).
+    shape_pooling: dict = field(default_factory=lambda: {"pooled": False})
 
 
 def read_forecast(path: str | os.PathLike, arrays: bool = True) -> Forecast:
@@ -205,7 +207,8 @@ def read_forecast(path: str | os.PathLike, arrays: bool = True) -> Forecast:
         out = Forecast(path, names, float(f.attrs["confidence"]), {},
                        json.loads(f.attrs["directions"]),
                        json.loads(f.attrs["indicator"]) if "indicator" in f.attrs else {},
-                       json.loads(f.attrs.get("sigma_pooling", '{"pooled": false}')))
+                       json.loads(f.attrs.get("sigma_pooling", '{"pooled": false}')),
+                       json.loads(f.attrs.get("shape_pooling", '{"pooled": false}')))
     out.units = artifacts.LazyUnits(path, "forecast", unit_names,
                                     lambda f, unit, p: _read_unit(f, unit, p, names, arrays))
     return out

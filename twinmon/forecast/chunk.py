@@ -76,7 +76,7 @@ def _truth_of(truth, truth_path, unit: str):
 
 
 def _forecast_chunk(state: _TwinState, units: list, *, directions: dict, box_ok: bool,
-                    fit_windows: list, truth_path, fleet=None,
+                    fit_windows: list, truth_path, fleet=None, shapes=None,
                     shape_priors: Optional[dict] = None,
                     input_range: Optional[np.ndarray] = None) -> list:
     """Forecast a chunk of units: their Monte Carlo points go through the twin in one batch.
@@ -96,7 +96,8 @@ def _forecast_chunk(state: _TwinState, units: list, *, directions: dict, box_ok:
     cfg = state.cfg
     plans, points = [], []
     for unit, up, _ in units:
-        p, pts = _plan_unit(cfg, unit, up, directions, fleet, shape_priors, input_range)
+        p, pts = _plan_unit(cfg, unit, up, directions, fleet, shape_priors, shapes,
+                            input_range)
         plans.append(p)
         points += pts
     twin = evaluate_twin(cfg, state.sur, np.concatenate(points), state.executor,
@@ -114,7 +115,7 @@ def _forecast_chunk(state: _TwinState, units: list, *, directions: dict, box_ok:
 
 
 def _plan_unit(cfg: Config, unit: str, up, directions: dict, fleet=None,
-               shape_priors: Optional[dict] = None,
+               shape_priors: Optional[dict] = None, shapes=None,
                input_range: Optional[np.ndarray] = None) -> tuple[dict, list]:
     """A unit's trends, tests and Monte Carlo points (future states, posterior draws of the
     observed years, the probes of the indicator's gradient) before the twin runs.
@@ -122,7 +123,9 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict, fleet=None,
     With ``fleet`` (:func:`~.pooling.fleet_sigma_prior`), a jointly calibrated unit's draws -- the
     years' and the trend's, which are the same chain states -- are first resampled to its
     posterior under the fleet's prior of the year-to-year sd; its yearly estimates are then
-    those draws' means. ``shape_priors``: ``calibrate.shapes`` as the posterior recorded it
+    those draws' means. With ``shapes`` (:func:`~.pooling.fleet_shape_prior`), the same
+    resampling also takes a laplace posterior's draws to the fleet's prior of the trend
+    forms. ``shape_priors``: ``calibrate.shapes`` as the posterior recorded it
     (:func:`~.trendfit.recorded_shapes`; default the config's). ``input_range`` [d, 2]: the
     FMU's declared range of each input; a future draw beyond it (a trend extended to a
     negative damping, say) is held at the bound, the nearest state the model can be in."""
@@ -135,8 +138,20 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict, fleet=None,
     samples_post = np.asarray(up.samples, float)
     trend_post = getattr(up, "trend", None) or {}
     pool_ess = float("nan")
+    # The trend's future is drawn under the fleet's prior of the shapes as well; the
+    # verdict (detection, attribution: the wear over the record) reads the draws under the
+    # calibration's prior of the shapes, so that the fleet's idea of where wear goes does
+    # not move the judgement of how fast it went (resampled to the fleet's shapes, the
+    # faults of one part were named "both" 17 times in 224 against 10 in 256:
+    # benchmarks/prognosis.py, seeds 11-12, docs/forecast.md).
+    future = trend_post
+    if shapes is not None and "shape" in trend_post:
+        future, _, pool_ess = _pool_unit(cfg, unit, trend_post, samples_post, fleet, shapes,
+                                         stream=6)
     if fleet is not None and trend_post:
-        trend_post, pooled, pool_ess = _pool_unit(cfg, unit, trend_post, samples_post, fleet)
+        trend_post, pooled, ess = _pool_unit(cfg, unit, trend_post, samples_post, fleet)
+        pool_ess = min(ess, pool_ess) if np.isfinite(pool_ess) else ess
+        future = trend_post if shapes is None or "shape" not in trend_post else future
         if pooled is not samples_post:
             samples_post, mean = pooled, pooled.mean(axis=1)
     post_cov = np.array([np.cov(samples_post[k], rowvar=False).reshape(d, d)
@@ -184,7 +199,7 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict, fleet=None,
         # the yearly means.
         from ..calibrate.trend import trend_predictive
         rng = unit_rng(cfg, unit, 0)
-        draws = trend_predictive(trend_post, fut, rng)          # [n, h, d]
+        draws = trend_predictive(future, fut, rng)              # [n, h, d]
         X = draws[rng.integers(0, draws.shape[0], fc.samples)].transpose(1, 0, 2)
         state = "trend"
     elif fc.predictive == "state":
@@ -203,8 +218,12 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict, fleet=None,
     if fc.trend_fit_alpha > 0:
         # The posterior's own trend model, judged one year ahead over the unit's history.
         priors = shape_priors if "shape" in trend_post else {"line": 1.0}
+        # The draws' share of the change against the prior they were drawn under: the
+        # fleet's when it was pooled.
+        drawn = shapes.shape_priors() if shapes is not None and "shape" in trend_post \
+            else priors
         x, cov, starts = unit_sites(cfg, up, post_cov, trend_post, repairs,
-                                    change_year(shape_summary(trend_post), priors))
+                                    change_year(shape_summary(future), drawn))
         trend_fit = check_trend_fit(cfg, years, x, cov, starts, priors,
                                     fleet if trend_post else None)
     plan = dict(years=years, mean=mean, trends=trends, fut=fut, X=X, Xo=Xo, corr=corr,
@@ -213,7 +232,7 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict, fleet=None,
                 err_cov=err_cov, state=state, slope_draws=slope_draws,
                 history_draws=history_draws, pool_ess=pool_ess,
                 shapes="now" in trend_post and cfg.calibrate.shapes.get("accelerating", 0) > 0,
-                shape=shape_summary(trend_post), trend_fit=trend_fit)
+                shape=shape_summary(future), trend_fit=trend_fit)
     return plan, [X.reshape(-1, d), Xo.reshape(-1, d), probe]
 
 

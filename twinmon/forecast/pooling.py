@@ -1,12 +1,16 @@
-"""The fleet's prior of the joint method's year-to-year sd, and each unit's draws under it.
+"""The fleet's priors of a trend posterior -- its year-to-year sd and its trend shapes --
+and each unit's draws under them.
 
 A jointly calibrated unit samples its trend with a year-to-year sd per input, which ten
 years of one unit cannot tell from the years' estimation errors; the units of a fleet share
 it. With ``forecast.pool_sigma`` and at least ``forecast.pool_min_units`` jointly
 calibrated units, :func:`fleet_sigma_prior` fits a log-normal prior of that sd over the
-fleet (:mod:`twinmon.calibrate.fleet`), and :func:`_pool_unit` resamples each unit's draws
-to its posterior under that prior. It is the one thing a unit's forecast takes from the
-rest of its fleet.
+fleet (:mod:`twinmon.calibrate.fleet`). A laplace posterior's units also weighed trend
+shapes (a line, accelerating forms, a change) whose forms ten years of one unit cannot tell
+apart; with ``forecast.pool_shapes`` :func:`fleet_shape_prior` fits the fleet's prior
+probabilities of those forms (:mod:`twinmon.calibrate.fleet_shapes`). :func:`_pool_unit`
+resamples each unit's draws to its posterior under both. They are the one thing a unit's
+forecast takes from the rest of its fleet.
 """
 from __future__ import annotations
 
@@ -44,7 +48,7 @@ def fleet_sigma_prior(cfg: Config, post):
     default = sigma_prior_scale(cfg)
     sigmas, bases = [], []
     d = default.size
-    for unit, trend in _sigma_draws(post):
+    for unit, trend in _trend_draws(post, ("sigma", "sigma_scale")):
         sigma = np.asarray(trend["sigma"], float)
         base = np.asarray(trend.get("sigma_scale", default), float)
         where = f"{post.path}: /units/{unit}/trend/sigma"
@@ -70,24 +74,74 @@ def fleet_sigma_prior(cfg: Config, post):
     return fit_fleet_prior(sigmas, bases[0])
 
 
-def _sigma_draws(post):
-    """``(unit, {"sigma": [n, d][, "sigma_scale": [d]]})`` per jointly calibrated unit. From
-    a file only those datasets are read, in one opening of it: a sequential posterior, which
-    has no trend, costs a look at each unit's group."""
+def _trend_draws(post, keys: tuple, years: bool = False):
+    """``(unit, {key: array})`` per jointly calibrated unit, the trend fields ``keys`` it
+    has (``sigma`` always) and, with ``years``, its recorded ``years``. From a file only
+    those datasets are read, in one opening of it: a sequential posterior, which has no
+    trend, costs a look at each unit's group."""
     units = post.units
     if not isinstance(units, artifacts.LazyUnits):
         for u in units:
             trend = getattr(units[u], "trend", None) or {}
             if trend:
-                yield u, trend
+                out = {k: trend[k] for k in keys if k in trend}
+                if years:
+                    out["years"] = np.asarray(units[u].years)
+                yield u, out
         return
     with artifacts.open_artifact(units.path, "posterior") as f:
         for u in units:
             g = f["units"][u]
             if "trend" in g:
-                yield u, {key: artifacts.get(g["trend"], key, units.path)
-                          for key in ("sigma", "sigma_scale")
-                          if key == "sigma" or key in g["trend"]}
+                out = {key: artifacts.get(g["trend"], key, units.path)
+                       for key in keys if key == "sigma" or key in g["trend"]}
+                if years:
+                    out["years"] = g["record"].fields("year")[()]
+                yield u, out
+
+
+def fleet_shape_prior(cfg: Config, post, shape_priors: dict, fleet=None):
+    """The fleet's prior of the trend forms (:mod:`twinmon.calibrate.fleet_shapes`), fitted
+    on the posterior's units that weighed shapes (a laplace posterior's); None when
+    ``forecast.pool_shapes`` is off, the posterior weighed the line alone, or fewer than
+    ``forecast.pool_min_units`` units weighed shapes on segments long enough for a shape
+    other than the line.
+
+    Parameters
+    ----------
+    shape_priors : dict
+        ``calibrate.shapes`` as the posterior recorded it
+        (:func:`~.trendfit.recorded_shapes`): the prior the units' draws follow.
+    fleet : FleetPrior, optional
+        The fleet's prior of sigma (:func:`fleet_sigma_prior`): each unit's shares of the
+        forms are then those of its draws weighted to it, as :func:`_pool_unit` will.
+
+    Returns
+    -------
+    FleetShapes or None
+    """
+    from ..calibrate.fleet_shapes import fit_fleet_shapes
+    from ..calibrate.shapes import available_forms, form_of, form_priors
+    base = form_priors(shape_priors)
+    if not cfg.forecast.pool_shapes or np.count_nonzero(base) < 2:
+        return None
+    shares, avail = [], []
+    for unit, trend in _trend_draws(post, ("sigma", "shape", "growth", "start"), years=True):
+        if "shape" not in trend:
+            continue
+        forms = form_of(trend["shape"], trend["growth"])
+        w = (fleet.weights(np.asarray(trend["sigma"], float)) if fleet is not None
+             else np.full(forms.size, 1.0 / forms.size))
+        shares.append(np.bincount(forms, weights=w, minlength=base.size)[:base.size])
+        start = np.asarray(trend["start"])
+        last = start[(start >= 0).sum(axis=0) - 1, np.arange(start.shape[1])]   # [d]
+        yrs = np.asarray(trend["years"])
+        avail.append(available_forms((yrs[None, :] >= last[:, None]).sum(axis=1)))
+    if len(shares) < cfg.forecast.pool_min_units:
+        return None
+    fit = fit_fleet_shapes(np.array(shares), np.array(avail), base)
+    # Units whose segments allow the line alone say nothing of the shapes.
+    return fit if fit.n_units >= cfg.forecast.pool_min_units else None
 
 
 def _pooling_dict(fleet, names: list) -> dict:
@@ -101,13 +155,33 @@ def _pooling_dict(fleet, names: list) -> dict:
             "calibration_scale": dict(zip(names, np.round(fleet.base, 6).tolist()))}
 
 
+def _shapes_dict(shapes) -> dict:
+    """What the forecast pooled of the trend shapes: the fleet's prior of each form and the
+    calibration's."""
+    if shapes is None:
+        return {"pooled": False}
+    from ..calibrate.shapes import form_names
+    return {"pooled": True, "units": shapes.n_units, "prior_units": shapes.prior_units,
+            "fleet": dict(zip(form_names(), np.round(shapes.proportions, 4).tolist())),
+            "calibration": dict(zip(form_names(), np.round(shapes.base, 4).tolist()))}
+
+
 def _pool_unit(cfg: Config, unit: str, trend: dict, samples: np.ndarray,
-               fleet) -> tuple[dict, np.ndarray, float]:
+               fleet=None, shapes=None, stream: int = 5) -> tuple[dict, np.ndarray, float]:
     """A jointly calibrated unit's trend draws and years' draws [n_y, n, d] resampled to the
-    fleet's prior of the year-to-year sd; returns them and the weights' effective number of
-    draws."""
+    fleet's prior of the year-to-year sd (``fleet``, a FleetPrior) and of the trend forms
+    (``shapes``, a FleetShapes; used when the unit's draws have shapes), one systematic
+    resampling by the product of the two weights (its uniform from the unit's ``stream``,
+    :mod:`.streams`); returns them and the weights' effective number of draws."""
+    from ..calibrate.fleet import systematic_resample
+    from ..calibrate.shapes import form_of
     from ..calibrate.trend import TREND_DRAWS
-    idx, ess_frac = fleet.resample(np.asarray(trend["sigma"], float), unit_rng(cfg, unit, 5))
+    sigma = np.asarray(trend["sigma"], float)
+    w = fleet.weights(sigma) if fleet is not None else np.full(len(sigma), 1.0 / len(sigma))
+    if shapes is not None and "shape" in trend:
+        w = w * np.exp(shapes.log_weights(form_of(trend["shape"], trend["growth"])))
+        w /= w.sum()
+    idx, ess_frac = systematic_resample(w, unit_rng(cfg, unit, stream))
     pooled = {k: (np.asarray(v)[idx] if k in TREND_DRAWS else v) for k, v in trend.items()}
     # The artifact thins the years' and the trend's draws alike, so draw j is one chain
     # state in both; a posterior whose counts differ keeps its years' draws as they are.

@@ -10,6 +10,8 @@ and chunks the units were forecast in. The streams of a unit:
 3       the slope draws of the attribution
 4       the null distribution of the inputs' joint box test (detection)
 5       the resampling of a joint posterior to the fleet's prior of its year-to-year sd
+6       the same with the fleet's prior of the trend forms too (the draws the future
+        extends)
 ======  ==============================================================================
 """
 from __future__ import annotations
@@ -25,5 +27,5 @@ SEED_OFFSET = 5000
 
 
 def unit_rng(cfg: Config, unit: str, stream: int) -> np.random.Generator:
-    """The generator of ``stream`` (0-5, above) for ``unit``."""
+    """The generator of ``stream`` (0-6, above) for ``unit``."""
     return np.random.default_rng([cfg.seed + SEED_OFFSET, zlib.crc32(unit.encode()), stream])

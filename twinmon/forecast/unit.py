@@ -88,7 +88,8 @@ class UnitForecast:
     #: Which components the drift comes from, with probabilities.
     attribution: Optional[Attribution] = None
     #: Effective number of the unit's posterior draws once reweighted to the fleet's prior
-    #: of the year-to-year sd (of ``calibrate.keep_draws``); NaN when not pooled.
+    #: of the year-to-year sd (of ``calibrate.keep_draws``), or to its priors of the sd and
+    #: of the trend forms (the draws the future extends), the smaller; NaN when not pooled.
     pool_ess: float = float("nan")
     #: Jumps back towards nominal no event explains (:meth:`~twinmon.repairs.FoundRepair.as_dict`).
     repairs: list = field(default_factory=list)
@@ -229,6 +230,8 @@ class ForecastSummary:
     warnings: list = field(default_factory=list)
     #: The fleet's prior of the joint method's year-to-year sd (:func:`~.pooling._pooling_dict`).
     pooling: dict = field(default_factory=lambda: {"pooled": False})
+    #: The fleet's prior of the trend forms (:func:`~.pooling._shapes_dict`).
+    shape_pooling: dict = field(default_factory=lambda: {"pooled": False})
     #: The limit-state model of the points outside the box (its runs, rounds, region), or
     #: ``used`` false with the reason.
     limit_state: dict = field(default_factory=lambda: {"used": False, "reason": ""})
@@ -237,4 +240,4 @@ class ForecastSummary:
         return {"units": {u: f.as_dict() for u, f in self.units.items()},
                 "output": self.output, "wall_time": round(self.wall_time, 3),
                 "warnings": list(self.warnings), "sigma_pooling": self.pooling,
-                "limit_state": self.limit_state}
+                "shape_pooling": self.shape_pooling, "limit_state": self.limit_state}

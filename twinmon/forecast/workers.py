@@ -28,7 +28,7 @@ TASKS_PER_WORKER = 2
 
 def iter_forecast(cfg: Config, post, sur, *, directions: dict, box_ok: bool,
                   posterior_path="<memory>", truth=None, truth_path=None, executor=None,
-                  workers: Optional[int] = None, progress=None, fleet=None,
+                  workers: Optional[int] = None, progress=None, fleet=None, shapes=None,
                   limit_state=None):
     """Forecast the units of ``post`` one chunk at a time; yields ``(unit, UnitForecast)`` in
     the posterior's order.
@@ -59,8 +59,11 @@ def iter_forecast(cfg: Config, post, sur, *, directions: dict, box_ok: bool,
         ``progress(done, total)`` over the units.
     fleet : FleetPrior, optional
         From :func:`~.pooling.fleet_sigma_prior`: the jointly calibrated units' draws are
-        resampled to the fleet's prior of their year-to-year sd. The one thing a unit's
-        forecast takes from the rest of its fleet.
+        resampled to the fleet's prior of their year-to-year sd.
+    shapes : FleetShapes, optional
+        From :func:`~.pooling.fleet_shape_prior`: a laplace posterior's draws are also
+        resampled to the fleet's prior of the trend forms. With ``fleet``, the one thing a
+        unit's forecast takes from the rest of its fleet.
     limit_state : LimitState, optional
         From :func:`~.limitstate.build_limit_state`: answers the points outside the box it
         is sure are unsafe (the others run through the FMU).
@@ -83,7 +86,7 @@ def iter_forecast(cfg: Config, post, sur, *, directions: dict, box_ok: bool,
         n_workers = 1
     spec = spec_for(cfg)
     context = dict(directions=directions, box_ok=box_ok, fit_windows=post.fit_windows,
-                   truth_path=truth_path, fleet=fleet,
+                   truth_path=truth_path, fleet=fleet, shapes=shapes,
                    shape_priors=recorded_shapes(cfg, posterior_path),
                    input_range=declared_range(cfg))
 

@@ -297,6 +297,16 @@ def _render(cfg: Config, inp: Inputs, tmp: Path, out: Path, provenance: dict,
         notes.append(f"The year-to-year variation of the inputs was pooled over the "
                      f"{pooling['units']} jointly calibrated units (fleet median sd: {med}): "
                      "each unit's trend and forecast use the fleet's estimate of it.")
+    shaped = getattr(inp.forecast, "shape_pooling", None) or {}
+    if shaped.get("pooled"):
+        prior = shaped["fleet"]
+        acc = sum(v for k, v in prior.items() if k not in ("line", "change"))
+        forms = ", ".join(f"{k} {v:.2f}" for k, v in prior.items()
+                          if k not in ("line", "change"))
+        notes.append(f"The trend shapes' prior probabilities were learnt from the fleet's "
+                     f"{shaped['units']} units: a straight line {prior['line']:.2f}, "
+                     f"accelerating {acc:.2f} ({forms}), a change {prior['change']:.2f}; "
+                     "each unit's trend and forecast weigh its shapes by them.")
 
     figs.finish()
     output_words, indicator_words = words_dict(inp)

@@ -1,0 +1,120 @@
+"""calibrate, the fleet's prior of the trend forms (twinmon/calibrate/fleet_shapes.py): its
+fit recovers the proportions a fleet was drawn with, ignores what a short record cannot say,
+and the forecast's resampling takes a unit's draws to its posterior under it."""
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import approx_fprime
+
+from twinmon.calibrate.fleet_shapes import _neg_log_posterior, fit_fleet_shapes
+from twinmon.calibrate.shapes import available_forms, form_names, form_of, form_priors
+
+BASE = form_priors({"line": 0.6, "accelerating": 0.2, "change": 0.2})
+F = len(form_names())
+
+
+def _fleet(pi_true: np.ndarray, n: int, rng):
+    """Units whose form is drawn from ``pi_true``, each seen through one noisy summary
+    ``y ~ N(mu_form, I)`` whose forms' means lie a unit or two apart in the plane (so a unit
+    alone is unsure of its form). Returns the units' posterior shares under :data:`BASE`
+    [n, F] (prior times the exact likelihood of ``y``) and their forms."""
+    ang = 2 * np.pi * np.arange(F) / F
+    mu = 2.0 * np.column_stack([np.cos(ang), np.sin(ang)])                 # [F, 2]
+    true = rng.choice(F, n, p=pi_true)
+    y = mu[true] + rng.standard_normal((n, 2))
+    log_z = -0.5 * ((y[:, None, :] - mu[None]) ** 2).sum(axis=2)
+    post = BASE * np.exp(log_z - log_z.max(axis=1, keepdims=True))
+    return post / post.sum(axis=1, keepdims=True), true
+
+
+def test_recovers_the_proportions_a_fleet_was_drawn_with():
+    """2000 units, few of whose own posteriors are sure of their form: the fitted prior is
+    within 0.03 of the proportions they were drawn with, where the calibration's prior
+    (0.6 on the line) is far off."""
+    rng = np.random.default_rng(1)
+    pi_true = np.array([0.3, 0.25, 0.05, 0.05, 0.25, 0.05, 0.0, 0.05])
+    shares, _ = _fleet(pi_true, 2000, rng)
+    fit = fit_fleet_shapes(shares, np.ones_like(shares, bool), BASE, prior_units=8.0)
+    assert np.abs(fit.proportions - pi_true).max() < 0.03, fit.proportions
+    assert np.abs(BASE - pi_true).max() > 0.25
+    assert abs(fit.proportions.sum() - 1) < 1e-12 and fit.n_units == 2000
+    assert abs(fit.shape_priors()["accelerating"] - pi_true[1:-1].sum()) < 0.03
+
+
+def test_a_small_fleet_stays_near_the_calibrations_prior():
+    """Five units: the Dirichlet prior worth 8 units holds the fit closer to the
+    calibration's prior than the same units' maximum likelihood (prior_units 0)."""
+    rng = np.random.default_rng(2)
+    shares, _ = _fleet(np.array([0.0, 1.0, 0, 0, 0, 0, 0, 0]), 5, rng)
+    avail = np.ones_like(shares, bool)
+    held = fit_fleet_shapes(shares, avail, BASE, prior_units=8.0).proportions
+    free = fit_fleet_shapes(shares, avail, BASE, prior_units=0.0).proportions
+    assert np.abs(held - BASE).sum() < np.abs(free - BASE).sum()
+    assert held.min() > 0.0
+
+
+def test_units_too_short_for_a_shape_say_nothing_of_it():
+    """Units whose segments allow the line alone (share 1 on it) leave the fit as it is on
+    the other units; counted as if every form were open, they would pull it to the line."""
+    rng = np.random.default_rng(3)
+    shares, _ = _fleet(np.array([0.2, 0.4, 0.1, 0.1, 0.1, 0.0, 0.0, 0.1]), 300, rng)
+    short = np.zeros((300, F))
+    short[:, 0] = 1.0
+    avail = np.ones((600, F), bool)
+    avail[300:] = available_forms(np.array([4, 3]))        # no acceleration, no change
+    both = fit_fleet_shapes(np.vstack([shares, short]), avail, BASE).proportions
+    alone = fit_fleet_shapes(shares, avail[:300], BASE).proportions
+    naive = fit_fleet_shapes(np.vstack([shares, short]), np.ones((600, F), bool),
+                             BASE).proportions
+    assert np.abs(both - alone).max() < 0.01, (both, alone)
+    assert naive[0] > alone[0] + 0.2
+
+
+def test_gradient_is_that_of_the_objective():
+    rng = np.random.default_rng(4)
+    shares, _ = _fleet(np.full(F, 1.0 / F), 40, rng)
+    avail = rng.random((40, F)) < 0.8
+    avail[:, 0] = True
+    S = shares * avail
+    S /= S.sum(axis=1, keepdims=True)
+    z = rng.normal(0, 0.5, F)
+    value, grad = _neg_log_posterior(z, S, avail.astype(float), BASE, 8.0)
+    num = approx_fprime(z, lambda v: _neg_log_posterior(v, S, avail.astype(float), BASE,
+                                                        8.0)[0], 1e-6)
+    assert np.allclose(grad, num, rtol=1e-4, atol=1e-4), (grad, num)
+
+
+def test_forms_of_draws_and_their_priors():
+    code = np.array([0, 1, 1, 1, 2])
+    growth = np.array([0.0, 0.0, 0.1, 0.5, 0.0])
+    assert form_of(code, growth).tolist() == [0, 1, 2, 6, 7]
+    assert abs(BASE.sum() - 1) < 1e-12 and BASE[0] == 0.6 and BASE[-1] == 0.2
+    assert np.allclose(BASE[1:-1], 0.2 / 6)
+    assert available_forms(np.array([5, 2])).tolist() == [True] * 7 + [False]
+    assert available_forms(np.array([6, 6])).all()
+
+
+def test_pooled_draws_follow_the_fleets_prior():
+    """A unit's draws resampled by the forecast (pooling._pool_unit): each form's share of
+    them is the unit's posterior under the fleet's prior, s_f pi_f / b_f normalised."""
+    from types import SimpleNamespace
+
+    from twinmon.calibrate.fleet_shapes import FleetShapes
+    from twinmon.forecast.pooling import _pool_unit
+    rng = np.random.default_rng(5)
+    n = 20000
+    s = np.array([0.5, 0.1, 0.1, 0.1, 0.05, 0.05, 0.05, 0.05])
+    forms = rng.choice(F, n, p=s)
+    code = np.where(forms == 0, 0, np.where(forms == 7, 2, 1))
+    growth = np.where((forms >= 2) & (forms <= 6), 0.1 * (forms - 1), 0.0)
+    pi = np.array([0.1, 0.5, 0.1, 0.1, 0.05, 0.05, 0.05, 0.05])
+    shapes = FleetShapes(pi, BASE, 44, 8.0)
+    trend = {"sigma": np.ones((n, 2)), "shape": code, "growth": growth,
+             "slope": np.zeros((n, 1, 2))}
+    cfg = SimpleNamespace(seed=0)
+    pooled, samples, ess = _pool_unit(cfg, "U", trend, np.zeros((3, n, 2)), None, shapes)
+    got = np.bincount(form_of(pooled["shape"], pooled["growth"]), minlength=F) / n
+    want = s * pi / BASE
+    want /= want.sum()
+    assert np.abs(got - want).max() < 0.01, (got, want)
+    assert 0 < ess < n and samples.shape == (3, n, 2)
