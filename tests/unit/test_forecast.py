@@ -361,6 +361,52 @@ def test_artifact_round_trip_and_provenance(setup):
         f.visititems(check)
 
 
+def test_packed_arrays_are_what_hdf5_filters_store(tmp_path):
+    """The workers compress the Monte Carlo arrays themselves (shuffle, then zlib, one chunk
+    per year); HDF5 reads them back bit for bit, NaN and inf included, for every dtype the
+    artifact stores."""
+    from twinmon.forecast.artifact import _put_per_year, pack_per_year
+    rng = np.random.default_rng(3)
+    draws = rng.normal(size=(4, 50, 2))
+    draws[1, 3, 0], draws[2, 7, 1] = np.nan, np.inf
+    arrays = {"draws": draws, "flags": (rng.random((4, 50)) < 0.1).astype(np.int8),
+              "codes": rng.integers(0, 4, (3, 20)).astype(np.int8),
+              "one_year": rng.normal(size=(1, 7)), "empty": np.zeros((0, 5))}
+    with h5py.File(tmp_path / "a.h5", "w") as f:
+        for name, a in arrays.items():
+            _put_per_year(f, name, pack_per_year(a) if a.size else a, "1", name)
+            _put_per_year(f, name + "_here", a, "1", name)
+    with h5py.File(tmp_path / "a.h5") as f:
+        for name, a in arrays.items():
+            for key in (name, name + "_here"):
+                assert f[key].dtype == a.dtype and f[key].shape == a.shape
+                assert np.array_equal(f[key][()], a, equal_nan=a.dtype.kind == "f"), key
+            if a.size:
+                assert f[name].chunks == (1,) + a.shape[1:]
+                last = (len(a) - 1,) + (0,) * (a.ndim - 1)
+                assert f[name].id.read_direct_chunk(last)[1] == \
+                    f[name + "_here"].id.read_direct_chunk(last)[1]
+
+
+def test_a_flipped_byte_in_the_monte_carlo_arrays_is_a_damaged_artifact(setup, tmp_path):
+    """Their chunks' zlib checksum finds damage as the checksum of the other datasets does:
+    an artifact error naming the file, not numbers read as plausible."""
+    import shutil
+    _, _, tmp, s = setup
+    path = tmp_path / "fc.h5"
+    shutil.copy(tmp / "fc.h5", path)
+    unit = next(iter(s.units))
+    with h5py.File(path, "r") as f:
+        offset = f[f"units/{unit}/indicator"].id.get_chunk_info(0).byte_offset + 40
+    with open(path, "r+b") as fh:
+        fh.seek(offset)
+        b = fh.read(1)
+        fh.seek(offset)
+        fh.write(bytes([b[0] ^ 0x10]))
+    with pytest.raises(ArtifactError, match=re.escape(str(path))):
+        read_forecast(path).units[unit].indicator
+
+
 def test_json_shape_via_cli(setup, tmp_path):
     from twinmon.cli import main
     _, cfg_path, tmp, _ = setup

@@ -190,7 +190,7 @@ def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
                                       truth=truth, truth_path=truth_path, executor=executor,
                                       workers=workers, progress=progress,
                                       directions=directions, box_ok=box_ok, fleet=fleet,
-                                      limit_state=limit_state, shapes=shapes):
+                                      limit_state=limit_state, shapes=shapes, pack=True):
             _write_unit(f, cfg, unit, uf, names)
             units[unit] = uf.slim()
     warnings = [d.note for d in directions.values() if d.note]

@@ -106,6 +106,9 @@ class UnitForecast:
 
     #: Set by :meth:`slim`: the figures kept when the Monte Carlo arrays are dropped.
     _slim: Optional[dict] = field(default=None, repr=False)
+    #: Set by :func:`~.artifact.pack_unit` in a worker: the Monte Carlo arrays as the
+    #: artifact stores them (compressed), for the writer alone.
+    _packed: Optional[dict] = field(default=None, repr=False)
 
     @property
     def fmu_fraction(self) -> float:
@@ -152,6 +155,8 @@ class UnitForecast:
         """A copy without the Monte Carlo arrays (samples, indicator, flags: ~0.4 MB a unit),
         keeping what :meth:`as_dict` and the command's lines read (a fleet's summary)."""
         from dataclasses import replace
+        if self._slim is not None:      # slim already (a worker's): drop the packed arrays
+            return replace(self, _packed=None)
         q = (0.05, 0.5, 0.95)
         keep = {"fmu_fraction": self.fmu_fraction, "model_fraction": self.model_fraction,
                 "n_samples": self.n_samples,

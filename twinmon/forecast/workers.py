@@ -29,7 +29,7 @@ TASKS_PER_WORKER = 2
 def iter_forecast(cfg: Config, post, sur, *, directions: dict, box_ok: bool,
                   posterior_path="<memory>", truth=None, truth_path=None, executor=None,
                   workers: Optional[int] = None, progress=None, fleet=None, shapes=None,
-                  limit_state=None):
+                  limit_state=None, pack: bool = False):
     """Forecast the units of ``post`` one chunk at a time; yields ``(unit, UnitForecast)`` in
     the posterior's order.
 
@@ -67,6 +67,10 @@ def iter_forecast(cfg: Config, post, sur, *, directions: dict, box_ok: bool,
     limit_state : LimitState, optional
         From :func:`~.limitstate.build_limit_state`: answers the points outside the box it
         is sure are unsafe (the others run through the FMU).
+    pack : bool
+        A pool's workers send each unit back slim, its Monte Carlo arrays compressed as the
+        artifact stores them (:func:`~.artifact.pack_unit`), for a caller that writes them
+        and keeps the figures alone (``forecast``); in this process they stay whole.
 
     Raises
     ------
@@ -124,7 +128,7 @@ def iter_forecast(cfg: Config, post, sur, *, directions: dict, box_ok: bool,
                 executor.__exit__(None, None, None)
         return
     yield from _pooled(cfg, sur, spec, chunks, chunk_of, context, n_workers, progress,
-                       limit_state)
+                       limit_state, pack)
 
 
 def _chunk_size(n_units: int, n_workers: int) -> int:
@@ -133,7 +137,8 @@ def _chunk_size(n_units: int, n_workers: int) -> int:
     return max(1, min(CHUNK_UNITS, -(-n_units // (4 * max(n_workers, 1)))))
 
 
-def _pooled(cfg, sur, spec, chunks, chunk_of, context, n_workers, progress, limit_state):
+def _pooled(cfg, sur, spec, chunks, chunk_of, context, n_workers, progress, limit_state,
+            pack=False):
     """:func:`iter_forecast` on a pool: ``TASKS_PER_WORKER`` chunks in flight per worker,
     results yielded in the chunks' order."""
     from collections import deque
@@ -149,14 +154,14 @@ def _pooled(cfg, sur, spec, chunks, chunk_of, context, n_workers, progress, limi
             Interrupted("forecast: interrupted; nothing was written")):
         queue, todo = deque(), iter(chunks)
         for names_ in todo:
-            queue.append(pool.submit(_chunk_task, chunk_of(names_), context))
+            queue.append(pool.submit(_chunk_task, chunk_of(names_), context, pack))
             if len(queue) >= TASKS_PER_WORKER * n_workers:
                 break
         while queue:
             results = queue.popleft().result()
             nxt = next(todo, None)
             if nxt is not None:
-                queue.append(pool.submit(_chunk_task, chunk_of(nxt), context))
+                queue.append(pool.submit(_chunk_task, chunk_of(nxt), context, pack))
             for unit, uf in results:
                 done += 1
                 if progress:
@@ -179,5 +184,9 @@ def _init_worker(cfg: Config, sur, spec, limit_state=None) -> None:
     Finalize(ex, ex.close, exitpriority=10)
 
 
-def _chunk_task(units: list, context: dict) -> list:
-    return _forecast_chunk(_worker_state, units, **context)
+def _chunk_task(units: list, context: dict, pack: bool = False) -> list:
+    results = _forecast_chunk(_worker_state, units, **context)
+    if pack:
+        from .artifact import pack_unit
+        results = [(unit, pack_unit(uf)) for unit, uf in results]
+    return results
