@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import stats
 
-from twinmon.calibrate.shapes import ShapeMixture, build_shapes
+from twinmon.calibrate.shapes import ShapeMixture, build_shapes, describe_shape, shape_summary
 from twinmon.calibrate.trend import design_matrix, trend_predictive
 
 YEARS = np.arange(1, 11)
@@ -66,9 +66,76 @@ def test_shape_probabilities_match_a_quadrature():
     assert 0.05 < p_acc < 0.95          # a case where the evidence is not one-sided
 
 
+def test_a_change_in_one_input_matches_a_quadrature():
+    """Two inputs, the first stepping in year 6: the posterior probability of its change
+    alone (its two coefficients under the unit-information prior) against the line equals
+    that of the marginal likelihoods integrated over both sigmas on a grid (the years'
+    joint Gaussian written out whole)."""
+    rng = np.random.default_rng(4)
+    t = YEARS.astype(float)
+    err = np.full((len(t), 2), 0.06)
+    x = np.column_stack([0.03 * t + 0.18 * (t >= 6), -0.02 * t]) + \
+        rng.normal(0, 0.04, err.shape) + err * rng.standard_normal(err.shape)
+    mix = _mixture(x, err, {"line": 0.5, "change": 0.5}, A=0.1)
+    mix.shapes = [sh for sh in mix.shapes if sh.code == 0 or sh.change_years == (6, -1)]
+    assert len(mix.shapes) == 2, [sh.change_years for sh in mix.shapes]
+    for sh in mix.shapes:
+        sh.log_prior = np.log(0.5)
+    _, probs = mix.sigma_points(np.random.default_rng(1))
+    A, g = 0.1, np.geomspace(1e-4, 1.0, 120)
+    prior_s = np.log(2 / (np.pi * A * (1 + (g / A) ** 2)))
+    s0, s1 = np.meshgrid(g, g, indexing="ij")
+    logz = []
+    for sh in mix.shapes:
+        m = sh.model
+        M = m.Mk.reshape(len(t) * 2, -1)                 # years x inputs stacked
+        P = m.prior_P.copy()
+        P[[0, 2], [0, 2]] = 1e-2                         # the flat levels: wide, cancel
+        r = x.ravel() - M @ m.prior_mean
+        C = M @ np.linalg.inv(P) @ M.T
+        var = (err ** 2).ravel()[None] + np.stack([s0.ravel() ** 2, s1.ravel() ** 2], 1)[
+            :, np.tile([0, 1], len(t))]                  # [grid, years x inputs]
+        V = C[None] + var[:, :, None] * np.eye(r.size)
+        L = np.linalg.cholesky(V)
+        z = np.linalg.solve(L, np.broadcast_to(r, (len(V), r.size))[..., None])[..., 0]
+        lw = (-0.5 * np.sum(z * z, axis=1) - np.log(np.einsum("nii->ni", L)).sum(axis=1)
+              ).reshape(s0.shape) + prior_s[:, None] + prior_s[None, :]
+        logz.append(np.log(np.trapezoid(np.trapezoid(np.exp(lw - lw.max()), g), g))
+                    + lw.max())
+    p_change = 1.0 / (1.0 + np.exp(logz[0] - logz[1]))
+    assert abs(probs[1] - p_change) < 0.02, (probs, p_change)
+    assert 0.05 < p_change < 0.95
+
+
+def test_the_screen_of_the_changes_is_the_models_evidence():
+    """The screen's block update of the line's evidence equals each change combination's
+    own evidence on the screen's grid (the models built whole)."""
+    from twinmon.calibrate.gaussian_trend import log_evidence_at
+    from twinmon.calibrate.shapes import _screen, screen_grid
+    rng = np.random.default_rng(7)
+    t = YEARS.astype(float)
+    err = np.full((len(t), 2), 0.04)
+    x = np.column_stack([0.5 * (t >= 5), -0.4 * (t >= 8)]) + err * rng.standard_normal(err.shape)
+    mix = _mixture(x, err, A=0.05)
+    line = mix.shapes[0].model
+    grid = screen_grid(np.full(2, 0.05))
+    n_l = line.Mk.shape[2]
+    checked = 0
+    for sh in mix.shapes[1:]:
+        E = sh.model.Mk[:, :, n_l:]
+        evidence = _screen(line, E, sh.model.prior_P[n_l:, n_l:], grid)
+        block = evidence([list(range(E.shape[2]))])[0] - evidence([[]])[0]
+        ll = log_evidence_at([line, sh.model], grid[0]) + grid[1]
+        top = ll.max(axis=1, keepdims=True)
+        whole = top[:, 0] + np.log(np.exp(ll - top).sum(axis=1))
+        assert abs(block - (whole[1] - whole[0])) < 1e-8, (sh.change_years, block, whole)
+        checked += sh.code == 2
+    assert checked >= 1
+
+
 def _draws(mix, n=4000, seed=2):
-    """The mixture's draws on its sites: shape code, change year, trend at the last year
-    [n, 3, d], sigma [n, d]."""
+    """The mixture's draws on its sites: shape code, change year (the first input's that
+    changes), trend at the last year [n, 3, d], sigma [n, d]."""
     coef, sigma, _, _ = mix.draw(n, np.random.default_rng(seed), WIDE[:mix.x.shape[1]])
     code, m, now = mix.decode(coef)
     return np.array([mix.shapes[c].code for c in code]), \
@@ -141,6 +208,75 @@ def test_a_step_is_placed_in_its_year_and_not_extended():
     # noise), well below the line's through the whole history, which climbs to 0.92.
     line = np.polyval(np.polyfit(t, x[:, 0], 1), 16.0)
     assert np.median(future) < line - 0.15, (np.median(future), line)
+
+
+def test_two_inputs_stepping_in_different_years_each_keep_their_year():
+    """The first input steps up by 0.5 in year 5, the second down by 0.4 in year 8, each flat
+    otherwise: the change draws place each step in its own year, and each input's future
+    follows the line through its years since its step. One year shared by the inputs (the
+    change shape before each input had its own) reads the later step as a rate and
+    extends it."""
+    rng = np.random.default_rng(14)
+    t = YEARS.astype(float)
+    err = np.full((len(t), 2), 0.04)
+    x = np.column_stack([0.5 * (t >= 5), -0.4 * (t >= 8)]) + \
+        err * rng.standard_normal(err.shape)
+    mix = _mixture(x, err, A=0.05)
+    coef, sigma, _, _ = mix.draw(4000, np.random.default_rng(2), WIDE)
+    code, _, now = mix.decode(coef)
+    shape = np.array([mix.shapes[c].code for c in code])
+    years = np.array([mix.shapes[c].change_years for c in code])            # [n, 2]
+    assert np.mean(shape == 2) > 0.9
+    assert np.mean((years[shape == 2] == [5, 8]).all(axis=1)) > 0.8, years[shape == 2][:5]
+    first = np.array([mix.shapes[c].change_year for c in code])
+    summary = shape_summary({"shape": shape, "change_years": years, "change_year": first})
+    assert summary["change_years"] == [5, 8] and summary["change"] > 0.9
+    assert "years 5 and 8" in describe_shape(summary)
+    growth = np.array([mix.shapes[c].growth for c in code])
+    future = _future(now, sigma, np.array([16]), growth)[:, 0]
+    since = [np.polyval(np.polyfit(t[t >= y], x[t >= y, i], 1), 16.0)
+             for i, y in enumerate((5, 8))]
+    for i in range(2):
+        lo, hi = np.quantile(future[:, i], [0.05, 0.95])
+        assert lo <= since[i] <= hi, (i, lo, hi, since[i])
+    # The same data under one year shared by both inputs: the shared-year model built
+    # whole, each year's combination with both inputs changing.
+    from twinmon.calibrate.shapes import Shape, _change_columns, _extended
+    shared = _mixture(x, err, {"line": 0.6, "accelerating": 0.2}, A=0.05)
+    line = shared.shapes[0]
+    W = np.linalg.inv(line.model.cov + np.diag([0.05, 0.05]) ** 2)
+    for y in range(4, 9):
+        cols = _change_columns(t, np.ones(len(t), bool), 0, 2, y) + \
+            _change_columns(t, np.ones(len(t), bool), 1, 2, y)
+        sh = _extended(line, 2, cols, np.log(0.2 / 5), W, np.tile([0.0, 0.01], 2),
+                       np.zeros(4), np.full(2, 0.05), (y, y), 0.0)
+        assert isinstance(sh, Shape)
+        shared.shapes.append(sh)
+    coef, sigma_s, _, _ = shared.draw(4000, np.random.default_rng(2), WIDE)
+    code_s, _, now_s = shared.decode(coef)
+    growth_s = np.array([shared.shapes[c].growth for c in code_s])
+    late = _future(now_s, sigma_s, np.array([16]), growth_s)[:, 0, 1]
+    assert abs(np.median(late) - since[1]) > 2 * abs(np.median(future[:, 1]) - since[1]), \
+        (np.median(late), np.median(future[:, 1]), since[1])
+
+
+def test_a_change_each_input_needs_is_weighed_whole_and_one_it_does_not_is_not():
+    """Occam's razor among the change's combinations: one input stepping keeps its
+    change alone (no combination adds the flat input's change), two inputs stepping keep
+    the combination of both."""
+    rng = np.random.default_rng(15)
+    t = YEARS.astype(float)
+    err = np.full((len(t), 2), 0.04)
+    one = np.column_stack([0.5 * (t >= 6), np.zeros_like(t)])
+    mix = _mixture(one + err * rng.standard_normal(err.shape), err, A=0.05)
+    changes = [sh.change_years for sh in mix.shapes if sh.code == 2]
+    assert (6, -1) in changes and all(y[1] == -1 for y in changes if y[0] >= 0), changes
+    two = np.column_stack([0.5 * (t >= 6), 0.5 * (t >= 6)])
+    mix = _mixture(two + err * rng.standard_normal(err.shape), err, A=0.05)
+    _, probs = mix.sigma_points(np.random.default_rng(1))
+    best = mix.shapes[int(np.argmax(probs))]
+    assert best.change_years == (6, 6), [(sh.change_years, p) for sh, p in
+                                         zip(mix.shapes, probs)]
 
 
 def test_a_straight_line_stays_the_line():

@@ -194,3 +194,20 @@ def test_a_change_the_data_favour_restarts_the_check_there():
     assert change_year(shape, SHAPES) == 6
     assert change_year({**shape, "line": 0.8, "change": 0.1}, SHAPES) is None
     assert change_year({}, SHAPES) is None and change_year(shape, LINE) is None
+    # Each input's own year when the summary has them: only those inputs restart.
+    per = {**shape, "change_year": 5, "change_years": [5, None]}
+    assert change_year(per, SHAPES) == [5, None]
+
+
+def test_each_input_restarts_the_check_in_its_own_change_year(configs):
+    """A change year per input starts a segment for the inputs that change only."""
+    from types import SimpleNamespace
+
+    from twinmon.forecast.trendfit import unit_sites
+    cfg = configs[2]
+    up = SimpleNamespace(years=YEARS, mean=np.zeros((YEARS.size, 2)), site=None, events=())
+    cov = np.tile(np.eye(2), (YEARS.size, 1, 1))
+    _, _, starts = unit_sites(cfg, up, cov, {}, (), [5, None])
+    assert [list(s) for s in starts] == [[1, 5], [1]]
+    _, _, starts = unit_sites(cfg, up, cov, {}, (), 7)
+    assert [list(s) for s in starts] == [[1, 7], [1, 7]]

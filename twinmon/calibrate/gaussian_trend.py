@@ -349,7 +349,14 @@ class GaussianTrend(SiteModel):
         sigma_ess : float
             Effective number of the sigma points behind the draws.
         """
-        K, d = self.x.shape
+        beta, sigma, n_eff = self.draw_trend(n, rng, points)
+        m = np.einsum("kia,na->nki", self.Mk, beta)                           # [n, K, d]
+        return beta, sigma, draw_years(self.x, self.cov, m, sigma, rng, bounds), n_eff
+
+    def draw_trend(self, n: int, rng: np.random.Generator, points=None
+                   ) -> tuple[np.ndarray, np.ndarray, float]:
+        """The trend part of :meth:`draw`: ``beta`` [n, n_beta], ``sigma`` [n, d] and the
+        sigma points' effective number (the years: :func:`draw_years`)."""
         pts, w, n_eff = (self.sigma_points(rng) if points is None else points)[:3]
         pick = rng.choice(len(w), size=n, p=w)
         uniq, inv = np.unique(pick, return_inverse=True)
@@ -358,25 +365,45 @@ class GaussianTrend(SiteModel):
         # beta = mean + Lb^-T z: covariance Pb^-1.
         z = rng.standard_normal((n, mean.shape[1]))
         beta = mean[inv] + np.linalg.solve(np.swapaxes(Lb, 1, 2)[inv], z[:, :, None])[:, :, 0]
-        sigma = sigma_u[inv]
-        H = np.linalg.inv(self.cov)                                           # [K, d, d]
-        S_inv = 1.0 / sigma ** 2                                              # [n, d]
-        G = np.linalg.inv(H[None] + S_inv[:, None, :, None] * np.eye(d))      # [n, K, d, d]
-        m = np.einsum("kia,na->nki", self.Mk, beta)                           # [n, K, d]
-        hx = np.einsum("kij,kj->ki", H, self.x)
-        mu = np.einsum("nkij,nkj->nki", G, hx[None] + S_inv[:, None, :] * m)
-        Lg = np.linalg.cholesky(G)
-        lo, hi = bounds[:, 0], bounds[:, 1]
-        theta = np.empty_like(mu)
-        todo = np.ones((n, K), bool)
-        for _ in range(BOX_TRIES):
-            e = rng.standard_normal(mu.shape)
-            t = mu + np.einsum("nkij,nkj->nki", Lg, e)
-            take = todo & np.all((t >= lo) & (t <= hi), axis=2)
-            theta[take] = t[take]
-            todo &= ~take
-            if not todo.any():
-                break
-        if todo.any():
-            theta[todo] = np.clip(t[todo], lo, hi)
-        return beta, sigma, theta, n_eff
+        return beta, sigma_u[inv], n_eff
+
+
+def draw_years(x: np.ndarray, cov: np.ndarray, m: np.ndarray, sigma: np.ndarray,
+               rng: np.random.Generator, bounds: np.ndarray) -> np.ndarray:
+    """The years' inputs given the trend: per draw and year, the site ``N(x_k; theta_k,
+    C_k)`` times ``N(theta_k; m_k, diag(sigma^2))``, held in ``bounds`` [d, 2] (a draw
+    outside is drawn again :data:`BOX_TRIES` times, then clipped).
+
+    Parameters
+    ----------
+    x, cov : ndarray, shapes [K, d], [K, d, d]
+        The sites.
+    m : ndarray, shape [n, K, d]
+        Each draw's trend at the years.
+    sigma : ndarray, shape [n, d]
+
+    Returns
+    -------
+    ndarray, shape [n, K, d]
+    """
+    d = x.shape[1]
+    H = np.linalg.inv(cov)                                                    # [K, d, d]
+    S_inv = 1.0 / sigma ** 2                                                  # [n, d]
+    G = np.linalg.inv(H[None] + S_inv[:, None, :, None] * np.eye(d))          # [n, K, d, d]
+    hx = np.einsum("kij,kj->ki", H, x)
+    mu = np.einsum("nkij,nkj->nki", G, hx[None] + S_inv[:, None, :] * m)
+    Lg = np.linalg.cholesky(G)
+    lo, hi = bounds[:, 0], bounds[:, 1]
+    theta = np.empty_like(mu)
+    todo = np.ones(mu.shape[:2], bool)
+    for _ in range(BOX_TRIES):
+        e = rng.standard_normal(mu.shape)
+        t = mu + np.einsum("nkij,nkj->nki", Lg, e)
+        take = todo & np.all((t >= lo) & (t <= hi), axis=2)
+        theta[take] = t[take]
+        todo &= ~take
+        if not todo.any():
+            break
+    if todo.any():
+        theta[todo] = np.clip(t[todo], lo, hi)
+    return theta

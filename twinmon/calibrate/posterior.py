@@ -418,7 +418,7 @@ def _put_trend(g: h5py.Group, trend: dict, keep: int) -> None:
         data = np.asarray(trend[key])
         if key in TREND_DRAWS:
             data = data[thin_indices(len(data), keep)]
-            if key in ("shape", "change_year"):
+            if key in ("shape", "change_year", "change_years"):
                 data = data.astype(np.int16)        # codes and years
             elif data.dtype.kind == "f":
                 data = data.astype(DRAW_DTYPE)

@@ -1,6 +1,7 @@
 """Trend shapes of the laplace method: on each input's current segment, wear may follow a
-straight line, a line that accelerates, or a line whose level and rate change in one year;
-the posterior averages them by their evidence (Bayesian model averaging).
+straight line, a line that accelerates, or a line whose level and rate change, each input's
+in a year of its own; the posterior averages them by their evidence (Bayesian model
+averaging).
 
 Real wear is rarely a straight line: it accelerates (the usual shape of fatigue and erosion),
 or steps when something breaks or a process changes. A line through such a history forecasts
@@ -15,9 +16,14 @@ forecast extends), each the line plus coefficients with a Gaussian prior:
   model, whose rate a decade of yearly records pins down only roughly); the six forms share
   the shape's prior equally. A quadratic extended seven years falls short of exponential
   wear; the exponential forms carry that possibility into the forecast;
-* ``change`` at year ``y`` (every recorded year with at least :data:`CHANGE_MIN_YEARS` years of
-  the segment before it and from it): a jump of the level, ``1[t >= y]``, and of the rate,
-  ``(t - y) 1[t >= y]``; the years are equally likely a priori and share the shape's prior.
+* ``change``: a jump of an input's level, ``1[t >= y]``, and of its rate, ``(t - y)
+  1[t >= y]``, in a year ``y`` with at least :data:`CHANGE_MIN_YEARS` years of its segment
+  before it and from it. Each input changes or not, in a year of its own: a priori each
+  input changes with probability 1/2, in a year uniform over its candidates, independently
+  of the others, given that one changes (so the sets of inputs that change are equally
+  likely; two inputs changing in the same year is one of their combinations). Two parts
+  need not break in the same year: with one year shared by the inputs, the later step was
+  read as a rate and extended.
 
 Each extra coefficient block has Zellner's unit-information prior: zero mean, covariance
 ``K`` (the unit's years) times the inverse of the information the sites hold about the block
@@ -31,15 +37,30 @@ a shape per draw by its posterior probability on the sites, then from it, and is
 weighted to the exact likelihood as one model (:class:`ShapeMixture`). A shape whose
 posterior probability on the sites is below :data:`OCCAM` of the best one's is dropped
 before any draw (Occam's window, Madigan and Raftery 1994): it could not hold a draw.
+
+The change's combinations (25 for two inputs with five candidate years each, against the
+shared year's 5) are screened once, before any model is built: each one's evidence
+integrated over sigma on a coarse grid (:func:`screen_grid`; at the line's mean sigma alone,
+inflated by the steps a line cannot follow, a second step did not pay for its
+coefficients), by a block update of the line's (:func:`_screen`: the combinations cost a
+few batched products, not a model each). Kept are those in Occam's window of the best shape
+that also pass the window's second rule among the combinations, Occam's razor: a
+combination is dropped when one without one of its inputs' changes is more probable (that
+change does not pay for its two coefficients; its years, each a sliver of the same draws,
+would each cost the mixture sigma points and draws). A change is always weighed against the
+line and the accelerating forms.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
+from itertools import combinations, product
 from typing import Optional
 
 import numpy as np
 
-from .gaussian_trend import GaussianTrend, SiteModel, log_evidence_at
+from .gaussian_trend import (GaussianTrend, SiteModel, draw_years, linear_gaussian,
+                             log_evidence_at, year_weights)
 
 #: The shapes, in the order of their code in the posterior (``trend/shape``).
 SHAPES = ("line", "accelerating", "change")
@@ -50,6 +71,14 @@ ACCELERATING_MIN_YEARS = 5
 CHANGE_MIN_YEARS = 3
 #: Shapes less probable than this share of the best one on the sites are dropped.
 OCCAM = 1e-4
+#: Most combinations of the inputs' change years weighed in full; beyond (three inputs or
+#: more), each input keeps its ``CHANGE_SCREEN`` most probable years (its change alone).
+CHANGE_COMBOS = 64
+CHANGE_SCREEN = 2
+#: Sigma points (and the seed of their quasi-random set) on which the change's
+#: combinations are screened (:func:`screen_grid`).
+SCREEN_POINTS = 64
+SCREEN_SEED = 20
 #: Growth rates (per year) of the accelerating shape's exponential forms, from a doubling
 #: time of 7 years to one of 1.4 (slower growth is the quadratic's), spaced so that a
 #: rate between two of them is still covered (tests/unit/test_calibrate_shapes.py).
@@ -74,8 +103,9 @@ class Shape:
         (per year), curvature and growth amplitude, per input; for a later year ``t``, with
         ``u = t - t_last``, the trend is ``level + rate u + curvature u^2 + amplitude
         (exp(growth u) - 1 - growth u)`` (:func:`extend`).
-    change_year : int
-        The year of a ``change`` shape, -1 for the others.
+    change_years : tuple of int, length d
+        A ``change`` shape's year per input, -1 for an input that does not change (and for
+        every input of the other shapes).
     growth : float
         The growth rate of an exponential form (per year), 0 for the others.
     """
@@ -84,8 +114,14 @@ class Shape:
     model: GaussianTrend
     log_prior: float
     now: np.ndarray
-    change_year: int = -1
+    change_years: tuple = ()
     growth: float = 0.0
+
+    @property
+    def change_year(self) -> int:
+        """The first year in which a ``change`` shape's inputs change, -1 for the others."""
+        on = [y for y in self.change_years if y >= 0]
+        return min(on) if on else -1
 
 
 def build_shapes(years: np.ndarray, x: np.ndarray, cov: np.ndarray, Mk: np.ndarray,
@@ -131,7 +167,8 @@ def build_shapes(years: np.ndarray, x: np.ndarray, cov: np.ndarray, Mk: np.ndarr
     line = GaussianTrend(x, cov, Mk, prior_prec, prior_mean, A)
     # A line with prior 0 stays as the others' base, with no draws of its own.
     p_line = priors.get("line", 0.0) / total
-    shapes = [Shape(0, line, np.log(p_line) if p_line > 0 else -np.inf, _line_now(Mk, slopes))]
+    shapes = [Shape(0, line, np.log(p_line) if p_line > 0 else -np.inf, _line_now(Mk, slopes),
+                    (-1,) * d)]
     extras = []
     if priors.get("accelerating", 0.0) > 0:
         forms = []
@@ -157,27 +194,13 @@ def build_shapes(years: np.ndarray, x: np.ndarray, cov: np.ndarray, Mk: np.ndarr
         # the rates, measured worse on benchmarks/prognosis.py's accelerating fleets, seed 11:
         # quadratic coverage 0.79 against 0.83, exponential 0.89 against 0.94).
         for r, cols in forms:
-            extras.append((1, cols, np.log(priors["accelerating"] / total / len(forms)), -1, r))
-    if priors.get("change", 0.0) > 0:
-        found = []
-        for y in t:
-            cols = []
-            for i in range(d):
-                before = (seg[i] & (t < y)).sum()
-                after = (seg[i] & (t >= y)).sum()
-                if before < CHANGE_MIN_YEARS or after < CHANGE_MIN_YEARS:
-                    continue
-                on = seg[i] & (t >= y)
-                jump = np.zeros((K, d))
-                jump[on, i] = 1.0
-                rate = np.zeros((K, d))
-                rate[on, i] = t[on] - y
-                cols += [(jump, i, (1.0, 0.0, 0.0, 0.0)), (rate, i, (t_last - y, 1.0, 0.0, 0.0))]
-            if cols:
-                found.append((int(y), cols))
-        for y, cols in found:
-            extras.append((2, cols, np.log(priors["change"] / total / len(found)), y, 0.0))
-    if not extras:
+            extras.append((1, cols, np.log(priors["accelerating"] / total / len(forms)), r))
+    p_change = priors.get("change", 0.0) / total
+    # Each input's years of a change: CHANGE_MIN_YEARS of its segment before and from it.
+    cand = [[int(y) for y in t if (seg[i] & (t < y)).sum() >= CHANGE_MIN_YEARS
+             and (seg[i] & (t >= y)).sum() >= CHANGE_MIN_YEARS] if p_change > 0 else []
+            for i in range(d)]
+    if not extras and not any(cand):
         return shapes
     if sigma_ref is None:
         sig, w = line.sigma_points(rng)[:2]
@@ -186,22 +209,223 @@ def build_shapes(years: np.ndarray, x: np.ndarray, cov: np.ndarray, Mk: np.ndarr
         s_ref = np.asarray(sigma_ref, float)
     # The years' weights at the reference sigma, the same for every extra block.
     W = np.linalg.inv(cov + np.diag(s_ref ** 2)[None])                       # [K, d, d]
-    for code, cols, log_prior, year, growth in extras:
-        E = np.stack([c for c, _, _ in cols], axis=2)                        # [K, d, n_e]
-        P_e = _unit_information(W, Mk, E, prior_prec, K)
-        M = np.concatenate([Mk, E], axis=2)
-        n_l = Mk.shape[2]
-        P = np.zeros((M.shape[2], M.shape[2]))
-        P[:n_l, :n_l] = np.diag(prior_prec)
-        P[n_l:, n_l:] = P_e
-        now = np.concatenate([shapes[0].now, np.zeros((len(NOW_ROWS), d, len(cols)))],
-                             axis=2)
-        for j, (_, i, g) in enumerate(cols):
-            now[:, i, n_l + j] = g
-        model = GaussianTrend(x, cov, M, P, np.concatenate([prior_mean, np.zeros(len(cols))]),
-                              A)
-        shapes.append(Shape(code, model, log_prior, now, year, growth))
+    for code, cols, log_prior, growth in extras:
+        shapes.append(_extended(shapes[0], code, cols, log_prior, W, prior_prec, prior_mean,
+                                A, (-1,) * d, growth))
+    if any(cand):
+        shapes += _change_shapes(shapes[0], [(cols, lp) for _, cols, lp, _ in extras], cand,
+                                 t, seg, np.log(p_change), W, prior_prec, prior_mean, A)
     return shapes
+
+
+def _extended(line: Shape, code: int, cols: list, log_prior: float, W: np.ndarray,
+              prior_prec: np.ndarray, prior_mean: np.ndarray, A: np.ndarray,
+              change_years: tuple, growth: float) -> Shape:
+    """The line plus the columns ``cols``, each ``(column [K, d], input, its map to the trend
+    at the last year [4])``, under Zellner's unit-information prior at the year weights
+    ``W`` [K, d, d] (:func:`_unit_information`)."""
+    Mk = line.model.Mk
+    K, d, n_l = Mk.shape
+    E = np.stack([c for c, _, _ in cols], axis=2)                            # [K, d, n_e]
+    M = np.concatenate([Mk, E], axis=2)
+    P = np.zeros((M.shape[2], M.shape[2]))
+    P[:n_l, :n_l] = np.diag(prior_prec)
+    P[n_l:, n_l:] = _unit_information(W, Mk, E, prior_prec, K)
+    now = np.concatenate([line.now, np.zeros((len(NOW_ROWS), d, len(cols)))], axis=2)
+    for j, (_, i, g) in enumerate(cols):
+        now[:, i, n_l + j] = g
+    model = GaussianTrend(line.model.x, line.model.cov, M, P,
+                          np.concatenate([prior_mean, np.zeros(len(cols))]), A)
+    return Shape(code, model, log_prior, now, tuple(change_years), growth)
+
+
+def _change_columns(t: np.ndarray, seg: np.ndarray, i: int, d: int, y: int) -> list:
+    """Input ``i``'s change in year ``y`` on its segment ``seg`` [K] (bool): a jump of its
+    level, ``1[t >= y]``, and of its rate, ``(t - y) 1[t >= y]``; two ``(column [K, d],
+    input, map to the trend at the last year)`` entries."""
+    on = seg & (t >= y)
+    jump = np.zeros((len(t), d))
+    jump[on, i] = 1.0
+    rate = np.zeros((len(t), d))
+    rate[on, i] = t[on] - y
+    return [(jump, i, (1.0, 0.0, 0.0, 0.0)), (rate, i, (t[-1] - y, 1.0, 0.0, 0.0))]
+
+
+def _change_shapes(line: Shape, forms: list, cand: list, t: np.ndarray, seg: np.ndarray,
+                   log_p: float, W: np.ndarray, prior_prec: np.ndarray,
+                   prior_mean: np.ndarray, A: np.ndarray) -> list:
+    """The ``change`` shape's combinations worth weighing (the module docstring): those in
+    Occam's window of the best shape and past the razor, on their evidence integrated over
+    sigma on the screen's grid (:func:`screen_grid`).
+
+    Parameters
+    ----------
+    line : Shape
+    forms : list of (cols, log_prior)
+        The accelerating forms (their columns as :func:`_extended` takes them): the
+        window's best may be one of them.
+    cand : list of list of int
+        Each input's candidate years (empty: it cannot change).
+    t : ndarray, shape [K]
+    seg : ndarray of bool, shape [d, K]
+        Each input's current segment.
+    log_p : float
+        Log prior probability of the change shape.
+    W : ndarray, shape [K, d, d]
+        The years' weights at the reference sigma (:func:`_unit_information`).
+    A : ndarray, shape [d]
+        sigma's prior scale.
+
+    Returns
+    -------
+    list of Shape
+        One per combination kept: every input with candidate years either changes, in one
+        of them, or does not; at least one changes.
+    """
+    Mk = line.model.Mk
+    K, d, n_l = Mk.shape
+    able = [i for i in range(d) if cand[i]]
+    # Each input changes with probability 1/2, in a year uniform over its candidates,
+    # given that one does: the sets of inputs that change are equally likely.
+    log_norm = log_p - np.log1p(-0.5 ** len(able)) + len(able) * np.log(0.5)
+    blocks = [(i, y) for i in able for y in cand[i]]
+    cols = [_change_columns(t, seg[i], i, d, y) for i, y in blocks]
+    # Every extra column at once: the forms' (first), then two per change block.
+    extra = [c for f, _ in forms for c in f] + [c for pair in cols for c in pair]
+    E = np.stack([c for c, _, _ in extra], axis=2)                          # [K, d, n_x]
+    at = np.cumsum([0] + [len(f) for f, _ in forms])
+    base = at[-1]
+    evidence = _screen(line.model, E, _unit_information(W, Mk, E, prior_prec, K),
+                       screen_grid(A))
+
+    def block_cols(combo: tuple) -> list:
+        return [base + 2 * b + c for b in combo for c in (0, 1)]
+
+    def prior(combo: tuple) -> float:
+        return log_norm - sum(np.log(len(cand[blocks[b][0]])) for b in combo)
+
+    def score(combos: list) -> np.ndarray:
+        return np.array([prior(c) for c in combos]) + \
+            evidence([block_cols(c) for c in combos])
+
+    years = [[b for b in range(len(blocks)) if blocks[b][0] == i] for i in range(d)]
+    if np.prod([len(cand[i]) + 1 for i in able]) - 1 > CHANGE_COMBOS:
+        # Too many combinations to weigh them all: each input keeps its CHANGE_SCREEN
+        # most probable years (its change alone) (three inputs or more; two weigh every
+        # pair).
+        q1 = score([(b,) for b in range(len(blocks))])
+        years = [sorted(sorted(bs, key=lambda b: -q1[b])[:CHANGE_SCREEN]) for bs in years]
+    combos = [c for k in range(1, len(able) + 1) for S_ in combinations(able, k)
+              for c in product(*(years[i] for i in S_))]
+    q = np.empty(len(combos))
+    for k in range(1, len(able) + 1):
+        of = [j for j, c in enumerate(combos) if len(c) == k]
+        if of:
+            q[of] = score([combos[j] for j in of])
+    others = [line.log_prior + evidence([[]])[0]]
+    if forms:
+        others += list(np.array([lp for _, lp in forms])
+                       + evidence([list(range(at[j], at[j + 1])) for j in range(len(forms))]))
+    best = max(q.max(), max(others))
+    index = {c: j for j, c in enumerate(combos)}
+    kept = []
+    for j, c in enumerate(combos):
+        if q[j] < best + np.log(OCCAM):
+            continue
+        # Occam's razor within the change (Madigan and Raftery 1994): an input's change
+        # that the combination without it explains better is not weighed.
+        if any(q[index[c[:m] + c[m + 1:]]] > q[j] for m in range(len(c)) if len(c) > 1):
+            continue
+        when = [-1] * d
+        for b in c:
+            when[blocks[b][0]] = blocks[b][1]
+        kept.append(_extended(line, 2, [e for b in c for e in cols[b]], prior(c), W,
+                              prior_prec, prior_mean, A, tuple(when), 0.0))
+    return kept
+
+
+def _screen(line: GaussianTrend, E: np.ndarray, S: np.ndarray, grid: tuple):
+    """The log evidence of the line plus sets of extra columns, integrated over sigma on a
+    grid, without building the models: at each sigma point the line's posterior is
+    computed once, and a set's columns add a block-update of its marginal likelihood,
+
+        log p(x | line + e) - log p(x | line) = 0.5 log|P_e| - 0.5 log|P_e + F| +
+                                               0.5 r' (P_e + F)^-1 r,
+
+    with ``F`` the columns' information given the line's coefficients, ``r`` their score at
+    the line's posterior mean and ``P_e`` their prior precision (the same as the models'
+    :func:`~.gaussian_trend.linear_gaussian`, checked in tests/unit/test_calibrate_shapes.py).
+
+    Parameters
+    ----------
+    line : GaussianTrend
+    E : ndarray, shape [K, d, n_x]
+        Every extra column.
+    S : ndarray, shape [n_x, n_x]
+        Their prior precision (a set's is its rows and columns).
+    grid : (sigma [P, d], log_weight [P])
+        :func:`screen_grid`.
+
+    Returns
+    -------
+    callable, list of column-index lists, all of one length -> ndarray [n_sets]
+        Each set's log evidence up to a constant shared by every set (the empty set: the
+        line's).
+    """
+    sigma, log_w = grid
+    Wf, logdet_v = year_weights(line.cov, sigma)
+    K, d, n_l = line.Mk.shape
+    Pb, _, mu, ll = linear_gaussian(Wf, logdet_v, line.Mk[None], line.x, line.prior_P[None],
+                                    np.asarray(line.prior_mean, float)[None],
+                                    np.array([line._log_norm]))
+    Pb, mu, ll = Pb[0], mu[0], ll[0] + log_w                                # [P, ...]
+    Wm = Wf.reshape(len(sigma), K, d, d)
+    WE = np.einsum("pkij,kjc->pkic", Wm, E)                                  # [P, K, d, n_x]
+    D = np.einsum("kia,pkic->pac", E, WE)
+    B = np.einsum("kia,pkic->pac", line.Mk, WE)                              # [P, n_l, n_x]
+    F = D - np.einsum("pac,pad->pcd", B, np.linalg.solve(Pb, B))
+    resid = line.x[None] - np.einsum("kia,pa->pki", line.Mk, mu)
+    r = np.einsum("pkic,pki->pc", WE, resid)                                 # [P, n_x]
+
+    def evidence(sets: list) -> np.ndarray:
+        idx = np.array(sets, dtype=int).reshape(len(sets), -1)               # [G, n_e]
+        if idx.shape[1] == 0:
+            out = ll[None]
+        else:
+            P_e = S[idx[:, :, None], idx[:, None, :]]                        # [G, n_e, n_e]
+            V = P_e[:, None] + np.swapaxes(F[:, idx[:, :, None], idx[:, None, :]], 0, 1)
+            L = np.linalg.cholesky(V)                                        # [G, P, n_e, n_e]
+            z = np.linalg.solve(L, np.swapaxes(r[:, idx], 0, 1)[..., None])[..., 0]
+            out = ll[None] + 0.5 * (np.linalg.slogdet(P_e)[1][:, None]
+                                    - 2.0 * np.log(np.einsum("gpii->gpi", L)).sum(axis=2)
+                                    + np.sum(z * z, axis=2))
+        top = out.max(axis=1, keepdims=True)
+        return top[:, 0] + np.log(np.exp(out - top).sum(axis=1))
+
+    return evidence
+
+
+def screen_grid(A: np.ndarray, n: int = SCREEN_POINTS) -> tuple[np.ndarray, np.ndarray]:
+    """Sigma points of the change's screen [n, d] (input units), quasi-random and
+    log-uniform from ``A / 100`` to ``3 A`` per input (``A`` [d], sigma's prior scale), and
+    their log weights [n]: the half-Cauchy prior's density in log sigma, so that a model's
+    ``logsumexp(log-likelihood + weight)`` is its log evidence up to a constant shared by
+    the models screened together."""
+    u = _sobol(len(A), n)
+    A = np.asarray(A, float)
+    lo, hi = np.log(A / 100), np.log(3 * A)
+    sigma = np.exp(lo + (hi - lo) * u)
+    return sigma, np.sum(np.log(sigma) - np.log1p((sigma / A) ** 2), axis=1)
+
+
+@lru_cache(maxsize=8)
+def _sobol(d: int, n: int) -> np.ndarray:
+    """The screen's quasi-random points in the unit cube [n, d] (the same for every unit:
+    built once)."""
+    from scipy.stats import qmc
+    u = qmc.Sobol(d, scramble=True, seed=SCREEN_SEED).random(n)
+    u.flags.writeable = False
+    return u
 
 
 def _line_now(Mk: np.ndarray, slopes: np.ndarray) -> np.ndarray:
@@ -301,19 +525,22 @@ class ShapeMixture(SiteModel):
         K, d = self.x.shape
         r = len(NOW_ROWS)
         coef = np.empty((n, 1 + K * d + r * d))
-        sigma, theta = np.empty((n, d)), np.empty((n, K, d))
+        sigma = np.empty((n, d))
         at, ess = 0, 0.0
         for j, (s, c) in enumerate(zip(self.shapes, counts)):
             if c == 0:
                 continue
-            beta, sg, th, e = s.model.draw(int(c), rng, bounds, pts[j])
+            beta, sigma[at:at + c], e = s.model.draw_trend(int(c), rng, pts[j])
             sl = slice(at, at + c)
             coef[sl, 0] = j
             coef[sl, 1:1 + K * d] = np.einsum("kia,na->nki", s.model.Mk, beta).reshape(c, -1)
             coef[sl, 1 + K * d:] = np.einsum("tia,na->nti", s.now, beta).reshape(c, -1)
-            sigma[sl], theta[sl] = sg, th
             ess += probs[j] * e
             at += c
+        # The years given each draw's trend, every shape's draws at once (the shapes share
+        # their sites).
+        theta = draw_years(self.x, self.cov, coef[:, 1:1 + K * d].reshape(n, K, d), sigma,
+                           rng, bounds)
         order = rng.permutation(n)
         return coef[order], sigma[order], theta[order], ess
 
@@ -377,18 +604,30 @@ def shape_probabilities(codes: np.ndarray) -> np.ndarray:
 
 def shape_summary(trend: dict) -> dict:
     """What a unit's trend draws say of its shape, for the forecast's verdict and report:
-    ``{"line": p, "accelerating": p, "change": p, "change_year": y}`` (the draws' shares,
-    ``change_year`` the most frequent among the change draws, or None); empty for a trend
-    without shapes (the joint method's)."""
+    ``{"line": p, "accelerating": p, "change": p, "change_year": y, "change_years": [y_i]}``
+    (the draws' shares; ``change_year`` the most frequent first year of a change among the
+    change draws, or None; ``change_years``, when the draws record them, per input the most
+    frequent year of its change among the change draws, None for an input that changes in
+    fewer than half of them); empty for a trend without shapes (the joint method's)."""
     if "shape" not in trend:
         return {}
     code = np.asarray(trend["shape"], int)
     p = shape_probabilities(code)
     out = {name: round(float(v), 3) for name, v in zip(SHAPES, p)}
-    years = np.asarray(trend["change_year"], int)[code == 2]
-    out["change_year"] = int(np.bincount(years - years.min()).argmax() + years.min()) \
-        if years.size else None
+    out["change_year"] = _mode(np.asarray(trend["change_year"], int)[code == 2])
+    if "change_years" in trend:
+        per = np.asarray(trend["change_years"], int)[code == 2]             # [n_c, d]
+        out["change_years"] = [_mode(per[per[:, i] >= 0, i])
+                               if np.mean(per[:, i] >= 0) >= 0.5 else None
+                               for i in range(per.shape[1])]
     return out
+
+
+def _mode(years: np.ndarray) -> Optional[int]:
+    """The most frequent of ``years`` (ints), the earliest of ties; None when empty."""
+    if not years.size:
+        return None
+    return int(np.bincount(years - years.min()).argmax() + years.min())
 
 
 def describe_shape(shape: dict) -> str:
@@ -400,7 +639,11 @@ def describe_shape(shape: dict) -> str:
         return (f"The wear accelerates (probability {shape['accelerating']:.2f}, a straight "
                 f"line {shape['line']:.2f}): the forecast extends the curve.")
     if shape["change"] >= 0.5 and shape["change_year"] is not None:
-        return (f"The trend changed in year {shape['change_year']} (probability "
+        years = sorted({y for y in shape.get("change_years") or () if y is not None}) \
+            or [shape["change_year"]]
+        when = (f"year {years[0]}" if len(years) == 1 else
+                "years " + ", ".join(map(str, years[:-1])) + f" and {years[-1]}")
+        return (f"The trend changed in {when} (probability "
                 f"{shape['change']:.2f}, a straight line {shape['line']:.2f}): the forecast "
                 "extends the rate since then.")
     return ""

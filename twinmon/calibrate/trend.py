@@ -39,8 +39,10 @@ TREND_FIELDS = {
     "now_year": ("year", "the last recorded year (laplace method)"),
     "shape": ("1", "the draw's trend shape on the current segment: 0 line, 1 accelerating, "
               "2 change (calibrate.shapes) [draw] (laplace method)"),
-    "change_year": ("year", "the year of a change shape's jump, -1 for the other shapes "
-                    "[draw] (laplace method)"),
+    "change_year": ("year", "the first year of a change shape's jumps, -1 for the other "
+                    "shapes [draw] (laplace method)"),
+    "change_years": ("year", "a change shape's year per input, -1 for an input that does not "
+                     "change and for the other shapes [draw, input] (laplace method)"),
     "shape_prob": ("1", "posterior probability of the line, accelerating and change shapes "
                    "[3] (laplace method)"),
 }
@@ -49,11 +51,12 @@ TREND_FIELDS = {
 #: since it was recorded) and the shapes' (the laplace method; the joint method's trend is
 #: the line alone).
 TREND_OPTIONAL = ("sigma_scale", "now", "now_year", "shape", "change_year", "shape_prob",
-                  "growth")
+                  "growth", "change_years")
 
 #: The fields of :data:`TREND_FIELDS` that hold draws (first axis): the artifact thins them
 #: like the years' draws (``calibrate.keep_draws``).
-TREND_DRAWS = ("intercept", "slope", "sigma", "now", "shape", "change_year", "growth")
+TREND_DRAWS = ("intercept", "slope", "sigma", "now", "shape", "change_year", "growth",
+               "change_years")
 
 
 # ---------------------------------------------------------------------------------------

@@ -345,14 +345,15 @@ def check_trend_fit(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarr
 
 
 def unit_sites(cfg: Config, up, post_cov: np.ndarray, trend: dict, found=(),
-               change_year: Optional[int] = None) -> tuple[np.ndarray, np.ndarray, list]:
+               change_year=None) -> tuple[np.ndarray, np.ndarray, list]:
     """What :func:`check_trend_fit` reads of a unit's posterior.
 
     The sites are the laplace method's (``up.site``: each year's likelihood summarised);
     without them, the yearly posterior means and covariances stand in. The segments are the
     trend posterior's (``trend["start"]``), else the recorded events and the repairs
     ``found`` (:class:`~twinmon.repairs.FoundRepair`). A ``change_year`` (the posterior's
-    change shape, :func:`change_year`) starts a segment too, as a repair does: a step is
+    change shape, :func:`change_year`: one year for every input, or a year or None per
+    input) starts a segment too, as a repair does: a step is
     unpredictable the year it comes (its size has the change shape's prior, a few years'
     scatter); what is checked is that the years before and after it follow the trend.
 
@@ -384,22 +385,29 @@ def unit_sites(cfg: Config, up, post_cov: np.ndarray, trend: dict, found=(),
         events += [(r.year, c) for r in found for c in r.components]
         starts = segment_starts(cfg, np.asarray(up.years), events)
     if change_year is not None:
-        starts = [np.union1d(s, [change_year]) if change_year > s[-1] else s for s in starts]
+        per = ([change_year] * len(starts) if np.ndim(change_year) == 0 else
+               [-1 if y is None else y for y in change_year])
+        starts = [np.union1d(s, [y]) if y > s[-1] else s for s, y in zip(starts, per)]
     return x, cov, starts
 
 
-def change_year(shape: dict, priors: dict) -> Optional[int]:
+def change_year(shape: dict, priors: dict):
     """The posterior's most probable change year when the data favour a change: its
     posterior probability (:func:`~twinmon.calibrate.shapes.shape_summary`) at least its
     prior share of ``priors`` (a Bayes factor of at least 1 against the other shapes);
-    else None. On the step fleets of benchmarks/prognosis.py (seed 11) half the single
-    steps held less than half the posterior (a step of 3 site sd: change 0.34-0.44), and
-    their step year, unpredictable one year ahead, failed the check."""
+    else None. A summary with each input's year (``change_years``) gives that list (None
+    for an input that does not change), else one year for every input. On the step
+    fleets of benchmarks/prognosis.py (seed 11) half the single steps held less than half
+    the posterior (a step of 3 site sd: change 0.34-0.44), and their step year,
+    unpredictable one year ahead, failed the check."""
     total = sum(max(float(p), 0.0) for p in priors.values())
     if not shape or shape.get("change_year") is None or priors.get("change", 0) <= 0:
         return None
-    return int(shape["change_year"]) if shape["change"] >= priors.get("change", 0) / total \
-        else None
+    if shape["change"] < priors.get("change", 0) / total:
+        return None
+    per = shape.get("change_years")
+    return list(per) if per and any(y is not None for y in per) else \
+        int(shape["change_year"])
 
 
 def recorded_shapes(cfg: Config, posterior_path) -> dict:
@@ -429,13 +437,14 @@ def describe_miss(cfg: Config, fit: TrendFit, alpha: float) -> str:
     v = float(fit.marginal[worst, i])
     model = ("straight line" if fit.shapes == ("line",) else
              "trend (" + ", ".join({"line": "a straight line", "accelerating": "accelerating",
-                                    "change": "one change of level and rate"}[s]
+                                    "change": "one change of level and rate per input"}[s]
                                    for s in fit.shapes) + ")")
     return (f"prognosis unreliable: the trend missed year(s) {yrs} one year ahead "
             f"(p = {fit.p_value:.2g} over the {fit.years.size} years it predicted; in year "
             f"{int(fit.years[worst])} {names[i]} lay {abs(v):.1f} sd "
             f"{'above' if v > 0 else 'below'} the forecast): the unit's history does not "
-            f"follow the {model} its forecast extends (wear that reverses or steps more than "
-            "once, a repair no event records, or a year's estimate off), so its failure year "
+            f"follow the {model} its forecast extends (wear that reverses or a part that steps "
+            "more than once, a repair no event records, or a year's estimate off), so its "
+            "failure year "
             "and intervals may be wrong; check its maintenance records (record a repair with "
             "'twinmon events add') and those years' fit ('twinmon diagnose')")

@@ -249,7 +249,10 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
         if uf.shape:
             # The trend's shape, as weighed by calibrate (calibrate.shapes).
             sh = uf.shape
-            change = (f", a change in year {sh['change_year']} {sh['change']:.2f}"
+            per = [f"{n} {y}" for n, y in zip(uf.trends, sh.get("change_years") or ())
+                   if y is not None]
+            change = (f", a change ({', '.join(per)}) {sh['change']:.2f}" if per else
+                      f", a change in year {sh['change_year']} {sh['change']:.2f}"
                       if sh.get("change_year") is not None else f", a change {sh['change']:.2f}")
             why.append(f"trend shape on the current segment: straight line {sh['line']:.2f}, "
                        f"accelerating {sh['accelerating']:.2f}{change}")

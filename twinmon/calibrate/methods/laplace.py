@@ -320,6 +320,8 @@ class LaplaceRun:
                 "now": now, "now_year": np.int64(self.years[-1]),
                 "shape": shape,
                 "change_year": np.array([shapes[c].change_year for c in code], dtype=np.int64),
+                "change_years": np.array([shapes[c].change_years for c in code],
+                                         dtype=np.int64).reshape(n, d),
                 "growth": np.array([shapes[c].growth for c in code]),
                 "shape_prob": shape_probabilities(shape)}
 
