@@ -111,7 +111,7 @@ def test_the_screen_of_the_changes_is_the_models_evidence():
     """The screen's block update of the line's evidence equals each change combination's
     own evidence on the screen's grid (the models built whole)."""
     from twinmon.calibrate.gaussian_trend import log_evidence_at
-    from twinmon.calibrate.shapes import _screen, screen_grid
+    from twinmon.calibrate.shape_screen import screen, screen_grid
     rng = np.random.default_rng(7)
     t = YEARS.astype(float)
     err = np.full((len(t), 2), 0.04)
@@ -123,7 +123,7 @@ def test_the_screen_of_the_changes_is_the_models_evidence():
     checked = 0
     for sh in mix.shapes[1:]:
         E = sh.model.Mk[:, :, n_l:]
-        evidence = _screen(line, E, sh.model.prior_P[n_l:, n_l:], grid)
+        evidence = screen(line, E, sh.model.prior_P[n_l:, n_l:], grid)
         block = evidence([list(range(E.shape[2]))])[0] - evidence([[]])[0]
         ll = log_evidence_at([line, sh.model], grid[0]) + grid[1]
         top = ll.max(axis=1, keepdims=True)

@@ -40,27 +40,26 @@ before any draw (Occam's window, Madigan and Raftery 1994): it could not hold a 
 
 The change's combinations (25 for two inputs with five candidate years each, against the
 shared year's 5) are screened once, before any model is built: each one's evidence
-integrated over sigma on a coarse grid (:func:`screen_grid`; at the line's mean sigma alone,
-inflated by the steps a line cannot follow, a second step did not pay for its
-coefficients), by a block update of the line's (:func:`_screen`: the combinations cost a
-few batched products, not a model each). Kept are those in Occam's window of the best shape
-that also pass the window's second rule among the combinations, Occam's razor: a
-combination is dropped when one without one of its inputs' changes is more probable (that
-change does not pay for its two coefficients; its years, each a sliver of the same draws,
-would each cost the mixture sigma points and draws). A change is always weighed against the
-line and the accelerating forms.
+integrated over sigma on a coarse grid (:func:`~.shape_screen.screen_grid`; at the line's
+mean sigma alone, inflated by the steps a line cannot follow, a second step did not pay for
+its coefficients), by a block update of the line's (:func:`~.shape_screen.screen`: the
+combinations cost a few batched products, not a model each). Kept are those in Occam's
+window of the best shape that also pass the window's second rule among the combinations,
+Occam's razor: a combination is dropped when one without one of its inputs' changes is more
+probable (that change does not pay for its two coefficients; its years, each a sliver of the
+same draws, would each cost the mixture sigma points and draws). A change is always weighed
+against the line and the accelerating forms.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
 from itertools import combinations, product
 from typing import Optional
 
 import numpy as np
 
-from .gaussian_trend import (GaussianTrend, SiteModel, draw_years, linear_gaussian,
-                             log_evidence_at, year_weights)
+from .gaussian_trend import GaussianTrend, SiteModel, draw_years, log_evidence_at
+from .shape_screen import screen, screen_grid
 
 #: The shapes, in the order of their code in the posterior (``trend/shape``).
 SHAPES = ("line", "accelerating", "change")
@@ -75,10 +74,6 @@ OCCAM = 1e-4
 #: more), each input keeps its ``CHANGE_SCREEN`` most probable years (its change alone).
 CHANGE_COMBOS = 64
 CHANGE_SCREEN = 2
-#: Sigma points (and the seed of their quasi-random set) on which the change's
-#: combinations are screened (:func:`screen_grid`).
-SCREEN_POINTS = 64
-SCREEN_SEED = 20
 #: Growth rates (per year) of the accelerating shape's exponential forms, from a doubling
 #: time of 7 years to one of 1.4 (slower growth is the quadratic's), spaced so that a
 #: rate between two of them is still covered (tests/unit/test_calibrate_shapes.py).
@@ -256,7 +251,7 @@ def _change_shapes(line: Shape, forms: list, cand: list, t: np.ndarray, seg: np.
                    prior_mean: np.ndarray, A: np.ndarray) -> list:
     """The ``change`` shape's combinations worth weighing (the module docstring): those in
     Occam's window of the best shape and past the razor, on their evidence integrated over
-    sigma on the screen's grid (:func:`screen_grid`).
+    sigma on the screen's grid (:func:`~.shape_screen.screen_grid`).
 
     Parameters
     ----------
@@ -295,7 +290,7 @@ def _change_shapes(line: Shape, forms: list, cand: list, t: np.ndarray, seg: np.
     E = np.stack([c for c, _, _ in extra], axis=2)                          # [K, d, n_x]
     at = np.cumsum([0] + [len(f) for f, _ in forms])
     base = at[-1]
-    evidence = _screen(line.model, E, _unit_information(W, Mk, E, prior_prec, K),
+    evidence = screen(line.model, E, _unit_information(W, Mk, E, prior_prec, K),
                        screen_grid(A))
 
     def block_cols(combo: tuple) -> list:
@@ -342,90 +337,6 @@ def _change_shapes(line: Shape, forms: list, cand: list, t: np.ndarray, seg: np.
         kept.append(_extended(line, 2, [e for b in c for e in cols[b]], prior(c), W,
                               prior_prec, prior_mean, A, tuple(when), 0.0))
     return kept
-
-
-def _screen(line: GaussianTrend, E: np.ndarray, S: np.ndarray, grid: tuple):
-    """The log evidence of the line plus sets of extra columns, integrated over sigma on a
-    grid, without building the models: at each sigma point the line's posterior is
-    computed once, and a set's columns add a block-update of its marginal likelihood,
-
-        log p(x | line + e) - log p(x | line) = 0.5 log|P_e| - 0.5 log|P_e + F| +
-                                               0.5 r' (P_e + F)^-1 r,
-
-    with ``F`` the columns' information given the line's coefficients, ``r`` their score at
-    the line's posterior mean and ``P_e`` their prior precision (the same as the models'
-    :func:`~.gaussian_trend.linear_gaussian`, checked in tests/unit/test_calibrate_shapes.py).
-
-    Parameters
-    ----------
-    line : GaussianTrend
-    E : ndarray, shape [K, d, n_x]
-        Every extra column.
-    S : ndarray, shape [n_x, n_x]
-        Their prior precision (a set's is its rows and columns).
-    grid : (sigma [P, d], log_weight [P])
-        :func:`screen_grid`.
-
-    Returns
-    -------
-    callable, list of column-index lists, all of one length -> ndarray [n_sets]
-        Each set's log evidence up to a constant shared by every set (the empty set: the
-        line's).
-    """
-    sigma, log_w = grid
-    Wf, logdet_v = year_weights(line.cov, sigma)
-    K, d, n_l = line.Mk.shape
-    Pb, _, mu, ll = linear_gaussian(Wf, logdet_v, line.Mk[None], line.x, line.prior_P[None],
-                                    np.asarray(line.prior_mean, float)[None],
-                                    np.array([line._log_norm]))
-    Pb, mu, ll = Pb[0], mu[0], ll[0] + log_w                                # [P, ...]
-    Wm = Wf.reshape(len(sigma), K, d, d)
-    WE = np.einsum("pkij,kjc->pkic", Wm, E)                                  # [P, K, d, n_x]
-    D = np.einsum("kia,pkic->pac", E, WE)
-    B = np.einsum("kia,pkic->pac", line.Mk, WE)                              # [P, n_l, n_x]
-    F = D - np.einsum("pac,pad->pcd", B, np.linalg.solve(Pb, B))
-    resid = line.x[None] - np.einsum("kia,pa->pki", line.Mk, mu)
-    r = np.einsum("pkic,pki->pc", WE, resid)                                 # [P, n_x]
-
-    def evidence(sets: list) -> np.ndarray:
-        idx = np.array(sets, dtype=int).reshape(len(sets), -1)               # [G, n_e]
-        if idx.shape[1] == 0:
-            out = ll[None]
-        else:
-            P_e = S[idx[:, :, None], idx[:, None, :]]                        # [G, n_e, n_e]
-            V = P_e[:, None] + np.swapaxes(F[:, idx[:, :, None], idx[:, None, :]], 0, 1)
-            L = np.linalg.cholesky(V)                                        # [G, P, n_e, n_e]
-            z = np.linalg.solve(L, np.swapaxes(r[:, idx], 0, 1)[..., None])[..., 0]
-            out = ll[None] + 0.5 * (np.linalg.slogdet(P_e)[1][:, None]
-                                    - 2.0 * np.log(np.einsum("gpii->gpi", L)).sum(axis=2)
-                                    + np.sum(z * z, axis=2))
-        top = out.max(axis=1, keepdims=True)
-        return top[:, 0] + np.log(np.exp(out - top).sum(axis=1))
-
-    return evidence
-
-
-def screen_grid(A: np.ndarray, n: int = SCREEN_POINTS) -> tuple[np.ndarray, np.ndarray]:
-    """Sigma points of the change's screen [n, d] (input units), quasi-random and
-    log-uniform from ``A / 100`` to ``3 A`` per input (``A`` [d], sigma's prior scale), and
-    their log weights [n]: the half-Cauchy prior's density in log sigma, so that a model's
-    ``logsumexp(log-likelihood + weight)`` is its log evidence up to a constant shared by
-    the models screened together."""
-    u = _sobol(len(A), n)
-    A = np.asarray(A, float)
-    lo, hi = np.log(A / 100), np.log(3 * A)
-    sigma = np.exp(lo + (hi - lo) * u)
-    return sigma, np.sum(np.log(sigma) - np.log1p((sigma / A) ** 2), axis=1)
-
-
-@lru_cache(maxsize=8)
-def _sobol(d: int, n: int) -> np.ndarray:
-    """The screen's quasi-random points in the unit cube [n, d] (the same for every unit:
-    built once)."""
-    from scipy.stats import qmc
-    u = qmc.Sobol(d, scramble=True, seed=SCREEN_SEED).random(n)
-    u.flags.writeable = False
-    return u
 
 
 def _line_now(Mk: np.ndarray, slopes: np.ndarray) -> np.ndarray:

@@ -1,0 +1,104 @@
+"""The evidence screen of the trend shapes' extra columns (:mod:`.shapes`): the log
+evidence of the line plus each of many sets of extra columns, integrated over sigma on a
+grid, by block updates of the line's posterior instead of one model per set.
+
+The change shape's combinations (each input's change in a year of its own: 25 for two inputs
+with five candidate years each) are weighed here before any model is built, so that only
+those worth their sigma points and draws are (:func:`~.shapes._change_shapes`).
+"""
+from __future__ import annotations
+
+from functools import lru_cache
+
+import numpy as np
+
+from .gaussian_trend import GaussianTrend, linear_gaussian, year_weights
+
+#: Sigma points (and the seed of their quasi-random set) on which the change's
+#: combinations are screened (:func:`screen_grid`).
+SCREEN_POINTS = 64
+SCREEN_SEED = 20
+
+
+def screen(line: GaussianTrend, E: np.ndarray, S: np.ndarray, grid: tuple):
+    """The log evidence of the line plus sets of extra columns, integrated over sigma on a
+    grid, without building the models: at each sigma point the line's posterior is
+    computed once, and a set's columns add a block-update of its marginal likelihood,
+
+        log p(x | line + e) - log p(x | line) = 0.5 log|P_e| - 0.5 log|P_e + F| +
+                                               0.5 r' (P_e + F)^-1 r,
+
+    with ``F`` the columns' information given the line's coefficients, ``r`` their score at
+    the line's posterior mean and ``P_e`` their prior precision (the same as the models'
+    :func:`~.gaussian_trend.linear_gaussian`, checked in tests/unit/test_calibrate_shapes.py).
+
+    Parameters
+    ----------
+    line : GaussianTrend
+    E : ndarray, shape [K, d, n_x]
+        Every extra column.
+    S : ndarray, shape [n_x, n_x]
+        Their prior precision (a set's is its rows and columns).
+    grid : (sigma [P, d], log_weight [P])
+        :func:`screen_grid`.
+
+    Returns
+    -------
+    callable, list of column-index lists, all of one length -> ndarray [n_sets]
+        Each set's log evidence up to a constant shared by every set (the empty set: the
+        line's).
+    """
+    sigma, log_w = grid
+    Wf, logdet_v = year_weights(line.cov, sigma)
+    K, d, n_l = line.Mk.shape
+    Pb, _, mu, ll = linear_gaussian(Wf, logdet_v, line.Mk[None], line.x, line.prior_P[None],
+                                    np.asarray(line.prior_mean, float)[None],
+                                    np.array([line._log_norm]))
+    Pb, mu, ll = Pb[0], mu[0], ll[0] + log_w                                # [P, ...]
+    Wm = Wf.reshape(len(sigma), K, d, d)
+    WE = np.einsum("pkij,kjc->pkic", Wm, E)                                  # [P, K, d, n_x]
+    D = np.einsum("kia,pkic->pac", E, WE)
+    B = np.einsum("kia,pkic->pac", line.Mk, WE)                              # [P, n_l, n_x]
+    F = D - np.einsum("pac,pad->pcd", B, np.linalg.solve(Pb, B))
+    resid = line.x[None] - np.einsum("kia,pa->pki", line.Mk, mu)
+    r = np.einsum("pkic,pki->pc", WE, resid)                                 # [P, n_x]
+
+    def evidence(sets: list) -> np.ndarray:
+        idx = np.array(sets, dtype=int).reshape(len(sets), -1)               # [G, n_e]
+        if idx.shape[1] == 0:
+            out = ll[None]
+        else:
+            P_e = S[idx[:, :, None], idx[:, None, :]]                        # [G, n_e, n_e]
+            V = P_e[:, None] + np.swapaxes(F[:, idx[:, :, None], idx[:, None, :]], 0, 1)
+            L = np.linalg.cholesky(V)                                        # [G, P, n_e, n_e]
+            z = np.linalg.solve(L, np.swapaxes(r[:, idx], 0, 1)[..., None])[..., 0]
+            out = ll[None] + 0.5 * (np.linalg.slogdet(P_e)[1][:, None]
+                                    - 2.0 * np.log(np.einsum("gpii->gpi", L)).sum(axis=2)
+                                    + np.sum(z * z, axis=2))
+        top = out.max(axis=1, keepdims=True)
+        return top[:, 0] + np.log(np.exp(out - top).sum(axis=1))
+
+    return evidence
+
+
+def screen_grid(A: np.ndarray, n: int = SCREEN_POINTS) -> tuple[np.ndarray, np.ndarray]:
+    """Sigma points of the change's screen [n, d] (input units), quasi-random and
+    log-uniform from ``A / 100`` to ``3 A`` per input (``A`` [d], sigma's prior scale), and
+    their log weights [n]: the half-Cauchy prior's density in log sigma, so that a model's
+    ``logsumexp(log-likelihood + weight)`` is its log evidence up to a constant shared by
+    the models screened together."""
+    u = _sobol(len(A), n)
+    A = np.asarray(A, float)
+    lo, hi = np.log(A / 100), np.log(3 * A)
+    sigma = np.exp(lo + (hi - lo) * u)
+    return sigma, np.sum(np.log(sigma) - np.log1p((sigma / A) ** 2), axis=1)
+
+
+@lru_cache(maxsize=8)
+def _sobol(d: int, n: int) -> np.ndarray:
+    """The screen's quasi-random points in the unit cube [n, d] (the same for every unit:
+    built once)."""
+    from scipy.stats import qmc
+    u = qmc.Sobol(d, scramble=True, seed=SCREEN_SEED).random(n)
+    u.flags.writeable = False
+    return u
