@@ -150,8 +150,9 @@ class PackedArray:
     it with (byte shuffle, then zlib at ``GZIP_LEVEL``): one compressed chunk per year.
 
     The workers pack their units' Monte Carlo arrays (:func:`pack_unit`), so the one process
-    that writes ``forecast.h5`` only copies bytes; compressing ~0.4 MB a unit there was half
-    of its time and held the pool back at fleet scale."""
+    that writes ``forecast.h5`` only copies bytes: compressing ~0.4 MB a unit there took 19
+    of its 44 ms a unit (60 units). On two cores the fleet's wall time is the same either way
+    (docs/forecast.md); with more workers, the one writer would otherwise set the pace."""
 
     dtype: str
     shape: tuple

@@ -445,6 +445,5 @@ def describe_miss(cfg: Config, fit: TrendFit, alpha: float) -> str:
             f"{'above' if v > 0 else 'below'} the forecast): the unit's history does not "
             f"follow the {model} its forecast extends (wear that reverses or a part that steps "
             "more than once, a repair no event records, or a year's estimate off), so its "
-            "failure year "
-            "and intervals may be wrong; check its maintenance records (record a repair with "
-            "'twinmon events add') and those years' fit ('twinmon diagnose')")
+            "failure year and intervals may be wrong; check its maintenance records (record a "
+            "repair with 'twinmon events add') and those years' fit ('twinmon diagnose')")
