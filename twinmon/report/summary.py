@@ -249,7 +249,7 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
         if uf.shape:
             # The trend's shape, as weighed by calibrate (calibrate.shapes).
             sh = uf.shape
-            per = [f"{n} {y}" for n, y in zip(uf.trends, sh.get("change_years") or ())
+            per = [f"{n} in year {y}" for n, y in zip(uf.trends, sh.get("change_years") or ())
                    if y is not None]
             change = (f", a change ({', '.join(per)}) {sh['change']:.2f}" if per else
                       f", a change in year {sh['change_year']} {sh['change']:.2f}"
