@@ -144,14 +144,16 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict, fleet=None,
     # not move the judgement of how fast it went (resampled to the fleet's shapes, the
     # faults of one part were named "both" 17 times in 224 against 10 in 256:
     # benchmarks/prognosis.py, seeds 11-12, docs/forecast.md).
+    shaped = shapes is not None and "shape" in trend_post
     future = trend_post
-    if shapes is not None and "shape" in trend_post:
+    if shaped:
         future, _, pool_ess = _pool_unit(cfg, unit, trend_post, samples_post, fleet, shapes,
                                          stream=6)
     if fleet is not None and trend_post:
         trend_post, pooled, ess = _pool_unit(cfg, unit, trend_post, samples_post, fleet)
         pool_ess = min(ess, pool_ess) if np.isfinite(pool_ess) else ess
-        future = trend_post if shapes is None or "shape" not in trend_post else future
+        if not shaped:
+            future = trend_post
         if pooled is not samples_post:
             samples_post, mean = pooled, pooled.mean(axis=1)
     post_cov = np.array([np.cov(samples_post[k], rowvar=False).reshape(d, d)
@@ -220,8 +222,7 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict, fleet=None,
         priors = shape_priors if "shape" in trend_post else {"line": 1.0}
         # The draws' share of the change against the prior they were drawn under: the
         # fleet's when it was pooled.
-        drawn = shapes.shape_priors() if shapes is not None and "shape" in trend_post \
-            else priors
+        drawn = shapes.shape_priors() if shaped else priors
         x, cov, starts = unit_sites(cfg, up, post_cov, trend_post, repairs,
                                     change_year(shape_summary(future), drawn))
         trend_fit = check_trend_fit(cfg, years, x, cov, starts, priors,
