@@ -29,7 +29,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from twinmon.calibrate import calibrate  # noqa: E402
+from twinmon.calibrate import calibrate, read_posterior  # noqa: E402
 from twinmon.config import config_from_mapping, load_config  # noqa: E402
 from twinmon.fabricate import fabricate, read_truth  # noqa: E402
 from twinmon.reduce import reduce  # noqa: E402
@@ -56,8 +56,11 @@ def _figures(summary, truth, names) -> dict:
         rel, cover, width = map(np.concatenate, (rel, cover, width))
         out[name] = {"mean": rel.mean(), "max": rel.max(), "cover": cover.mean(),
                      "width": width.mean()}
-    corr = np.array([np.corrcoef(p.samples[k, :, 0], p.samples[k, :, 1])[0, 1]
-                     for p in summary.posterior.values() for k in range(len(p.years))])
+    # The draws are in the posterior file (the summary keeps the statistics).
+    draws = read_posterior(summary.output).units
+    corr = np.array([np.corrcoef(q.samples[k, :, 0], q.samples[k, :, 1])[0, 1]
+                     for q in (draws[u] for u in summary.posterior)
+                     for k in range(len(q.years))])
     out["corr"] = {"mean": corr.mean(), "abs": np.abs(corr).mean(), "min": corr.min(),
                    "max": corr.max()}
     return out

@@ -373,7 +373,7 @@ def oracle_posterior(cfg, post: Path, truth, truth_path: Path, out: Path, seed: 
     moved so that the mean is the true input plus an error drawn from the draws' own
     covariance; draws clipped to the design box (calibration's prior never leaves it)."""
     from twinmon import artifacts
-    from twinmon.calibrate.posterior import write_posterior
+    from twinmon.calibrate import write_posterior
     p = read_posterior(post)
     names, box = p.input_names, cfg.model.bounds
     rng = np.random.default_rng(seed)

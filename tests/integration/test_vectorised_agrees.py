@@ -16,7 +16,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from twinmon.calibrate import UnitPosterior, _unit_seed, calibrate
+from twinmon.calibrate import UnitPosterior, _unit_seed, calibrate, read_posterior
 from twinmon.calibrate.samplers.convergence import first_look
 from twinmon.calibrate.samplers.vectorised import UnitData, calibrate_units
 from twinmon.config import load_config
@@ -55,7 +55,8 @@ def both(tmp_path_factory, fmu_path):
                                channels={c: v[:YEARS] for c, v in o.channels.items()})
         for u, o in obs.units.items()})
     write_observations(tmp / "obs.h5", obs)
-    ref = calibrate(cfg_ot, tmp / "sur.h5", tmp / "obs.h5", tmp / "ot.h5").posterior
+    calibrate(cfg_ot, tmp / "sur.h5", tmp / "obs.h5", tmp / "ot.h5")
+    ref = dict(read_posterior(tmp / "ot.h5").units.each())      # with its stored draws
 
     sur = read_surrogate(tmp / "sur.h5")
     out = {u: [] for u in ref}

@@ -3,12 +3,15 @@ numpy Gibbs sampler, checked against OpenTURNS' Gibbs) through a real surrogate;
 events; the trend in the posterior artifact."""
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from twinmon import artifacts
 from twinmon.calibrate import calibrate, read_posterior, write_posterior
 from twinmon.calibrate.methods.joint import JointRun, calibrate_unit_joint
+from twinmon.calibrate.posterior import thin_indices
 from twinmon.calibrate.samplers.gpbatch import make_predictor
 from twinmon.calibrate.samplers.joint_vectorised import run_joint_tasks
 from twinmon.calibrate.trend import (TREND_FIELDS, TREND_OPTIONAL, design_matrix,
@@ -223,36 +226,48 @@ def test_calibrate_stage_writes_the_trend_and_reads_it_back(setup, tmp_path):
                  "calibrate.keep_draws=100"]
     quick = load_config(cfg_path, quick_set)
     s = calibrate(quick, tmp / "sur.h5", obs, tmp_path / "post.h5")
-    p = s.posterior["A"]
+    p = s.posterior["A"]              # its statistics; the draws are in the file
     q = read_posterior(tmp_path / "post.h5").units["A"]
     # The joint method's trend is the line alone: none of the shapes' fields.
     assert set(q.trend) == set(TREND_FIELDS) - set(TREND_OPTIONAL) | {"sigma_scale"}
     assert np.array_equal(q.trend["start"], p.trend["start"])
     for key in ("rhat", "ess", "acceptance"):
         assert np.array_equal(q.trend[key], p.trend[key]), key
-    # Draws are thinned to keep_draws like the years'; the kept ones are the run's (stored
-    # in single precision).
+    # Draws are thinned to keep_draws like the years'.
     assert q.trend["slope"].shape == (100, 1, 2) and q.samples.shape[1] == 100
     assert q.trend["slope"].dtype == np.float64
-    single = p.trend["slope"][:, 0, 0].astype(np.float32).astype(float)
-    assert np.isin(q.trend["slope"][:, 0, 0], single).all()
     assert np.array_equal(q.mean, p.mean)
+    # The kept trend draws are evenly thinned from all of them, in single precision.
+    rng = np.random.default_rng(3)
+    many = {k: (rng.normal(size=(300,) + np.shape(v)[1:]) if k in ("intercept", "slope",
+                                                                   "sigma") else v)
+            for k, v in q.trend.items()}
+    write_posterior(tmp_path / "thin.h5", {"A": replace(q, trend=many)},
+                    quick.model.input_names, quick, [])
+    back = read_posterior(tmp_path / "thin.h5").units["A"].trend["slope"]
+    idx = thin_indices(300, 100)
+    assert np.array_equal(back, many["slope"][idx].astype(np.float32).astype(float))
     prov = artifacts.read_provenance(tmp_path / "post.h5")
     assert "method: joint" in prov["config"]
     # The units' chains in two worker processes: the same arrays.
-    two = calibrate(load_config(cfg_path, quick_set + ["calibrate.workers=2"]), tmp / "sur.h5",
-                    obs, tmp_path / "post2.h5").posterior
+    calibrate(load_config(cfg_path, quick_set + ["calibrate.workers=2"]), tmp / "sur.h5",
+              obs, tmp_path / "post2.h5")
+    one, two = (read_posterior(tmp_path / n).units for n in ("post.h5", "post2.h5"))
     for u in "AB":
-        assert np.array_equal(two[u].samples, s.posterior[u].samples)
-        assert np.array_equal(two[u].trend["slope"], s.posterior[u].trend["slope"])
+        assert np.array_equal(two[u].samples, one[u].samples)
+        assert np.array_equal(two[u].trend["slope"], one[u].trend["slope"])
     # A sequential posterior has no trend.
     seq = load_config(cfg_path, ["calibrate.method=sequential", "calibrate.samples=100",
                                  "calibrate.burn_in=20", "calibrate.chains=2"])
     calibrate(seq, tmp / "sur.h5", obs, tmp_path / "seq.h5")
     assert read_posterior(tmp_path / "seq.h5").units["A"].trend == {}
-    write_posterior(tmp_path / "again.h5", {"A": p}, quick.model.input_names, quick, [])
+    write_posterior(tmp_path / "again.h5", {"A": q}, quick.model.input_names, quick, [])
     assert np.array_equal(read_posterior(tmp_path / "again.h5").units["A"].trend["sigma"],
                           q.trend["sigma"])
+    # The summary's posterior has no draws to write: refused, not written half.
+    with pytest.raises(ValueError, match="no draws"):
+        write_posterior(tmp_path / "slim.h5", {"A": p}, quick.model.input_names, quick, [])
+    assert not (tmp_path / "slim.h5").exists()
 
 
 @pytest.mark.parametrize("override, message", [

@@ -4,6 +4,7 @@ through a real surrogate: the known trend, the artifact, determinism, workers, a
 with the joint method's sampler, and a forecast on it."""
 from __future__ import annotations
 
+import h5py
 import numpy as np
 import pytest
 from scipy import stats
@@ -142,13 +143,19 @@ def test_the_stage_recovers_the_trend_and_agrees_with_the_joint_sampler(setup, t
     _fleet(obs, sur, [2, 3])
     s = calibrate(cfg, tmp / "sur.h5", obs, tmp_path / "post.h5")
     assert s.method == "laplace"
-    p = s.posterior["U2"]
+    # The summary keeps the statistics; the draws went to the file as the unit finished.
+    assert s.posterior["U2"].samples.size == 0 and "slope" not in s.posterior["U2"].trend
+    p = read_posterior(tmp_path / "post.h5").units["U2"]
+    assert np.array_equal(p.mean, s.posterior["U2"].mean)
     K = len(YEARS)
     n_s = p.samples.shape[1]
-    assert p.samples.shape == (K, n_s, 2) and n_s >= 2 * cfg.calibrate.keep_draws
+    with h5py.File(tmp_path / "post.h5") as f:
+        total = int(f["units/U2/samples"].attrs["draws_total"])
+    assert p.samples.shape == (K, cfg.calibrate.keep_draws, 2)
+    assert total >= 2 * cfg.calibrate.keep_draws
     assert list(p.status) == ["ok"] * K and np.all(p.fit["converged"])
     # The weighted draws' effective number, not their count, is the ESS.
-    assert np.all(p.ess >= cfg.calibrate.ess_warn) and np.all(p.ess < n_s)
+    assert np.all(p.ess >= cfg.calibrate.ess_warn) and np.all(p.ess < total)
     assert np.all(np.isnan(p.acceptance))
     t = p.trend
     assert set(t) == set(TREND_FIELDS) and t["start"].tolist() == [[1, 1]]
@@ -161,18 +168,17 @@ def test_the_stage_recovers_the_trend_and_agrees_with_the_joint_sampler(setup, t
     # The years stay inside the box.
     b = cfg.model.bounds
     assert np.all((p.samples >= b[:, 0]) & (p.samples <= b[:, 1]))
-
-    q = read_posterior(tmp_path / "post.h5").units["U2"]
-    assert np.array_equal(q.trend["start"], t["start"]) and np.array_equal(q.mean, p.mean)
     assert "method: laplace" in artifacts.read_provenance(tmp_path / "post.h5")["config"]
 
-    again = calibrate(cfg, tmp / "sur.h5", obs, tmp_path / "again.h5").posterior
-    two = calibrate(load_config(cfg_path, ["calibrate.workers=2"]), tmp / "sur.h5", obs,
-                    tmp_path / "two.h5").posterior
-    for u in ("U2", "U3"):
-        for other in (again, two):
-            assert np.array_equal(other[u].samples, s.posterior[u].samples)
-            assert np.array_equal(other[u].trend["slope"], s.posterior[u].trend["slope"])
+    calibrate(cfg, tmp / "sur.h5", obs, tmp_path / "again.h5")
+    calibrate(load_config(cfg_path, ["calibrate.workers=2"]), tmp / "sur.h5", obs,
+              tmp_path / "two.h5")
+    first = read_posterior(tmp_path / "post.h5").units
+    for name in ("again.h5", "two.h5"):
+        other = read_posterior(tmp_path / name).units
+        for u in ("U2", "U3"):
+            assert np.array_equal(other[u].samples, first[u].samples)
+            assert np.array_equal(other[u].trend["slope"], first[u].trend["slope"])
 
     joint_cfg = load_config(cfg_path, ["calibrate.method=joint"])
     flows = _observe(sur, _trend_unit(seed=2), seed=52)
@@ -297,3 +303,55 @@ def test_update_summarises_only_the_new_years_and_equals_a_full_run(setup, tmp_p
     for unit in full.units:
         _assert_same_unit(full.units[unit], read_posterior(tmp_path / "old.h5").units[unit],
                           unit)
+
+
+def test_units_are_written_as_they_finish_and_a_failure_keeps_the_old_file(setup, tmp_path,
+                                                                            monkeypatch):
+    """One unit a task: each unit reaches the file before the next task is sampled, and
+    leaves the main process's memory (the summary keeps no draws); a failure in a later
+    task leaves the posterior already at the output as it was, with no temporary file."""
+    from twinmon.calibrate import posterior_writer as posterior_module
+    from twinmon.calibrate.methods import laplace
+    cfg, _, tmp, sur = setup
+    obs = tmp_path / "obs.h5"
+    _fleet(obs, sur, [2, 3, 4])
+    out = tmp_path / "post.h5"
+    calibrate(cfg, tmp / "sur.h5", obs, out)
+    before = out.read_bytes()
+
+    events = []
+    group, add = laplace._group, posterior_module.PosteriorWriter.add
+
+    def recording_group(surrogate, predict, runs):
+        events.append(("sample", runs[0].seed))
+        return group(surrogate, predict, runs)
+
+    def recording_add(self, unit, p):
+        events.append(("write", unit))
+        assert p.samples.shape[1] > 0       # the draws reach the file
+        return add(self, unit, p)
+
+    monkeypatch.setattr(laplace, "UNITS_PER_TASK", 1)
+    monkeypatch.setattr(laplace, "_group", recording_group)
+    monkeypatch.setattr(posterior_module.PosteriorWriter, "add", recording_add)
+    s = calibrate(cfg, tmp / "sur.h5", obs, tmp_path / "again.h5")
+    assert [e[0] for e in events] == ["sample", "write"] * 3
+    assert [e[1] for e in events if e[0] == "write"] == ["U2", "U3", "U4"]
+    assert all(p.samples.size == 0 for p in s.posterior.values())
+    # One unit a task gives the same file as the groups of the first run.
+    a, b = read_posterior(out).units, read_posterior(tmp_path / "again.h5").units
+    for unit in ("U2", "U3", "U4"):
+        _assert_same_unit(a[unit], b[unit], unit)
+
+    def failing_group(surrogate, predict, runs):
+        if len(events) > 2:
+            raise RuntimeError("a task failed")
+        return recording_group(surrogate, predict, runs)
+
+    events.clear()
+    monkeypatch.setattr(laplace, "_group", failing_group)
+    with pytest.raises(RuntimeError, match="a task failed"):
+        calibrate(cfg, tmp / "sur.h5", obs, out)
+    assert ("write", "U2") in events            # a unit was written before the failure
+    assert out.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["again.h5", "obs.h5", "post.h5"]

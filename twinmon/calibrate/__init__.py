@@ -94,8 +94,8 @@ from .diagnostics import ess, split_rhat
 from .fit import FIT_FIELDS, STATUS_EDGE, STATUS_MISFIT, STATUS_OK, STATUS_UNCONVERGED, year_fit
 from .methods import method_named
 from .methods.sequential import calibrate_unit, plan_chains, run_chain, sample_posterior
-from .posterior import (SECTIONS, SEED_OFFSET, Posterior, UnitPosterior, read_posterior,
-                        write_posterior)
+from .posterior import SECTIONS, SEED_OFFSET, Posterior, UnitPosterior, read_posterior, slim
+from .posterior_writer import PosteriorWriter, write_posterior
 from .shared import init_worker, year_prior
 from .update import Kept, plan_update, year_digests
 
@@ -122,6 +122,8 @@ class CalibrateSummary:
     """What :func:`calibrate` did; ``as_dict`` is the ``--json`` output."""
 
     input_names: list[str]
+    #: Each unit's statistics, fit and sites, without its draws (:func:`.posterior.slim`):
+    #: the draws are in the file (``read_posterior(output)``), written unit by unit.
     posterior: dict[str, UnitPosterior]
     warnings: list[str]
     output: str
@@ -293,7 +295,9 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
     Years within a unit run in order (each year's prior is centred on the previous estimate);
     the chains of every unit's same year run in parallel worker processes
     (``calibrate.workers``; 0 = one per core, 1 = in this process). Results do not depend on
-    the number of workers.
+    the number of workers. The laplace method's units are written to ``output`` as they are
+    finished, so memory does not grow with the fleet; the file is renamed into place at the
+    end, and an error or interrupt leaves the earlier one as it was.
 
     Parameters
     ----------
@@ -361,32 +365,43 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
     fork = hasattr(os, "fork") or cfg.calibrate.executor == "dask"
     pool_args = (init_worker, (model if fork else None, str(surrogate_path),
                                cfg.model.output.name, tuple(channels)))
-    # Here or in the workers, each unit's small factorisations on one BLAS thread
-    # (executors.threads: OpenBLAS's threads make them several times slower on busy cores).
-    with one_blas_thread():
-        sampler.finish(Work(cfg, model, runs, resume, output, progress, pool_args))
-    posterior = {unit: run.result() for unit, run in runs.items()}
-    for unit, p in posterior.items():
-        p.digest = np.array(digests[unit])
-    for unit, p in posterior.items():
-        # Recorded with the posterior: forecast restarts a repaired component's trend.
-        p.events = [(e.year, e.component, e.action) for e in obs.units[unit].events]
-        p.found_repairs = [r.as_dict() for r in getattr(runs[unit], "found_repairs", ())]
-    for unit, info in channel_info.items():
-        posterior[unit].channels = info
-
     names = cfg.model.input_names
-    windows = list(cfg.diagnose_windows())
-    warnings = channel_warnings + fit_warnings(posterior, names, windows, cfg) + \
-        diagnostics_warnings(posterior, names, cfg)
     # The truth only feeds the summary, but it is recorded so that `twinmon run` re-runs
     # the stage (and its truth check) when it changes.
     inputs = [surrogate_path, observations_path] + ([truth_path] if truth_path else [])
     # An update appends to a copy of the posterior it continues: the kept years' draws are
     # neither read nor compressed again.
-    base = output if any(p.samples_from for p in posterior.values()) else None
-    write_posterior(output, posterior, names, cfg, inputs, surrogate_id=surrogate.fingerprint(),
-                    base=base, method=method.name)
+    base = output if any(getattr(r, "samples_from", 0) for r in runs.values()) else None
+    posterior: dict[str, UnitPosterior] = {}
+    with PosteriorWriter(output, names, cfg, inputs, surrogate.fingerprint(), base,
+                         method.name) as writer:
+        def emit(unit: str) -> None:
+            # Written as soon as it is finished; the summary keeps its statistics only.
+            run = runs[unit]
+            p = run.result()
+            p.digest = np.array(digests[unit])
+            # Recorded with the posterior: forecast restarts a repaired component's trend.
+            p.events = [(e.year, e.component, e.action) for e in obs.units[unit].events]
+            if hasattr(run, "found_repairs"):     # a kept unit keeps those it has
+                p.found_repairs = [r.as_dict() for r in run.found_repairs]
+            if unit in channel_info:
+                p.channels = channel_info[unit]
+            writer.add(unit, p)
+            posterior[unit] = slim(p)
+            runs[unit] = Kept(posterior[unit])
+
+        # Here or in the workers, each unit's small factorisations on one BLAS thread
+        # (executors.threads: OpenBLAS's threads make them several times slower on busy
+        # cores).
+        with one_blas_thread():
+            sampler.finish(Work(cfg, model, runs, resume, output, progress, pool_args, emit))
+        for unit in runs:
+            if unit not in posterior:     # a sampler that finishes its units all at once
+                emit(unit)
+    posterior = {unit: posterior[unit] for unit in runs}
+    windows = list(cfg.diagnose_windows())
+    warnings = channel_warnings + fit_warnings(posterior, names, windows, cfg) + \
+        diagnostics_warnings(posterior, names, cfg)
     check = truth_check(posterior, truth, names) if truth is not None else None
     return CalibrateSummary(names, posterior, warnings, str(output), check, windows,
                             channels=[cfg.model.output.name] + channels, update=update_info,

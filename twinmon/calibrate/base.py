@@ -97,6 +97,15 @@ class Work:
     output: object
     progress: Optional[Callable[[int, int], None]]
     pool_args: tuple
+    #: Called with a unit's name once the sampler has finished it (its run ``done``):
+    #: calibrate writes the unit to the posterior file then and keeps only its statistics.
+    #: A sampler that never calls it leaves every unit to be written at the end.
+    emit: Optional[Callable[[str], None]] = None
+
+    def finished(self, unit: str) -> None:
+        """``runs[unit]`` is done: hand it to :attr:`emit`."""
+        if self.emit is not None:
+            self.emit(unit)
 
     @property
     def total(self) -> int:

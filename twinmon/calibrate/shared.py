@@ -114,11 +114,14 @@ def init_worker(surrogate, surrogate_path, output: str = "", channels=()) -> Non
     worker["surrogate"] = surrogate
 
 
-def unit_groups(units: list, workers: int) -> list[list]:
+def unit_groups(units: list, workers: int, most: int = 0) -> list[list]:
     """Units split into tasks: at least one per worker, up to four per worker when there are
     enough units for batches of ~64 (a batch of a few hundred chains keeps the numpy calls
-    large; several tasks per worker keep the workers evenly busy)."""
+    large; several tasks per worker keep the workers evenly busy), and at most ``most``
+    units a task when given (a task's results are held whole until it is taken)."""
     n = max(workers, min(4 * workers, math.ceil(len(units) / 64)), 1)
+    if most > 0:
+        n = max(n, math.ceil(len(units) / most))
     size = math.ceil(len(units) / n)
     return [units[i:i + size] for i in range(0, len(units), size)]
 

@@ -79,6 +79,11 @@ class Kept:
     def __init__(self, posterior: UnitPosterior):
         self.posterior, self.years, self.k = posterior, posterior.years, len(posterior.years)
 
+    @property
+    def samples_from(self) -> int:
+        """Years whose draws stay in the posterior it continues (its writer needs it)."""
+        return self.posterior.samples_from
+
     def result(self) -> UnitPosterior:
         return self.posterior
 

@@ -57,6 +57,10 @@ from ..trend import Layout, design_matrix, segment_starts, sigma_prior_scale, wi
 #: Draws of the Gaussian model weighted to the exact posterior, per kept draw
 #: (``calibrate.keep_draws``).
 IMPORTANCE_DRAWS_PER_KEPT = 2
+#: Most units a worker's task holds. A task's results (every unit's draws, ~0.85 MB a unit)
+#: sit in the main process until they are written, so this bounds calibrate's memory
+#: whatever the fleet's size; 128 keeps the batched summaries' numpy calls large.
+UNITS_PER_TASK = 128
 
 # ---------------------------------------------------------------------------------------
 # The years' summaries
@@ -374,11 +378,12 @@ class LaplaceSampler(Sampler):
         if not pending:
             return
         workers = min(cfg.calibrate.workers or len(os.sched_getaffinity(0)), len(pending))
-        groups = unit_groups(pending, max(workers, 1))
+        groups = unit_groups(pending, max(workers, 1), most=UNITS_PER_TASK)
 
         def take(group: list, results: list) -> None:
             for u, res in zip(group, results):
                 runs[u].finish([res])
+                work.finished(u)          # written to the file; its draws leave memory
             work.tick()
 
         if self.name == "openturns":
@@ -397,12 +402,15 @@ class LaplaceSampler(Sampler):
         pool = open_pool(cfg, "calibrate", max(workers, 1), *work.pool_args)
         with sampling_pool(pool, work.output), InterruptGuard() as guard:
             futures = [pool.submit(_work, [runs[u] for u in g]) for g in groups]
-            # Poll, so that a Ctrl-C stops the work within a fraction of a second.
-            while wait(futures, timeout=0.2).not_done:
+            # Taken in order as they complete (the file's layout does not depend on the
+            # workers' timing), each dropped once taken. Polled, so that a Ctrl-C stops the
+            # work within a fraction of a second.
+            for i, g in enumerate(groups):
+                while wait([futures[i]], timeout=0.2).not_done:
+                    guard.check()
                 guard.check()
-            guard.check()
-            for g, f in zip(groups, futures):
-                take(g, f.result())
+                take(g, futures[i].result())
+                futures[i] = None
 
 
 class LaplaceMethod(Method):
