@@ -406,8 +406,8 @@ def report(tag: str, r: dict) -> None:
     print("  failure years (P>5 %, median, true):",
           " ".join(f"{u} {a}/{b}/{c}" for u, (a, b, c) in sorted(r["failure_years"].items())))
     (kh, nh), (kf, nf) = r["counts"]["unreliable_healthy"], r["counts"]["unreliable_faulty"]
-    print(f"  status unreliable (a twin that did not converge, or a trend that accelerates): "
-          f"healthy {kh}/{nh}, faulty {kf}/{nf}")
+    print("  status unreliable (a twin that did not converge, a trend its history does not "
+          f"follow, or a record too short to show a fault): healthy {kh}/{nh}, faulty {kf}/{nf}")
     (kr, nr), (kx, nx) = r["counts"]["repair_found"], r["counts"]["repair_false"]
     print(f"  unrecorded repairs found (year right, the repaired component among those named): "
           f"{kr}/{nr} repaired units; findings with no such repair: {kx} on {nx} units")

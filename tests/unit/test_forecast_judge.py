@@ -280,3 +280,58 @@ def test_wear_rates_pooled_over_a_repair_weigh_each_segment_by_its_precision():
     assert abs(h[:, 1].mean() + 0.08) < 0.001
     assert abs(h[:, 1].std() - 0.0175) < 0.0005
     assert history_slope_draws({"start": start[:1], "slope": slope[:, :1]}) is None
+
+
+def test_detectable_multiples_say_what_fault_a_record_would_show_half_the_time():
+    """Per input, the fault (in tolerances) a record shows half the time: large for a
+    short record, small for a long one; the indicator's bound sits at its test's critical
+    value exactly; an input the indicator cannot see is judged by the slopes alone; an
+    input with no tolerance has none. A healthy verdict on a record too short to show a
+    fault of ``forecast.detectable_multiple`` tolerances is unreliable, naming the inputs."""
+    from scipy import stats
+
+    from twinmon.config import load_config
+    from twinmon.forecast.detection import detectable_multiples, uniform_sum
+    from twinmon.forecast.judge import describe_blind
+
+    from ..conftest import CONFIGS
+    rng = np.random.default_rng(4)
+    level, dof = 0.005, 10 ** 6
+    found = {}
+    for label, sd in (("long", np.array([0.08, 0.016])), ("short", np.array([1.0, 0.15]))):
+        draws = rng.normal(RATE, sd, (4000, 2))
+        drift = indicator_drift(YEARS, _indicator(0.08, 0.1, rng), GRAD, RATE, TOL, +1, 0.01,
+                                slope_draws=draws @ GRAD)
+        C = np.diag(sd ** 2)
+        m = detectable_multiples(drift, RATE, C, dof, TOL, np.array([1, -1]), level)
+        found[label] = m
+        by_inputs = 1 + stats.t.isf(level, dof) * sd / TOL
+        assert np.all(m <= by_inputs + 1e-12)
+        # Where the indicator's bound is the smaller, its excess is the critical value.
+        u, w = uniform_sum(drift.normal_halfwidth)
+        for i in np.flatnonzero(m < by_inputs - 1e-9):
+            e = m[i] * drift.normal_halfwidth[i]
+            p = float(w @ stats.t.sf((e - u) / drift.slope_se, drift.dof))
+            assert p == pytest.approx(level, rel=1e-6), (label, i)
+    assert np.all(found["long"] < 4) and np.all(found["short"] > 4), found
+    # An input that moves the indicator towards safe: only its slope can show its fault.
+    drift = indicator_drift(YEARS, _indicator(0.08, 0.1, rng), GRAD, RATE, TOL, +1, 0.01)
+    sd = np.array([0.3, 0.05])
+    m = detectable_multiples(drift, RATE, np.diag(sd ** 2), dof, TOL, np.array([-1, -1]),
+                             level)
+    assert m[0] == pytest.approx(1 + stats.t.isf(level, dof) * sd[0] / TOL[0], rel=1e-9)
+    m = detectable_multiples(drift, RATE, np.diag(sd ** 2), dof, np.array([0.25, 0.0]),
+                             np.array([1, -1]), level)
+    assert np.isfinite(m[0]) and np.isnan(m[1])
+
+    cfg = load_config(CONFIGS / "pump.yaml")
+    drift.detectable = np.array([2.1, 9.3])
+    why = describe_blind(cfg, drift, YEARS[:3])
+    names = cfg.model.input_names
+    assert why.startswith("prognosis unreliable: with 3 year(s) of record")
+    assert f"{names[1]} 9.3x" in why and names[0] not in why
+    drift.detectable = np.array([2.1, 3.9])
+    assert describe_blind(cfg, drift, YEARS) == ""
+    drift.detectable = np.array([2.1, 9.3])
+    off = load_config(CONFIGS / "pump.yaml", ["forecast.detectable_multiple=0"])
+    assert describe_blind(off, drift, YEARS[:3]) == ""

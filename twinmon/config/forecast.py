@@ -57,6 +57,13 @@ class ForecastConfig:
     #: (twinmon/forecast/trendfit.py), the unit's prognosis is ``unreliable``: its history
     #: does not follow the trend its forecast extends. 0: off.
     trend_fit_alpha: float = 0.01
+    #: A healthy verdict is ``unreliable`` when the record could miss a fault of this many
+    #: normal-ageing tolerances, for some input, half the time (a few years of history,
+    #: gaps; twinmon/forecast/detection.py, detectable_multiples): "no fault seen" then
+    #: says little. Flow-only records of the pump (benchmarks/prognosis.py, seed 13): ten
+    #: years show a fault from at most 1.4 (motor) and 2.6 (pump) tolerances, eight years
+    #: from 2.9, four from 3.7-5.0, three from 4.4-5.3. 0: off.
+    detectable_multiple: float = 4.0
     #: Unrecorded repairs: yearly estimates that fall back towards nominal (twinmon/repairs.py,
     #: at this level, Bonferroni over the years tried and the inputs) are reported with the
     #: command that records the event, and the component's trend restarts there: in
@@ -89,6 +96,8 @@ class ForecastConfig:
             yield "shape_alpha", "must lie in [0, 1)", self.shape_alpha
         if not 0 <= self.trend_fit_alpha < 1:
             yield "trend_fit_alpha", "must lie in [0, 1)", self.trend_fit_alpha
+        if self.detectable_multiple != 0 and not self.detectable_multiple > 1:
+            yield "detectable_multiple", "must be 0 (off) or > 1", self.detectable_multiple
         if not 0 <= self.repair_alpha < 1:
             yield "repair_alpha", "must lie in [0, 1)", self.repair_alpha
         if self.observed_samples < 1:

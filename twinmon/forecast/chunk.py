@@ -23,8 +23,8 @@ from ..repairs import FoundRepair, find_repairs
 from .attribution import HEALTHY
 from .covariance import estimate_error_covariance
 from .detection import gradient_from, gradient_points, mid_state
-from .judge import (STATUS_OK, STATUS_UNRELIABLE, STATUS_WITHHELD, history_slope_draws, judge,
-                    prognosis_status)
+from .judge import (STATUS_OK, STATUS_UNRELIABLE, STATUS_WITHHELD, describe_blind,
+                    history_slope_draws, judge, prognosis_status)
 from .plan import maintenance_plan
 from .pooling import _pool_unit
 from .predictive import (residual_correlation, sample_predictive, sample_state,
@@ -306,6 +306,11 @@ def _finish_unit(cfg: Config, unit: str, up, p: dict, twin: TwinResult,
             # them: a failure year and intervals from it would look surer than they are.
             uf.status, uf.status_reason = STATUS_UNRELIABLE, describe_miss(
                 cfg, fit, fc.trend_fit_alpha)
+    if uf.status == STATUS_OK and uf.root_cause == HEALTHY:
+        # No fault seen, but a short or gappy record may not have been able to see one.
+        blind = describe_blind(cfg, drift, p["years"])
+        if blind:
+            uf.status, uf.status_reason = STATUS_UNRELIABLE, blind
     if uf.status == STATUS_WITHHELD:
         if fc.force_prognosis:
             uf.forced = True

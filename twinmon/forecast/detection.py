@@ -24,7 +24,7 @@ combines at ``forecast.alpha / 2`` each:
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Optional
 
 import numpy as np
@@ -86,6 +86,11 @@ class IndicatorDrift:
     #: The same test on each input's wear rate pooled over its trend's segments, when a
     #: repair restarted one (:func:`~.judge.history_slope_draws`); NaN otherwise.
     p_history: float = float("nan")
+    #: Per input, the fault this record shows half the time: its excess rate, in tolerances
+    #: beyond normal ageing, at which a test would reject with probability 0.5
+    #: (:func:`detectable_multiples`); NaN for an input with no tolerance. Empty in
+    #: forecasts written before it was recorded.
+    detectable: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @property
     def excess(self) -> float:
@@ -334,3 +339,65 @@ def box_test_uniform(b: np.ndarray, C: np.ndarray, dof: int, normal_rate, tolera
                                                      / max(dof, 1))
     null = r + tol * rng.uniform(-1.0, 1.0, (n, d)) + e
     return float(np.mean(box_distance(null, C, lo, hi) >= T))
+
+
+def detectable_multiples(drift: IndicatorDrift, b: np.ndarray, C: np.ndarray, dof: int,
+                         tolerance, directions, level: float) -> np.ndarray:
+    """How large a fault of each input this unit's record would show half the time.
+
+    A fault of input ``i`` ages it ``m`` tolerances beyond its normal rate, the other inputs
+    at theirs. The inputs' test sees it half the time once the slope's excess beyond the
+    band's edge reaches the test's critical value, ``(m - 1) tol_i = q sd_i`` (``q`` the
+    one-sided Student-t quantile at ``level``, ``sd_i`` the slope's posterior sd); the
+    indicator's drift test once the indicator's excess ``m |dI/dx_i| tol_i`` reaches its
+    critical value under its null (:func:`indicator_drift`); an input moving the indicator
+    towards safe is not seen by that test. The smaller of the two, per input: the fault
+    the record could still miss. A few years of data, or gaps, make it large: a healthy
+    verdict then says little.
+
+    Parameters
+    ----------
+    drift : IndicatorDrift
+        The unit's indicator test (its slope error, gradient, null).
+    b : ndarray, shape [d]
+        The inputs' slopes (input units per year); only their count is used.
+    C : ndarray, shape [d, d]
+        Their covariance.
+    dof : int
+        Degrees of freedom of the slopes' error.
+    tolerance : ndarray, shape [d]
+        Normal-ageing tolerance per input (input units per year).
+    directions : ndarray, shape [d]
+        Degrading direction per input (+1, -1, or 0 for unknown).
+    level : float
+        Each test's level (``forecast.alpha`` over the number of tests).
+
+    Returns
+    -------
+    ndarray, shape [d]
+        Multiples of each input's tolerance; NaN where the tolerance is 0.
+    """
+    from scipy import stats
+    from scipy.optimize import brentq
+    tol = np.asarray(tolerance, float)
+    sd = np.sqrt(np.maximum(np.diag(np.atleast_2d(C)), 0.0))[:len(b)]
+    q = float(stats.t.isf(level, dof))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        by_inputs = np.where(tol > 0, 1.0 + q * sd / tol, np.nan)
+    by_indicator = np.full(len(b), np.inf)
+    half, se = np.asarray(drift.normal_halfwidth, float), drift.slope_se
+    if np.isfinite(se) and se > 0 and half.size == len(b):
+        u, w = uniform_sum(half)
+
+        def tail(e):
+            return float(w @ stats.t.sf((e - u) / se, drift.dof)) - level
+
+        hi = float(np.abs(u).max() + 50 * se)
+        crit = brentq(tail, float(u.min()), hi) if tail(hi) < 0 < tail(u.min()) else np.inf
+        g = np.asarray(drift.gradient, float)
+        towards = drift.sense * g * np.where(np.asarray(directions) == 0, np.sign(
+            drift.sense * g), np.asarray(directions, float)) > 0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            by_indicator = np.where(towards & (half > 0), crit / half, np.inf)
+    return np.where(tol > 0, np.minimum(by_inputs, by_indicator), np.nan)
+

@@ -28,7 +28,7 @@ import numpy as np
 from ..config import Config
 from .attribution import AMBIGUOUS, HEALTHY, Attribution, attribute, separating_channel
 from .covariance import slope_covariance
-from .detection import IndicatorDrift, box_test_uniform, indicator_drift
+from .detection import IndicatorDrift, box_test_uniform, detectable_multiples, indicator_drift
 from .streams import unit_rng
 from .trend import POSTERIOR_DOF, Trend
 
@@ -87,6 +87,21 @@ def prognosis_status(up, cfg: Config, windows: list) -> tuple[str, str]:
         return STATUS_UNRELIABLE, (f"prognosis unreliable: the posterior of year(s) {yrs} did "
                                    "not converge even with longer chains")
     return STATUS_OK, ""
+
+
+def describe_blind(cfg: Config, drift: IndicatorDrift, years: np.ndarray) -> str:
+    """Why a healthy verdict is unreliable: the record could miss a fault of
+    ``forecast.detectable_multiple`` tolerances or more ("" when it could not, or off)."""
+    limit = cfg.forecast.detectable_multiple
+    m = np.asarray(drift.detectable, float)
+    if not limit or m.size == 0 or not np.any(m > limit):
+        return ""
+    names = cfg.model.input_names
+    order = [i for i in np.argsort(-np.where(np.isfinite(m), m, -np.inf)) if m[i] > limit]
+    what = ", ".join(f"{names[i]} {m[i]:.1f}x" for i in order)
+    return (f"prognosis unreliable: with {len(years)} year(s) of record, a fault of up to "
+            f"{what} its normal-ageing tolerance would be missed half the time; 'healthy' "
+            "does not rule it out")
 
 
 def history_slope_draws(trend: dict) -> Optional[np.ndarray]:
@@ -171,6 +186,8 @@ def judge(cfg: Config, unit: str, plan: dict, ind_obs: np.ndarray, gradient: np.
     # after a repair, the wear rates pooled over the repairs.
     tests = [p for p in (drift.p_value, drift.p_inputs, drift.p_history) if np.isfinite(p)]
     drift.abnormal = bool(tests) and bool(min(tests) < alpha / len(tests))
+    drift.detectable = detectable_multiples(drift, b, C, dof, tol, dirs,
+                                            alpha / max(len(tests), 1))
     if not drift.abnormal:
         return drift, Attribution(HEALTHY)
     # The components are named from the slopes whose evidence is the stronger.

@@ -181,7 +181,7 @@ class UnitForecast:
                        for name, t in self.trends.items()},
             "indicator": {"median": _finite(med), "q05": _finite(q05), "q95": _finite(q95)},
             "plan": self.plan,
-            "detection": _drift_dict(self.drift),
+            "detection": _drift_dict(self.drift, list(self.trends)),
             "attribution": ({"verdict": self.attribution.verdict,
                              "probabilities": {c: round(v, 3) for c, v in
                                                self.attribution.probabilities.items()},
@@ -205,16 +205,21 @@ class UnitForecast:
         return d
 
 
-def _drift_dict(dr: Optional[IndicatorDrift]) -> Optional[dict]:
+def _drift_dict(dr: Optional[IndicatorDrift], names: list) -> Optional[dict]:
+    """The detection for ``--json``; ``detectable`` per input name (multiples of its
+    normal-ageing tolerance), when recorded."""
     if dr is None:
         return None
     f = (lambda v: float(f"{v:.4g}") if np.isfinite(v) else None)
-    return {"slope": f(dr.slope), "slope_se": f(dr.slope_se), "normal_slope": f(dr.normal_slope),
-            "normal_tolerance": f(float(np.sum(dr.normal_halfwidth))),
-            "p_value": f(dr.p_value), "p_inputs": f(dr.p_inputs),
-            "p_history": f(dr.p_history),
-            "abnormal": bool(dr.abnormal),
-            "years": [int(y) for y in dr.years]}
+    out = {"slope": f(dr.slope), "slope_se": f(dr.slope_se), "normal_slope": f(dr.normal_slope),
+           "normal_tolerance": f(float(np.sum(dr.normal_halfwidth))),
+           "p_value": f(dr.p_value), "p_inputs": f(dr.p_inputs),
+           "p_history": f(dr.p_history),
+           "abnormal": bool(dr.abnormal),
+           "years": [int(y) for y in dr.years]}
+    if np.size(dr.detectable) == len(names):
+        out["detectable"] = {n: f(float(v)) for n, v in zip(names, dr.detectable)}
+    return out
 
 
 def _finite(a) -> list:
