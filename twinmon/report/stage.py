@@ -22,7 +22,7 @@ from .fig_surrogate import fig_surrogate
 from .fleet import check_requested, fleet_view, is_fleet
 from .html import (calibration_table, diagnose_table, e_p, fleet_overview, page,
                    stored_validation_text, surrogate_text)
-from .load import Inputs, check_consistency, load, observed_indicator
+from .load import Inputs, check_consistency, load, observed_indicator, posterior_statistics
 from .summary import ReportSummary, calibration_diagnostics, unit_summary, words_dict
 
 #: Units per figure when a large fleet's units are drawn in detail (Figures 6 and 7 give
@@ -141,12 +141,15 @@ def _render(cfg: Config, inp: Inputs, tmp: Path, out: Path, provenance: dict,
 
     observed = observed_indicator(inp)
     # The summaries read each unit's figures, not its Monte Carlo arrays (a fleet's forecast
-    # holds ~0.4 MB of them per unit; only the drawn units' figures need them).
+    # holds ~0.4 MB of them per unit; only the drawn units' figures need them) nor its
+    # posterior draws (read in one pass: the fleet's statistics are a few kB a unit).
     light = inp
     if inp.forecast is not None and Path(inp.forecast.path).is_file():
         from ..forecast import read_forecast
-        light = dataclasses.replace(inp, forecast=read_forecast(inp.forecast.path,
-                                                                arrays=False))
+        light = dataclasses.replace(light, forecast=read_forecast(inp.forecast.path,
+                                                                  arrays=False))
+    if inp.posterior is not None and Path(inp.posterior.path).is_file():
+        light = dataclasses.replace(light, posterior=posterior_statistics(inp.posterior.path))
     summaries = {u: unit_summary(u, light, observed) for u in units}
     fleet = None
     if is_fleet(cfg, len(units)):
@@ -210,7 +213,7 @@ def _render(cfg: Config, inp: Inputs, tmp: Path, out: Path, provenance: dict,
         for group, sub, suffix in _drawing(figs, views, fleet):
             if sub.posterior.units:
                 errors.append((len(sub.posterior.units), fig_estimates(figs, sub, colours)))
-        calibration_info = calibration_diagnostics(inp)
+        calibration_info = calibration_diagnostics(light)
         note = _method_note(provenance.get("posterior", {}), len(inp.posterior.units))
         if note:
             notes.append(note)
