@@ -36,6 +36,21 @@ def test_config_is_frozen():
         cfg.seed = 3
 
 
+def test_the_workers_config_leaves_out_the_fabricated_fleet_only():
+    """What a stage's tasks carry: every section a worker reads unchanged, the fabricated
+    fleet's trajectories and the raw mapping left out."""
+    import pickle
+    cfg = load_config(CONFIGS / "fleet.yaml")
+    assert cfg.fabricate is not None and cfg.fabricate.units and cfg.raw
+    w = cfg.for_workers()
+    assert w.fabricate is None and not w.raw
+    sections = ("model", "safety", "seed", "simulate", "reduce", "calibrate", "forecast",
+                "backtest", "diagnose", "dask", "report")
+    assert w.section_yaml(*sections) == cfg.section_yaml(*sections)
+    assert w.source == cfg.source and w.diagnose_windows() == cfg.diagnose_windows()
+    assert len(pickle.dumps(w)) < len(pickle.dumps(cfg))
+
+
 def test_extends_merges_and_keeps_fmu_path_relative_to_its_file(tmp_path):
     cfg = load_config(CONFIGS / "fleet.yaml")
     assert cfg.fabricate is not None and set(cfg.fabricate.units) == {"Park", "Colt", "Monk"}

@@ -296,8 +296,9 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
     the chains of every unit's same year run in parallel worker processes
     (``calibrate.workers``; 0 = one per core, 1 = in this process). Results do not depend on
     the number of workers. The laplace method's units are written to ``output`` as they are
-    finished, so memory does not grow with the fleet; the file is renamed into place at the
-    end, and an error or interrupt leaves the earlier one as it was.
+    finished, so the fleet's draws never sit in memory together (what stays is a few kB of
+    statistics a unit); the file is renamed into place at the end, and an error or
+    interrupt leaves the earlier one as it was.
 
     Parameters
     ----------
@@ -343,6 +344,9 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
     method = method_named(name)
     sampler = method.sampler(cfg.calibrate.sampler)
     runs, channel_info = {}, {}
+    # Each unit's run carries the config to the workers' tasks (a Dask scheduler holds
+    # every submitted task until it runs): without what they do not read.
+    wcfg = cfg.for_workers()
     for unit, u in obs.units.items():
         noise, source = _noise_for(cfg, u)
         y = obs.output_of(unit)
@@ -351,8 +355,8 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
         if channels:  # one noise per channel, records side by side
             noise, channel_info[unit] = channel_noise(cfg, u, model, noise, source)
             y = stacked_rows(u, model, cfg.model.output.name)
-        runs[unit] = method.start(model, cfg, u.years, y, noise, _unit_seed(cfg, unit), source,
-                                  getattr(u, "events", []))
+        runs[unit] = method.start(model, wcfg, u.years, y, noise, _unit_seed(cfg, unit),
+                                  source, getattr(u, "events", []))
     digests = {unit: year_digests(r.flows, r.noise) for unit, r in runs.items()}
     resume, update_info = plan_update(cfg, surrogate.fingerprint(), output, runs, method) \
         if update else ({}, None)

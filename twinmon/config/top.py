@@ -6,7 +6,7 @@ they are left out of that YAML.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Mapping, Optional
 
@@ -53,6 +53,13 @@ class Config:
     def indicator_variable(self) -> str:
         """The FMU variable the health indicator is computed from."""
         return self.safety.indicator.variable or self.model.output.variable
+
+    def for_workers(self) -> "Config":
+        """This config without what only the main process reads: ``fabricate`` (a
+        fabricated fleet's trajectories) and ``raw``. What a stage hands to each task of
+        its workers: a task pickles the config it carries, and a fabricated fleet of 1000
+        units makes that 0.43 MB to pickle and 87 ms to unpickle (4 kB and 2 ms without)."""
+        return replace(self, fabricate=None, raw={})
 
     def diagnose_windows(self) -> dict[str, "WindowSpec"]:
         """The named windows of ``diagnose``: the config's, or the record in thirds."""

@@ -291,8 +291,10 @@ def diagnose(cfg: Config, observations: str | os.PathLike, output: str | os.Path
             chans, Y = _whitened(cfg, uo.channels, sigma[u])
             digests[u] = (uo.years, unit_digests(Y, [sigma[u][c] for c in chans]))
         kept, update_info = plan_update(cfg, fmu, output, digests, SECTIONS)
-    # The kept records travel with the unit's job, to a pool or Dask worker alike.
-    jobs = [(cfg, fmu, u, obs.time, uo.years, uo.channels, sigma[u],
+    # The kept records travel with the unit's job, to a pool or Dask worker alike; so does
+    # the config, without what the workers do not read (each job pickles its own copy).
+    wcfg = cfg.for_workers()
+    jobs = [(wcfg, fmu, u, obs.time, uo.years, uo.channels, sigma[u],
              None, _posterior_for(posterior, post, cfg, u, uo.years), kept.get(u))
             for u, uo in obs.units.items()]
     n_workers = workers if workers is not None else cfg.diagnose.workers
