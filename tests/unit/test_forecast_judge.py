@@ -323,13 +323,22 @@ def test_detectable_multiples_say_what_fault_a_record_would_show_half_the_time()
     m = detectable_multiples(drift, RATE, np.diag(sd ** 2), dof, np.array([0.25, 0.0]),
                              np.array([1, -1]), level)
     assert np.isfinite(m[0]) and np.isnan(m[1])
+    # No slope error at all (too few years): nothing is bounded by the slopes.
+    nan_drift = indicator_drift(YEARS[:2], _indicator(0.08, 0.1, rng)[:2], GRAD, RATE, TOL,
+                                +1, 0.01)
+    m = detectable_multiples(nan_drift, RATE, np.full((2, 2), np.nan), 1, TOL,
+                             np.array([1, -1]), level)
+    assert np.all(np.isinf(m))
 
     cfg = load_config(CONFIGS / "pump.yaml")
     drift.detectable = np.array([2.1, 9.3])
     why = describe_blind(cfg, drift, YEARS[:3])
     names = cfg.model.input_names
     assert why.startswith("prognosis unreliable: with 3 year(s) of record")
-    assert f"{names[1]} 9.3x" in why and names[0] not in why
+    assert f"a fault of {names[1]} up to 9.3x would" in why and names[0] not in why
+    drift.detectable = np.array([np.inf, 9.3])
+    why = describe_blind(cfg, drift, YEARS[:2])
+    assert f"of {names[0]} of any size, or of {names[1]} up to 9.3x" in why
     drift.detectable = np.array([2.1, 3.9])
     assert describe_blind(cfg, drift, YEARS) == ""
     drift.detectable = np.array([2.1, 9.3])

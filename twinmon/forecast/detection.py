@@ -375,7 +375,8 @@ def detectable_multiples(drift: IndicatorDrift, b: np.ndarray, C: np.ndarray, do
     Returns
     -------
     ndarray, shape [d]
-        Multiples of each input's tolerance; NaN where the tolerance is 0.
+        Multiples of each input's tolerance; inf when neither test can bound it (no slope
+        error: too few years); NaN where the tolerance is 0.
     """
     from scipy import stats
     from scipy.optimize import brentq
@@ -399,5 +400,8 @@ def detectable_multiples(drift: IndicatorDrift, b: np.ndarray, C: np.ndarray, do
             drift.sense * g), np.asarray(directions, float)) > 0
         with np.errstate(divide="ignore", invalid="ignore"):
             by_indicator = np.where(towards & (half > 0), crit / half, np.inf)
+    # A slope with no error estimate (too few years) bounds nothing: inf, unless the
+    # indicator's test still can.
+    by_inputs = np.where(np.isfinite(by_inputs), by_inputs, np.inf)
     return np.where(tol > 0, np.minimum(by_inputs, by_indicator), np.nan)
 

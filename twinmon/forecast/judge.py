@@ -97,11 +97,12 @@ def describe_blind(cfg: Config, drift: IndicatorDrift, years: np.ndarray) -> str
     if not limit or m.size == 0 or not np.any(m > limit):
         return ""
     names = cfg.model.input_names
-    order = [i for i in np.argsort(-np.where(np.isfinite(m), m, -np.inf)) if m[i] > limit]
-    what = ", ".join(f"{names[i]} {m[i]:.1f}x" for i in order)
-    return (f"prognosis unreliable: with {len(years)} year(s) of record, a fault of up to "
-            f"{what} its normal-ageing tolerance would be missed half the time; 'healthy' "
-            "does not rule it out")
+    order = [i for i in np.argsort(-np.where(np.isnan(m), -np.inf, m)) if m[i] > limit]
+    what = ", or ".join(f"of {names[i]} up to {m[i]:.1f}x" if np.isfinite(m[i]) else
+                        f"of {names[i]} of any size" for i in order)
+    return (f"prognosis unreliable: with {len(years)} year(s) of record, a fault {what} would "
+            "be missed half the time (x: its normal-ageing tolerance); 'healthy' does not "
+            "rule it out")
 
 
 def history_slope_draws(trend: dict) -> Optional[np.ndarray]:
