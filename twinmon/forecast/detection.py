@@ -404,4 +404,3 @@ def detectable_multiples(drift: IndicatorDrift, b: np.ndarray, C: np.ndarray, do
     # indicator's test still can.
     by_inputs = np.where(np.isfinite(by_inputs), by_inputs, np.inf)
     return np.where(tol > 0, np.minimum(by_inputs, by_indicator), np.nan)
-
