@@ -303,7 +303,7 @@ def test_detectable_multiples_say_what_fault_a_record_would_show_half_the_time()
         drift = indicator_drift(YEARS, _indicator(0.08, 0.1, rng), GRAD, RATE, TOL, +1, 0.01,
                                 slope_draws=draws @ GRAD)
         C = np.diag(sd ** 2)
-        m = detectable_multiples(drift, RATE, C, dof, TOL, np.array([1, -1]), level)
+        m = detectable_multiples(drift, C, dof, TOL, np.array([1, -1]), level)
         found[label] = m
         by_inputs = 1 + stats.t.isf(level, dof) * sd / TOL
         assert np.all(m <= by_inputs + 1e-12)
@@ -317,16 +317,16 @@ def test_detectable_multiples_say_what_fault_a_record_would_show_half_the_time()
     # An input that moves the indicator towards safe: only its slope can show its fault.
     drift = indicator_drift(YEARS, _indicator(0.08, 0.1, rng), GRAD, RATE, TOL, +1, 0.01)
     sd = np.array([0.3, 0.05])
-    m = detectable_multiples(drift, RATE, np.diag(sd ** 2), dof, TOL, np.array([-1, -1]),
+    m = detectable_multiples(drift, np.diag(sd ** 2), dof, TOL, np.array([-1, -1]),
                              level)
     assert m[0] == pytest.approx(1 + stats.t.isf(level, dof) * sd[0] / TOL[0], rel=1e-9)
-    m = detectable_multiples(drift, RATE, np.diag(sd ** 2), dof, np.array([0.25, 0.0]),
+    m = detectable_multiples(drift, np.diag(sd ** 2), dof, np.array([0.25, 0.0]),
                              np.array([1, -1]), level)
     assert np.isfinite(m[0]) and np.isnan(m[1])
     # No slope error at all (too few years): nothing is bounded by the slopes.
     nan_drift = indicator_drift(YEARS[:2], _indicator(0.08, 0.1, rng)[:2], GRAD, RATE, TOL,
                                 +1, 0.01)
-    m = detectable_multiples(nan_drift, RATE, np.full((2, 2), np.nan), 1, TOL,
+    m = detectable_multiples(nan_drift, np.full((2, 2), np.nan), 1, TOL,
                              np.array([1, -1]), level)
     assert np.all(np.isinf(m))
 

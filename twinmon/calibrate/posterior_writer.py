@@ -47,10 +47,9 @@ def _records(p: UnitPosterior) -> np.ndarray:
 def write_posterior(path, posterior: dict[str, UnitPosterior], input_names: list[str],
                     cfg: Config, inputs, surrogate_id: str = "",
                     base: str | os.PathLike | None = None, method: str = "") -> None:
-    """Write ``posterior.h5`` atomically (layout in the module docstring): every unit of
-    ``posterior`` through one :class:`PosteriorWriter` (its parameters)."""
-    if base is None and any(p.samples_from for p in posterior.values()):
-        raise ValueError("a posterior whose draws are partly in another file needs base=")
+    """Write ``posterior.h5`` atomically: every unit of ``posterior`` through one
+    :class:`PosteriorWriter` (its parameters and the layout); a unit it refuses leaves
+    nothing written."""
     with PosteriorWriter(path, input_names, cfg, inputs, surrogate_id, base, method) as w:
         for unit, p in posterior.items():
             w.add(unit, p)

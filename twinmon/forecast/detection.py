@@ -341,8 +341,8 @@ def box_test_uniform(b: np.ndarray, C: np.ndarray, dof: int, normal_rate, tolera
     return float(np.mean(box_distance(null, C, lo, hi) >= T))
 
 
-def detectable_multiples(drift: IndicatorDrift, b: np.ndarray, C: np.ndarray, dof: int,
-                         tolerance, directions, level: float) -> np.ndarray:
+def detectable_multiples(drift: IndicatorDrift, C: np.ndarray, dof: int, tolerance,
+                         directions, level: float) -> np.ndarray:
     """How large a fault of each input this unit's record would show half the time.
 
     A fault of input ``i`` ages it ``m`` tolerances beyond its normal rate, the other inputs
@@ -359,10 +359,8 @@ def detectable_multiples(drift: IndicatorDrift, b: np.ndarray, C: np.ndarray, do
     ----------
     drift : IndicatorDrift
         The unit's indicator test (its slope error, gradient, null).
-    b : ndarray, shape [d]
-        The inputs' slopes (input units per year); only their count is used.
     C : ndarray, shape [d, d]
-        Their covariance.
+        Covariance of the inputs' slopes ((input units per year)^2).
     dof : int
         Degrees of freedom of the slopes' error.
     tolerance : ndarray, shape [d]
@@ -381,13 +379,13 @@ def detectable_multiples(drift: IndicatorDrift, b: np.ndarray, C: np.ndarray, do
     from scipy import stats
     from scipy.optimize import brentq
     tol = np.asarray(tolerance, float)
-    sd = np.sqrt(np.maximum(np.diag(np.atleast_2d(C)), 0.0))[:len(b)]
+    sd = np.sqrt(np.maximum(np.diag(np.atleast_2d(C)), 0.0))
     q = float(stats.t.isf(level, dof))
     with np.errstate(divide="ignore", invalid="ignore"):
         by_inputs = np.where(tol > 0, 1.0 + q * sd / tol, np.nan)
-    by_indicator = np.full(len(b), np.inf)
+    by_indicator = np.full(tol.size, np.inf)
     half, se = np.asarray(drift.normal_halfwidth, float), drift.slope_se
-    if np.isfinite(se) and se > 0 and half.size == len(b):
+    if np.isfinite(se) and se > 0 and half.size == tol.size:
         u, w = uniform_sum(half)
 
         def tail(e):

@@ -187,8 +187,7 @@ def judge(cfg: Config, unit: str, plan: dict, ind_obs: np.ndarray, gradient: np.
     # after a repair, the wear rates pooled over the repairs.
     tests = [p for p in (drift.p_value, drift.p_inputs, drift.p_history) if np.isfinite(p)]
     drift.abnormal = bool(tests) and bool(min(tests) < alpha / len(tests))
-    drift.detectable = detectable_multiples(drift, b, C, dof, tol, dirs,
-                                            alpha / max(len(tests), 1))
+    drift.detectable = detectable_multiples(drift, C, dof, tol, dirs, alpha / max(len(tests), 1))
     if not drift.abnormal:
         return drift, Attribution(HEALTHY)
     # The components are named from the slopes whose evidence is the stronger.
