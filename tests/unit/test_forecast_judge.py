@@ -291,7 +291,7 @@ def test_detectable_multiples_say_what_fault_a_record_would_show_half_the_time()
     from scipy import stats
 
     from twinmon.config import load_config
-    from twinmon.forecast.detection import detectable_multiples, uniform_sum
+    from twinmon.forecast.detection import detectable_multiples, t_sf, uniform_sum
     from twinmon.forecast.judge import describe_blind
 
     from ..conftest import CONFIGS
@@ -311,8 +311,11 @@ def test_detectable_multiples_say_what_fault_a_record_would_show_half_the_time()
         u, w = uniform_sum(drift.normal_halfwidth)
         for i in np.flatnonzero(m < by_inputs - 1e-9):
             e = m[i] * drift.normal_halfwidth[i]
-            p = float(w @ stats.t.sf((e - u) / drift.slope_se, drift.dof))
+            p = float(w @ t_sf((e - u) / drift.slope_se, drift.dof))
             assert p == pytest.approx(level, rel=1e-6), (label, i)
+            # The tail is Student's t's; with a posterior's 10^6 dof, the normal's.
+            assert float(w @ stats.t.sf((e - u) / drift.slope_se, drift.dof)) == \
+                pytest.approx(level, rel=1e-4)
     assert np.all(found["long"] < 4) and np.all(found["short"] > 4), found
     # An input that moves the indicator towards safe: only its slope can show its fault.
     drift = indicator_drift(YEARS, _indicator(0.08, 0.1, rng), GRAD, RATE, TOL, +1, 0.01)
@@ -344,3 +347,15 @@ def test_detectable_multiples_say_what_fault_a_record_would_show_half_the_time()
     drift.detectable = np.array([2.1, 9.3])
     off = load_config(CONFIGS / "pump.yaml", ["forecast.detectable_multiple=0"])
     assert describe_blind(off, drift, YEARS[:3]) == ""
+
+
+def test_t_tail_is_students_and_the_normals_from_a_posteriors_dof():
+    """t_sf is scipy's Student t tail; from NORMAL_DOF on, the normal's, within 1e-5."""
+    from scipy import stats
+
+    from twinmon.forecast.detection import NORMAL_DOF, t_sf
+    x = np.linspace(-6, 6, 101)
+    for dof in (1, 3, 8, 30):
+        assert np.array_equal(t_sf(x, dof), stats.t.sf(x, dof))
+    for dof in (NORMAL_DOF, 10 ** 6):
+        assert np.max(np.abs(t_sf(x, dof) - stats.t.sf(x, dof))) < 1e-5
