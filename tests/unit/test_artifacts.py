@@ -104,3 +104,57 @@ def test_stale_temporaries_of_dead_writers_are_removed(tmp_path):
     with artifacts.write_artifact(out, "gap") as f:
         artifacts.put(f, "v", [1.0], "1", "first")
     assert not stale.exists()
+
+
+def _stored(obj) -> dict:
+    """Each attribute's stored type and value."""
+    return {k: (obj.attrs.get_id(k).dtype, obj.attrs.get_id(k).shape, obj.attrs[k])
+            for k in obj.attrs}
+
+
+def test_fast_writes_store_what_h5py_stores(tmp_path):
+    """put and set_attrs take the low-level path for numbers and strings: the file must
+    hold what h5py's own create_dataset / attrs[...] = would (types, shapes, chunks,
+    filters, values), and read back alike through get."""
+    values = {"text": "débit", "empty": "", "real": 1.5, "whole": 3, "flag": True,
+              "np_flag": np.bool_(False), "np_int": np.int64(-4), "np_real": np.float32(2.5),
+              "vector": np.array([1.0, np.nan]), "ints": np.arange(3), "json": '{"a": 1}',
+              "nested": [1, 2]}
+    arrays = {"f": np.linspace(0, 1, 7), "i": np.arange(5, dtype=np.int64),
+              "i8": np.zeros((3, 4), np.int8), "b": np.array([True, False]),
+              "big": np.random.default_rng(0).normal(size=(40, 3000)),
+              "scalar": np.float64(2.0), "strings": ["a", "bc"], "none": np.zeros(0)}
+    path = tmp_path / "a.h5"
+    with h5py.File(path, "w") as f:
+        fast, slow = f.create_group("fast"), f.create_group("slow")
+        artifacts.set_attrs(fast, values)
+        for k, v in values.items():
+            slow.attrs[k] = v
+        for k, v in arrays.items():
+            artifacts.put(fast, k, v, "m", f"{k} data")
+            kw = {"fletcher32": True} if np.ndim(v) and np.size(v) and \
+                np.asarray(v).dtype.kind in "fiub" else {}
+            data = np.array(v, dtype=h5py.string_dtype()) if k == "strings" else v
+            ds = slow.create_dataset(k, data=data, **kw)
+            ds.attrs["units"], ds.attrs["description"] = "m", f"{k} data"
+        # Overwriting an attribute replaces it, as attrs[...] = does.
+        artifacts.set_attrs(fast, {"whole": 4})
+        slow.attrs["whole"] = 4
+    with h5py.File(path, "r") as f:
+        a, b = _stored(f["fast"]), _stored(f["slow"])
+        assert a.keys() == b.keys()
+        for k in a:
+            assert a[k][:2] == b[k][:2], k
+            assert type(a[k][2]) is type(b[k][2]) and np.array_equal(
+                a[k][2], b[k][2], equal_nan=isinstance(a[k][2], np.ndarray)
+                and a[k][2].dtype.kind == "f"), k
+        for k in arrays:
+            x, y = f["fast"][k], f["slow"][k]
+            assert (x.dtype, x.shape, x.chunks, x.compression, x.fletcher32) == \
+                (y.dtype, y.shape, y.chunks, y.compression, y.fletcher32), k
+            assert _stored(x).keys() == _stored(y).keys()
+            got, want = artifacts.get(f["fast"], k), artifacts.get(f["slow"], k)
+            assert type(got) is type(want) and np.array_equal(got, want), k
+            assert np.array_equal(got, y[()] if k != "strings" else ["a", "bc"]), k
+        with pytest.raises(ArtifactError, match="dataset /fast/missing is missing"):
+            artifacts.get(f["fast"], "missing")

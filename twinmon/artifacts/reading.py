@@ -66,14 +66,57 @@ class _ArtifactFile(h5py.File):
 
 def get(group: h5py.Group, name: str, path: str | os.PathLike | None = None) -> np.ndarray:
     """Read a dataset, raising :class:`ArtifactError` naming the file and the dataset when
-    it is missing (an artifact of the right schema but the wrong content)."""
-    if name not in group:
+    it is missing (an artifact of the right schema but the wrong content).
+
+    Numbers and records go through the low-level API (:func:`read_dataset`): the same
+    array as ``group[name][()]`` at a third of its cost, which a fleet's stages pay once
+    per dataset of every unit (reading a unit's posterior for the forecast: 15 ms of
+    which 9 were h5py's look-ups and dtype conversions). Strings come back as ``str``."""
+    try:
+        dsid = h5py.h5d.open(group.id, name.encode())
+    except KeyError:
         where = path or group.file.filename
-        raise ArtifactError(f"{where}: dataset {group.name.rstrip('/')}/{name} is missing")
-    ds = group[name]
-    if h5py.check_string_dtype(ds.dtype) is not None:
-        return np.array([s.decode() if isinstance(s, bytes) else s for s in ds[()]])
-    return ds[()]
+        raise ArtifactError(f"{where}: dataset {group.name.rstrip('/')}/{name} is missing") \
+            from None
+    out = read_dataset(dsid)
+    if out is None:          # strings, or a dataspace with no shape: h5py's own reading
+        ds = h5py.Dataset(dsid)
+        if h5py.check_string_dtype(ds.dtype) is not None:
+            return np.array([s.decode() if isinstance(s, bytes) else s for s in ds[()]])
+        return ds[()]
+    return out
+
+
+def read_dataset(dsid: "h5py.h5d.DatasetID") -> np.ndarray | None:
+    """A numeric or record dataset read whole through the low-level API, its numpy dtype
+    built once per file type (h5py's high-level read builds it again on every call); a
+    scalar dataset as a numpy scalar, as ``ds[()]`` gives it. None for what this does not
+    read (strings, variable-length data, a null dataspace)."""
+    from h5py import h5s, h5t
+    shape = dsid.shape
+    if shape is None:
+        return None
+    tid = dsid.get_type()
+    for known, dtype in _READ_TYPES:
+        if tid.equal(known):
+            break
+    else:
+        if tid.get_class() in (h5t.STRING, h5t.VLEN, h5t.REFERENCE, h5t.OPAQUE):
+            return None
+        dtype = dsid.dtype
+        if dtype.hasobject:  # variable-length members
+            return None
+        _READ_TYPES.insert(0, (tid, dtype))
+        del _READ_TYPES[_READ_TYPES_KEPT:]
+    out = np.empty(shape, dtype)
+    if out.size:
+        dsid.read(h5s.ALL, h5s.ALL, out)
+    return out[()] if out.ndim == 0 else out
+
+
+#: File types met lately and their numpy dtypes (:func:`read_dataset`), newest first.
+_READ_TYPES: list = []
+_READ_TYPES_KEPT = 16
 
 
 def get_shape(group: h5py.Group, name: str, path: str | os.PathLike | None = None) -> tuple:

@@ -63,35 +63,31 @@ def _write_unit(f, cfg: Config, unit: str, u: UnitForecast, names: list) -> None
     put = artifacts.put
     ind = Indicator.from_config(cfg)
     g = f.create_group(f"units/{unit}")
-    g.attrs["status"], g.attrs["status_reason"] = u.status, u.status_reason
-    g.attrs["forced"] = u.forced
-    g.attrs["root_cause"] = u.root_cause
+    at = {"status": u.status, "status_reason": u.status_reason, "forced": u.forced,
+          "root_cause": u.root_cause}
     if u.drift is not None:
-        g.attrs["detection"] = artifacts.json_attr(_drift_state(u.drift))
+        at["detection"] = artifacts.json_attr(_drift_state(u.drift))
     if u.attribution is not None:
         a = u.attribution
-        g.attrs["attribution"] = artifacts.json_attr(
+        at["attribution"] = artifacts.json_attr(
             {"verdict": a.verdict, "probabilities": a.probabilities, "sets": a.sets,
              "separating_channel": a.separating_channel,
              "channel_scores": a.channel_scores})
-    g.attrs["failure_year"] = -1 if u.failure_year is None else u.failure_year
-    g.attrs["plan"] = u.plan
-    g.attrs["fmu_fraction"] = u.fmu_fraction
-    g.attrs["model_fraction"] = u.model_fraction
-    g.attrs["fmu_failures"] = u.fmu_failures
+    at.update(failure_year=-1 if u.failure_year is None else u.failure_year, plan=u.plan,
+              fmu_fraction=u.fmu_fraction, model_fraction=u.model_fraction,
+              fmu_failures=u.fmu_failures)
     put(g, "years_observed", u.years_observed.astype(np.int64), "year",
         "observed years (1 = first year of service)")
     put(g, "years_future", u.years_future.astype(np.int64), "year", "forecast years")
     for i, name in enumerate(names):
         t, un = u.trends[name], cfg.model.inputs[name].units
         tg = g.create_group(f"trends/{name}")
-        for key in ("intercept", "slope", "slope_se", "residual_std", "x_mean", "sxx",
-                    "normal_rate", "tolerance", "p_value"):
-            tg.attrs[key] = float(getattr(t, key))
-        tg.attrs["n"], tg.attrs["direction"] = t.n, t.direction
-        tg.attrs["slope_ci90"] = np.array(t.slope_ci, float)
-        tg.attrs["test"], tg.attrs["rejects"] = t.test, t.rejects
-        tg.attrs["component"] = t.component
+        ta = {key: float(getattr(t, key)) for key in (
+            "intercept", "slope", "slope_se", "residual_std", "x_mean", "sxx", "normal_rate",
+            "tolerance", "p_value")}
+        ta.update(n=t.n, direction=t.direction, slope_ci90=np.array(t.slope_ci, float),
+                  test=t.test, rejects=t.rejects, component=t.component)
+        artifacts.set_attrs(tg, ta)
         put(tg, "estimate", u.estimates[name], un,
             f"posterior mean of {name} per observed year (regression data)")
         put(tg, "pred_mean", u.pred_mean[name], un, f"trend line of {name}, future years")
@@ -119,17 +115,18 @@ def _write_unit(f, cfg: Config, unit: str, u: UnitForecast, names: list) -> None
     put(g, "p_unsafe_observed", u.p_unsafe_observed, "1",
         "probability of being unsafe per observed year (posterior samples)")
     if np.isfinite(u.pool_ess):
-        g.attrs["pool_ess"] = u.pool_ess
+        at["pool_ess"] = u.pool_ess
     if u.repairs:
-        g.attrs["unrecorded_repairs"] = artifacts.json_attr(u.repairs)
+        at["unrecorded_repairs"] = artifacts.json_attr(u.repairs)
     if u.shape:
-        g.attrs["trend_shape"] = artifacts.json_attr(u.shape)
+        at["trend_shape"] = artifacts.json_attr(u.shape)
     if u.trend_fit:
-        g.attrs["trend_fit"] = artifacts.json_attr(u.trend_fit)
+        at["trend_fit"] = artifacts.json_attr(u.trend_fit)
     if u.has_truth:
-        g.attrs["true_failure_year"] = (-1 if u.true_failure_year is None
-                                        else u.true_failure_year)
-        g.attrs["truth_source"] = u.truth_source
+        at["true_failure_year"] = -1 if u.true_failure_year is None else u.true_failure_year
+        at["truth_source"] = u.truth_source
+    artifacts.set_attrs(g, at)
+    if u.has_truth:
         put(g, "truth/indicator", u.true_indicator, ind.units,
             f"{ind.name} of the true future inputs ({u.truth_source}), future years (FMU)")
         put(g, "truth/unsafe", u.true_unsafe.astype(np.int8), "1",
@@ -206,8 +203,7 @@ def _put_per_year(g, name: str, data, units: str, description: str) -> None:
     zeros = (0,) * (len(data.shape) - 1)
     for year, chunk in enumerate(data.chunks):
         ds.id.write_direct_chunk((year,) + zeros, chunk, 0)
-    ds.attrs["units"] = units
-    ds.attrs["description"] = description
+    artifacts.set_attrs(ds, {"units": units, "description": description})
 
 
 def _drift_state(dr: IndicatorDrift) -> dict:
