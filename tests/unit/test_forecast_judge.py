@@ -359,3 +359,23 @@ def test_t_tail_is_students_and_the_normals_from_a_posteriors_dof():
         assert np.array_equal(t_sf(x, dof), stats.t.sf(x, dof))
     for dof in (NORMAL_DOF, 10 ** 6):
         assert np.max(np.abs(t_sf(x, dof) - stats.t.sf(x, dof))) < 1e-5
+
+
+def test_detectable_size_when_the_normal_band_is_tiny_beside_the_slope_error():
+    """A band far narrower than the indicator's slope error: the indicator's critical
+    excess is the tail's own quantile times the error, a finite size, not 'any size'."""
+    from dataclasses import replace
+
+    from twinmon.forecast.detection import detectable_multiples, t_isf
+    rng = np.random.default_rng(5)
+    level = 0.005
+    for dof in (8, 10 ** 6):
+        drift = indicator_drift(YEARS, _indicator(0.08, 0.1, rng), GRAD, RATE, TOL, +1, 0.01)
+        drift = replace(drift, normal_halfwidth=np.array([1e-9, 1e-9]) * drift.slope_se,
+                        dof=dof)
+        # Slopes so uncertain that only the indicator bounds the fault.
+        m = detectable_multiples(drift, np.diag([1e40, 1e40]), dof, TOL, np.array([1, -1]),
+                                 level)
+        crit = t_isf(level, dof) * drift.slope_se
+        assert np.all(np.isfinite(m))
+        assert np.allclose(m * drift.normal_halfwidth, crit, rtol=1e-6)

@@ -229,6 +229,12 @@ def t_sf(x: np.ndarray, dof: float) -> np.ndarray:
     return ndtr(-x) if dof >= NORMAL_DOF else stdtr(dof, -x)
 
 
+def t_isf(p: float, dof: float) -> float:
+    """The quantile :func:`t_sf` puts ``p`` above."""
+    from scipy.special import ndtri, stdtrit
+    return float(-ndtri(p) if dof >= NORMAL_DOF else stdtrit(dof, 1.0 - p))
+
+
 def uniform_sum(half: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Points and weights of ``sum_i half_i U_i``, each ``U_i`` uniform on [-1, 1]: the
     product of each term's ``UNIFORM_NODES`` midpoints (exact for an integrand linear in
@@ -404,12 +410,17 @@ def detectable_multiples(drift: IndicatorDrift, C: np.ndarray, dof: int, toleran
         def tail(e):
             return float(w @ t_sf((e - u) / se, drift.dof)) - level
 
-        # The root lies within q se of the uniform sum's range: every term's tail is at
-        # least ``level`` below it and at most ``level`` above it.
-        q_dr = float(stats.t.isf(level, drift.dof))
+        # The root lies within q se of the uniform sum's range (q the tail's own
+        # quantile at ``level``): below it every term's tail is at least ``level``, above
+        # it at most. A bracket end that rounding puts on the wrong side is the root.
+        q_dr = t_isf(level, drift.dof)
         lo, hi = float(u.min() + q_dr * se), float(u.max() + q_dr * se)
-        crit = (lo if hi <= lo else brentq(tail, lo, hi, xtol=1e-9 * se)
-                if tail(lo) >= 0 >= tail(hi) else np.inf)
+        if hi <= lo or tail(lo) <= 0:
+            crit = lo
+        elif tail(hi) >= 0:
+            crit = hi
+        else:
+            crit = brentq(tail, lo, hi, xtol=1e-9 * se)
         g = np.asarray(drift.gradient, float)
         towards = drift.sense * g * np.where(np.asarray(directions) == 0, np.sign(
             drift.sense * g), np.asarray(directions, float)) > 0
