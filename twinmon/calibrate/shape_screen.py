@@ -87,7 +87,7 @@ def screen_grid(A: np.ndarray, n: int = SCREEN_POINTS) -> tuple[np.ndarray, np.n
     their log weights [n]: the half-Cauchy prior's density in log sigma, so that a model's
     ``logsumexp(log-likelihood + weight)`` is its log evidence up to a constant shared by
     the models screened together."""
-    u = _sobol(len(A), n)
+    u = sobol_points(len(A), n, SCREEN_SEED)
     A = np.asarray(A, float)
     lo, hi = np.log(A / 100), np.log(3 * A)
     sigma = np.exp(lo + (hi - lo) * u)
@@ -95,10 +95,10 @@ def screen_grid(A: np.ndarray, n: int = SCREEN_POINTS) -> tuple[np.ndarray, np.n
 
 
 @lru_cache(maxsize=8)
-def _sobol(d: int, n: int) -> np.ndarray:
-    """The screen's quasi-random points in the unit cube [n, d] (the same for every unit:
-    built once)."""
+def sobol_points(d: int, n: int, seed: int) -> np.ndarray:
+    """Scrambled Sobol points in the unit cube [n, d], read-only: a grid that is the same
+    for every unit is built once per process (scrambling costs about a millisecond)."""
     from scipy.stats import qmc
-    u = qmc.Sobol(d, scramble=True, seed=SCREEN_SEED).random(n)
+    u = qmc.Sobol(d, scramble=True, seed=seed).random(n)
     u.flags.writeable = False
     return u

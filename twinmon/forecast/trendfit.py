@@ -39,7 +39,6 @@ for a posterior without them the yearly posterior means and covariances stand in
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
 from typing import Optional
 
 import numpy as np
@@ -151,9 +150,10 @@ def sigma_grid(cfg: Config, fleet=None, n: int = SIGMA_GRID
         Input units.
     log_prior : ndarray, shape [n]
     """
+    from ..calibrate.shape_screen import sobol_points
     from ..calibrate.trend import sigma_prior_scale
     A = sigma_prior_scale(cfg)
-    u = _sobol(len(A), n)
+    u = sobol_points(len(A), n, SIGMA_SEED)
     if fleet is not None:
         from ..calibrate.fleet import MIN_TAU
         mu = np.log(np.asarray(fleet.median, float))
@@ -163,16 +163,6 @@ def sigma_grid(cfg: Config, fleet=None, n: int = SIGMA_GRID
     lo, hi = np.log(A / 100), np.log(3 * A)
     sigma = np.exp(lo + (hi - lo) * u)
     return sigma, np.sum(np.log(sigma) - np.log1p((sigma / A) ** 2), axis=1)
-
-
-@lru_cache(maxsize=8)
-def _sobol(d: int, n: int) -> np.ndarray:
-    """The grid's quasi-random points in the unit cube [n, d]: the same for every unit,
-    built once (scrambling them costs a millisecond a unit)."""
-    from scipy.stats import qmc
-    u = qmc.Sobol(d, scramble=True, seed=SIGMA_SEED).random(n)
-    u.flags.writeable = False
-    return u
 
 
 def predict_ahead(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarray,
