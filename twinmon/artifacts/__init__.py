@@ -16,7 +16,7 @@ Layout, one module per concern:
 ``locks``         the output lock (:func:`output_lock`, :func:`locks_output`)
 ``temporaries``   :func:`remove_stale_temporaries`
 ``writing``       :func:`write_artifact`, :func:`put`, :func:`set_attrs`, :func:`json_attr`,
-                  :func:`check_outputs_not_inputs`
+                  :func:`file_type`, :func:`check_outputs_not_inputs`
 ================  =========================================================================
 """
 from .locks import lock_path, locks_output, output_lock
@@ -25,11 +25,12 @@ from .provenance import (file_sha256, input_records, is_up_to_date, read_provena
 from .reading import LazyUnits, get, get_shape, open_artifact, verify_artifact
 from .schema import READABLE, SCHEMAS, schema_name
 from .temporaries import remove_stale_temporaries
-from .writing import (COMPACT_LIBVER, check_outputs_not_inputs, json_attr, put, same_file,
-                      set_attrs, write_artifact)
+from .writing import (COMPACT_LIBVER, check_outputs_not_inputs, file_type, json_attr, put,
+                      same_file, set_attrs, write_artifact)
 
 __all__ = ["COMPACT_LIBVER", "SCHEMAS", "READABLE", "schema_name", "file_sha256",
            "input_records", "write_artifact", "same_file", "check_outputs_not_inputs",
            "lock_path", "output_lock", "locks_output", "remove_stale_temporaries", "utc_now",
            "set_provenance", "open_artifact", "put", "get", "get_shape", "LazyUnits",
-           "read_provenance", "is_up_to_date", "verify_artifact", "json_attr", "set_attrs"]
+           "read_provenance", "is_up_to_date", "verify_artifact", "json_attr", "set_attrs",
+           "file_type"]

@@ -208,11 +208,18 @@ _CHECKED_DCPL: dict = {}
 _TYPES: dict = {}
 
 
+def file_type(dtype: np.dtype):
+    """The HDF5 type h5py stores ``dtype`` as (records included): to compare with a
+    dataset's, ``ds.id.get_type().equal(file_type(dtype))``, without building it again."""
+    return _types(dtype)[0]
+
+
 def _types(dtype: np.dtype) -> tuple:
     """The HDF5 file type (logical) and memory type (bit for bit) of ``dtype``, as h5py's
-    attribute and dataset writers build them."""
+    attribute and dataset writers build them, kept per dtype (a record's fields are part
+    of it; a string's encoding is not, so it is added)."""
     from h5py import h5t
-    key = (dtype.str, h5py.check_string_dtype(dtype) if dtype.kind == "O" else None)
+    key = (dtype, h5py.check_string_dtype(dtype) if dtype.kind == "O" else None)
     t = _TYPES.get(key)
     if t is None:
         if len(_TYPES) >= _KEPT_TYPES:

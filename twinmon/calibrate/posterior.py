@@ -241,25 +241,13 @@ def slim(p: UnitPosterior) -> UnitPosterior:
                    trend={k: v for k, v in p.trend.items() if k not in TREND_DRAWS})
 
 
-def _file_type(dtype: np.dtype):
-    """The HDF5 type h5py stores ``dtype`` as (kept per dtype: building it is slow)."""
-    t = _FILE_TYPES.get(dtype)
-    if t is None:
-        from h5py import h5t
-        t = _FILE_TYPES[dtype] = h5t.py_create(dtype, logical=True)
-    return t
-
-
-_FILE_TYPES: dict = {}
-
-
 def _get_trend(g: h5py.Group, path: Path) -> dict:
     """The trend posterior of one unit; empty when it has none (the sequential method).
     The fields of ``trend.TREND_OPTIONAL`` may be absent."""
     if "trend" not in g:
         return {}
     t = g["trend"]
-    there = set(t) if TREND_OPTIONAL else ()
+    there = set(t)
     out = {key: artifacts.get(t, key, path) for key in TREND_FIELDS
            if key not in TREND_OPTIONAL or key in there}
     return {key: v.astype(float) if v.dtype.kind == "f" else v for key, v in out.items()}

@@ -14,7 +14,7 @@ from ..config import Config
 from ..errors import ArtifactError
 from .fit import FIT_FIELDS
 from .posterior import (DRAW_DTYPE, RECORD_FIELDS, SECTIONS, SEED_OFFSET, SITE_FIELDS,
-                        UnitPosterior, _file_type, record_dtype, thin_indices)
+                        UnitPosterior, record_dtype, thin_indices)
 from .trend import TREND_DRAWS, TREND_FIELDS
 
 
@@ -192,7 +192,7 @@ def _append_unit(g: h5py.Group, p: UnitPosterior, keep: int) -> None:
     from h5py import h5s
     rec = _records(p)
     ds = g["record"].id
-    if not ds.get_type().equal(_file_type(rec.dtype)):
+    if not ds.get_type().equal(artifacts.file_type(rec.dtype)):
         raise ArtifactError(f"{g.file.filename}: {g.name}/record has other fields than this "
                             "run's; re-run calibrate without --update")
     ds.set_extent((len(rec),))

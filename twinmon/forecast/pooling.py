@@ -93,8 +93,10 @@ def _trend_draws(post, keys: tuple, years: bool = False):
         for u in units:
             g = f["units"][u]
             if "trend" in g:
-                out = {key: artifacts.get(g["trend"], key, units.path)
-                       for key in keys if key == "sigma" or key in g["trend"]}
+                t = g["trend"]
+                there = set(t)
+                out = {key: artifacts.get(t, key, units.path)
+                       for key in keys if key == "sigma" or key in there}
                 if years:
                     out["years"] = g["record"].fields("year")[()]
                 yield u, out
