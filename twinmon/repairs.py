@@ -5,14 +5,16 @@ observations' events, the component's trend restarts there; when it is not, a st
 through the whole history reads the fall as slower wear, or none, and the fault is missed.
 
 The test (:func:`fall_test`), per input with a known degrading direction, over the years
-every input's current part covers: every input gets a line through its yearly estimates,
-the tested input also a step at year ``c``, fitted by generalised least squares with each
-year's error covariance (plus each input's year-to-year variance), for every ``c`` with at
-least :data:`MIN_BEFORE` years before it. The tested quantity is the change from the year
-before ``c`` to ``c`` -- one year's wear plus the step -- one-sided, against the degrading
-direction: a repair makes the estimates *fall back*, which accelerating wear or a step of
-wear never does. The smallest p-value over the years tried, times their number and the
-number of inputs tested (Bonferroni), is compared with ``forecast.repair_alpha``.
+every input's current part covers: every input gets a trend through its yearly estimates
+(level, slope, curvature), the tested input also a step at year ``c``, fitted by
+generalised least squares with each year's error covariance plus each input's year-to-year
+variance (fitted with them by restricted maximum likelihood, :func:`_jitter`), for every
+``c`` with at least :data:`MIN_BEFORE` years before it. The tested quantity is the change
+from the year before ``c`` to ``c`` -- the trend's change plus the step -- one-sided,
+against the degrading direction: a repair makes the estimates *fall back*, which
+accelerating wear or a step of wear never does (the curvature keeps a bend from being read
+as a fall). The smallest p-value over the years tried, times their number and the number of
+inputs tested (Bonferroni), is compared with ``forecast.repair_alpha``.
 
 A finding names the component of the input whose own fall that year is the strongest, and
 of every other input whose own step there is a fall of at least :data:`NAME_T` sds: inputs
@@ -30,7 +32,7 @@ Either way the forecast reports the finding with the command that records the ev
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Optional
+from typing import Optional, Sequence
 
 import numpy as np
 
@@ -38,11 +40,23 @@ from .config import Config
 
 #: Years of the current part before a candidate repair year: enough for its line.
 MIN_BEFORE = 3
-#: Years of the current part for a scan at all (a line, a step and two degrees of freedom).
+#: Years of the current part for a scan at all (one input: a trend's three coefficients, a
+#: step and a degree of freedom).
 MIN_YEARS = 5
 #: A found repair names the input whose own fall that year is the strongest, and every
 #: other whose own step there is a fall of at least this many sds.
 NAME_T = 1.0
+#: Coefficients of each input's trend in the scan's model: level, slope, curvature.
+CURVE = 3
+#: The year-to-year variance's search grid (:func:`_jitter`): natural log of the variance
+#: over the input's mean error variance, from none (e^-12) to 400 times it, in steps of a
+#: factor 4.5. Far above the errors, for an input whose trend misses a fall another
+#: input's step explains (a DC drive's winding beside its replaced bearing: capped at the
+#: errors' variance, the winding's step took up the bearing's fall through their
+#: correlated errors and the winding was named too).
+JITTER_GRID = np.arange(-12.0, 6.01, 1.5)
+#: Passes over the inputs of the variance's coordinate search.
+JITTER_SWEEPS = 2
 
 
 @dataclass
@@ -97,13 +111,13 @@ def fall_test(years: np.ndarray, est: np.ndarray, cov: np.ndarray, i: int,
               direction: int) -> tuple[float, int, float, int]:
     """The strongest fall of input ``i``'s yearly estimates back towards nominal.
 
-    Every input gets a line, input ``i`` also a step at year ``c``; the lines and the step
-    are fitted by generalised least squares, each year's estimates weighted by the inverse
-    of their error covariance plus each input's year-to-year variance (the scatter about
-    its fit beyond the errors). Weighting by the whole covariance matters when the inputs
-    trade off in the likelihood (one output, two inputs that move it alike): the errors
-    then run along a ridge, and the other inputs' lines tell a fall of ``i`` from a slide
-    along it.
+    Every input gets a trend (level, slope, curvature), input ``i`` also a step at year
+    ``c``; the trends and the step are fitted by generalised least squares, each year's
+    estimates weighted by the inverse of their error covariance plus each input's
+    year-to-year variance (:func:`step_fits`). Weighting by the whole covariance matters
+    when the inputs trade off in the likelihood (one output, two inputs that move it
+    alike): the errors then run along a ridge, and the other inputs' trends tell a fall of
+    ``i`` from a slide along it.
 
     Parameters
     ----------
@@ -137,8 +151,7 @@ def fall_test(years: np.ndarray, est: np.ndarray, cov: np.ndarray, i: int,
     best = (1.0, -1, 0.0)
     cands = [int(c) for c in years[MIN_BEFORE:]]
     fitted = 0
-    for c in cands:
-        fit = step_fit(years, est, cov, i, c)
+    for c, fit in zip(cands, step_fits(years, est, cov, i, cands)):
         if fit is None:
             continue
         fitted += 1
@@ -152,17 +165,16 @@ def fall_test(years: np.ndarray, est: np.ndarray, cov: np.ndarray, i: int,
 
 @dataclass
 class StepFit:
-    """Lines for every input plus a step of one input at one year, fitted by generalised
-    least squares (:func:`step_fit`).
+    """Trends for every input plus a step of one input at one year, fitted by generalised
+    least squares (:func:`step_fits`).
 
     Attributes
     ----------
     step : float
         The fitted step (input units).
     change : float
-        The fitted change from the year before the step to its year: one year's wear plus
-        the step (what a repair makes fall back; accelerating wear never does, though a
-        line plus a step would fit its bend).
+        The fitted change from the year before the step to its year: the trend's change
+        plus the step (what a repair makes fall back; accelerating wear never does).
     sd : float
         Standard deviation of ``change``, the overdispersion beyond the stated errors and
         year-to-year variances included.
@@ -184,49 +196,126 @@ class StepFit:
         return float(stats.t.sf(self.t(direction), self.dof))
 
 
-def step_fit(years: np.ndarray, est: np.ndarray, cov: np.ndarray, i: int,
-             c: int) -> Optional[StepFit]:
-    """Every input's line and input ``i``'s step at year ``c`` (:func:`fall_test`'s model);
-    None when the fit is not possible (an input that does not vary at all, a singular
-    design)."""
+def _design(years: np.ndarray, d: int, i: int, cands: Sequence[int]) -> np.ndarray:
+    """:func:`step_fits`' designs, one per candidate year, stacked by year then input,
+    shape [m, n, d, 3 d + 1]: columns ``3 j .. 3 j + 2`` input ``j``'s level, slope and
+    curvature (time centred on the years' mean, its square centred too), the last input
+    ``i``'s step at the candidate year."""
+    n = len(years)
+    t = years - years.mean()
+    cols = (np.ones(n), t, t * t - np.mean(t * t))
+    X = np.zeros((len(cands), n, d, CURVE * d + 1))
+    for j in range(d):
+        for k, col in enumerate(cols):
+            X[:, :, j, CURVE * j + k] = col
+    X[:, :, i, CURVE * d] = years[None, :] >= np.asarray(cands)[:, None]
+    return X
+
+
+def _gls(X: np.ndarray, V: np.ndarray, est: np.ndarray):
+    """Generalised least squares of ``est`` [n, d] on designs ``X`` [m, n, d, p] with each
+    year's covariance ``V`` [m, ..., n, d, d] (axes between: several covariances a design).
+
+    Returns coefficients [m, ..., p], normal matrices [m, ..., p, p] and weighted residual
+    sums of squares [m, ...]."""
+    W = np.linalg.inv(V)
+    Xe = X.reshape(X.shape[:1] + (1,) * (V.ndim - 4) + X.shape[1:])      # [m, 1.., n, d, p]
+    WX = W @ Xe                                                          # [m, .., n, d, p]
+    A = np.sum(np.swapaxes(Xe, -1, -2) @ WX, axis=-3)                    # [m, .., p, p]
+    b = np.sum(np.swapaxes(WX, -1, -2) @ est[..., None], axis=-3)[..., 0]
+    coef = np.linalg.solve(A, b[..., None])[..., 0]
+    r = est - (Xe @ coef[..., None, :, None])[..., 0]                    # [m, .., n, d]
+    return coef, A, np.sum(r * (W @ r[..., None])[..., 0], axis=(-2, -1))
+
+
+def _jitter(X: np.ndarray, est: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """Each input's year-to-year variance beyond the errors, by restricted maximum likelihood
+    under each design ``X`` [m, n, d, p], shape [m, d] (input units squared).
+
+    Searched on :data:`JITTER_GRID` (log-variance over each input's mean error variance),
+    one input at a time, :data:`JITTER_SWEEPS` times. Restricted likelihood, under the whole
+    covariance of the errors: when the inputs trade off, their errors run along a ridge and
+    only the scatter across it tells a year-to-year variance from them. A variance taken
+    per input, from its scatter about its own line less its mean error variance, is noise
+    of the ridge's size: on the pump fleets it put the motor's at 0.3-0.7 against a true
+    0.15, and many a fall that a pump's replacement made was lost in it.
+    """
+    m, d = len(X), est.shape[1]
+    base = np.maximum(np.einsum("kjj->j", cov) / len(cov), np.finfo(float).tiny)
+    g = len(JITTER_GRID)
+    z = np.full((m, d), JITTER_GRID[0])
+    eye = np.eye(d)
+    rows = np.arange(m)
+    for _ in range(JITTER_SWEEPS):
+        for j in range(d):
+            Z = np.repeat(z[:, None, :], g, axis=1)                            # [m, g, d]
+            Z[:, :, j] = JITTER_GRID
+            V = cov[None, None] + (base * np.exp(Z))[:, :, None, :, None] * eye  # [m, g, n, d, d]
+            try:
+                _, A, quad = _gls(X, V, est)
+            except np.linalg.LinAlgError:
+                return base * np.exp(z)
+            nll = np.linalg.slogdet(V)[1].sum(axis=2) + np.linalg.slogdet(A)[1] + quad
+            nll = np.where(np.isfinite(nll), nll, np.inf)
+            z[rows, j] = JITTER_GRID[np.argmin(nll, axis=1)]
+    return base * np.exp(z)
+
+
+def step_fits(years: np.ndarray, est: np.ndarray, cov: np.ndarray, i: int,
+              cands: Sequence[int]) -> list[Optional[StepFit]]:
+    """Every input's trend and input ``i``'s step at each candidate year (:func:`fall_test`'s
+    model), all candidates at once; None for a candidate whose fit is not possible (an input
+    that does not vary at all, a singular design, too few years for the coefficients).
+
+    Each input's trend is a line with a curvature: wear that accelerates bends its
+    estimates, and a line plus a step at the bend reads the bend as a fall (on the fleets of
+    ``benchmarks/repair_scan.py`` most findings with no repair were faulty units whose wear
+    sped up after year 3); a repair's fall back is a change no bend gives.
+    """
+    years = np.asarray(years)
     est = np.asarray(est, float)
     cov = np.asarray(cov, float)
     n, d = est.shape
+    cands = [int(c) for c in cands]
     t = years - years.mean()
-    lines = [np.column_stack([np.ones(n), t]) for _ in range(d)]
-    jump = (years >= c).astype(float)
-    design = [np.column_stack([x, jump]) if j == i else x for j, x in enumerate(lines)]
-    # Each input's year-to-year variance: its scatter about its own fit beyond the errors'
-    # variance (0 when the errors explain it).
-    jitter = np.empty(d)
-    for j, x in enumerate(design):
-        r = est[:, j] - x @ np.linalg.lstsq(x, est[:, j], rcond=None)[0]
-        jitter[j] = max(float(r @ r) / (n - x.shape[1]) - float(np.mean(cov[:, j, j])), 0)
+    ok = [bool(np.any(years < c) and np.any(years >= c)) for c in cands]
+    if (not any(ok) or n * d - (CURVE * d + 1) < 1
+            or np.any(np.all(est == est[0], axis=0))):
+        return [None] * len(cands)
+    use = [c for c, o in zip(cands, ok) if o]
+    X = _design(years, d, i, use)
+    dof = n * d - X.shape[3]
     try:
-        W = np.linalg.inv(cov + np.diag(jitter))                     # [n, d, d]
+        V = cov[None] + _jitter(X, est, cov)[:, None, :, None] * np.eye(d)   # [m, n, d, d]
+        coef, A, quad = _gls(X, V, est)
     except np.linalg.LinAlgError:
-        return None
-    # Stacked by year, then input: column blocks per input's design.
-    X = np.zeros((n, d, 2 * d + 1))
-    for j in range(d):
-        X[:, j, 2 * j:2 * j + 2] = lines[j]
-    X[:, i, 2 * d] = jump
-    A = np.einsum("kap,kab,kbq->pq", X, W, X)
-    b = np.einsum("kap,kab,kb->p", X, W, est)
-    try:
-        coef = np.linalg.solve(A, b)
-    except np.linalg.LinAlgError:
-        return None
-    resid = est - np.einsum("kap,p->ka", X, coef)
-    dof = n * d - (2 * d + 1)
+        return [None] * len(cands)
     # Overdispersion beyond the stated errors and jitter (never below 1).
-    phi = max(1.0, float(np.einsum("ka,kab,kb->", resid, W, resid)) / dof)
-    contrast = np.zeros(2 * d + 1)
-    contrast[2 * i + 1] = contrast[2 * d] = 1.0
-    var = phi * float(contrast @ np.linalg.solve(A, contrast))
-    if not var > 0:
-        return None
-    return StepFit(float(coef[2 * d]), float(contrast @ coef), float(np.sqrt(var)), dof)
+    phi = np.maximum(1.0, quad / dof)
+    # The change from the last year before the step to its first: the years between times
+    # the slope, the curvature's part of it, and the step.
+    contrast = np.zeros((len(use), X.shape[3]))
+    for k, c in enumerate(use):
+        t0, t1 = t[years < c][-1], t[years >= c][0]
+        contrast[k, CURVE * i + 1] = t1 - t0
+        contrast[k, CURVE * i + 2] = t1 * t1 - t0 * t0
+    contrast[:, CURVE * d] = 1.0
+    fits = {}
+    for k, c in enumerate(use):
+        try:
+            var = phi[k] * float(contrast[k] @ np.linalg.solve(A[k], contrast[k]))
+        except np.linalg.LinAlgError:
+            continue
+        if var > 0 and np.all(np.isfinite(coef[k])):
+            fits[c] = StepFit(float(coef[k, CURVE * d]), float(contrast[k] @ coef[k]),
+                              float(np.sqrt(var)), dof)
+    return [fits.get(c) for c in cands]
+
+
+def step_fit(years: np.ndarray, est: np.ndarray, cov: np.ndarray, i: int,
+             c: int) -> Optional[StepFit]:
+    """:func:`step_fits` at one year ``c``."""
+    return step_fits(years, est, cov, i, [c])[0]
 
 
 def find_repairs(cfg: Config, years: np.ndarray, mean: np.ndarray, since: dict,
