@@ -49,12 +49,19 @@ NAME_T = 1.0
 #: Coefficients of each input's trend in the scan's model: level, slope, curvature.
 CURVE = 3
 #: The year-to-year variance's search grid (:func:`_jitter`): natural log of the variance
-#: over the input's mean error variance, from none (e^-12) to 400 times it, in steps of a
-#: factor 4.5. Far above the errors, for an input whose trend misses a fall another
-#: input's step explains (a DC drive's winding beside its replaced bearing: capped at the
-#: errors' variance, the winding's step took up the bearing's fall through their
-#: correlated errors and the winding was named too).
-JITTER_GRID = np.arange(-12.0, 6.01, 1.5)
+#: over the input's mean error variance, from none (e^-12) to the errors' variance, in steps
+#: of a factor 4.5. A misfit beyond it scales the whole covariance (the overdispersion),
+#: which keeps the errors' ridge: a variance free to grow far above the errors took up the
+#: gradual fall of wear that swings back (``--family reversing``, seeds 11 and 43), which
+#: the scan then missed: 27 units of 88 with a finding against 44 capped (45 with the
+#: per-input variances before).
+JITTER_GRID = np.arange(-12.0, 0.01, 1.5)
+#: The grid of the variances when the parts are named (:func:`find_repairs`): up to 400
+#: times the errors' variance. Each input's own step is fitted without the others' (an
+#: input's fall absent from the fit must go to its own variance, not leak through the
+#: correlated errors into the step tested: capped, a DC drive's replaced bearing had its
+#: winding named too).
+NAMING_GRID = np.arange(-12.0, 6.01, 1.5)
 #: Passes over the inputs of the variance's coordinate search.
 JITTER_SWEEPS = 2
 
@@ -228,41 +235,45 @@ def _gls(X: np.ndarray, V: np.ndarray, est: np.ndarray):
     return coef, A, np.sum(r * (W @ r[..., None])[..., 0], axis=(-2, -1))
 
 
-def _jitter(X: np.ndarray, est: np.ndarray, cov: np.ndarray) -> np.ndarray:
+def _jitter(X: np.ndarray, est: np.ndarray, cov: np.ndarray,
+            grid: np.ndarray = JITTER_GRID) -> np.ndarray:
     """Each input's year-to-year variance beyond the errors, by restricted maximum likelihood
     under each design ``X`` [m, n, d, p], shape [m, d] (input units squared).
 
-    Searched on :data:`JITTER_GRID` (log-variance over each input's mean error variance),
-    one input at a time, :data:`JITTER_SWEEPS` times. Restricted likelihood, under the whole
-    covariance of the errors: when the inputs trade off, their errors run along a ridge and
-    only the scatter across it tells a year-to-year variance from them. A variance taken
-    per input, from its scatter about its own line less its mean error variance, is noise
-    of the ridge's size: on the pump fleets it put the motor's at 0.3-0.7 against a true
-    0.15, and many a fall that a pump's replacement made was lost in it.
+    Searched on ``grid`` (log-variance over each input's mean error variance,
+    :data:`JITTER_GRID`), one input at a time, :data:`JITTER_SWEEPS` times. Restricted
+    likelihood, under the whole covariance of the errors: when the inputs trade off, their
+    errors run along a ridge and only the scatter across it tells a year-to-year variance
+    from them. A variance taken per input, from its scatter about its own line less its
+    mean error variance, is noise of the ridge's size: on the pump fleets it put the
+    motor's at 0.3-0.7 against a true 0.15, and many a fall that a pump's replacement made
+    was lost in it.
     """
     m, d = len(X), est.shape[1]
     base = np.maximum(np.einsum("kjj->j", cov) / len(cov), np.finfo(float).tiny)
-    g = len(JITTER_GRID)
-    z = np.full((m, d), JITTER_GRID[0])
+    g = len(grid)
+    z = np.full((m, d), grid[0])
     eye = np.eye(d)
     rows = np.arange(m)
     for _ in range(JITTER_SWEEPS):
         for j in range(d):
             Z = np.repeat(z[:, None, :], g, axis=1)                            # [m, g, d]
-            Z[:, :, j] = JITTER_GRID
-            V = cov[None, None] + (base * np.exp(Z))[:, :, None, :, None] * eye  # [m, g, n, d, d]
+            Z[:, :, j] = grid
+            V = cov[None, None] + (base * np.exp(Z))[:, :, None, :, None] * eye
+            # V: [m, g, n, d, d]
             try:
                 _, A, quad = _gls(X, V, est)
             except np.linalg.LinAlgError:
                 return base * np.exp(z)
             nll = np.linalg.slogdet(V)[1].sum(axis=2) + np.linalg.slogdet(A)[1] + quad
             nll = np.where(np.isfinite(nll), nll, np.inf)
-            z[rows, j] = JITTER_GRID[np.argmin(nll, axis=1)]
+            z[rows, j] = grid[np.argmin(nll, axis=1)]
     return base * np.exp(z)
 
 
 def step_fits(years: np.ndarray, est: np.ndarray, cov: np.ndarray, i: int,
-              cands: Sequence[int]) -> list[Optional[StepFit]]:
+              cands: Sequence[int], grid: np.ndarray = JITTER_GRID
+              ) -> list[Optional[StepFit]]:
     """Every input's trend and input ``i``'s step at each candidate year (:func:`fall_test`'s
     model), all candidates at once; None for a candidate whose fit is not possible (an input
     that does not vary at all, a singular design, too few years for the coefficients).
@@ -286,7 +297,7 @@ def step_fits(years: np.ndarray, est: np.ndarray, cov: np.ndarray, i: int,
     X = _design(years, d, i, use)
     dof = n * d - X.shape[3]
     try:
-        V = cov[None] + _jitter(X, est, cov)[:, None, :, None] * np.eye(d)   # [m, n, d, d]
+        V = cov[None] + _jitter(X, est, cov, grid)[:, None, :, None] * np.eye(d)  # [m, n, d, d]
         coef, A, quad = _gls(X, V, est)
     except np.linalg.LinAlgError:
         return [None] * len(cands)
@@ -313,9 +324,9 @@ def step_fits(years: np.ndarray, est: np.ndarray, cov: np.ndarray, i: int,
 
 
 def step_fit(years: np.ndarray, est: np.ndarray, cov: np.ndarray, i: int,
-             c: int) -> Optional[StepFit]:
+             c: int, grid: np.ndarray = JITTER_GRID) -> Optional[StepFit]:
     """:func:`step_fits` at one year ``c``."""
-    return step_fits(years, est, cov, i, [c])[0]
+    return step_fits(years, est, cov, i, [c], grid)[0]
 
 
 def find_repairs(cfg: Config, years: np.ndarray, mean: np.ndarray, since: dict,
@@ -364,7 +375,7 @@ def find_repairs(cfg: Config, years: np.ndarray, mean: np.ndarray, since: dict,
         # sds); the user's work order can.
         falls = {}
         for i, name in enumerate(names):
-            f = step_fit(y, x, c, i, year) if signs[name] != 0 else None
+            f = step_fit(y, x, c, i, year, NAMING_GRID) if signs[name] != 0 else None
             if f is not None:
                 falls[name] = f
         if not falls:
