@@ -282,6 +282,20 @@ def step_fits(years: np.ndarray, est: np.ndarray, cov: np.ndarray, i: int,
     estimates, and a line plus a step at the bend reads the bend as a fall (on the fleets of
     ``benchmarks/repair_scan.py`` most findings with no repair were faulty units whose wear
     sped up after year 3); a repair's fall back is a change no bend gives.
+
+    Parameters
+    ----------
+    years, est, cov, i
+        As :func:`fall_test`'s.
+    cands : sequence of int
+        The candidate years of the step.
+    grid : ndarray
+        The year-to-year variances' search grid: :data:`JITTER_GRID` for the test,
+        :data:`NAMING_GRID` when the parts are named.
+
+    Returns
+    -------
+    list of StepFit or None, one per candidate year
     """
     years = np.asarray(years)
     est = np.asarray(est, float)
