@@ -310,9 +310,12 @@ def step_fits(years: np.ndarray, est: np.ndarray, cov: np.ndarray, i: int,
     use = [c for c, o in zip(cands, ok) if o]
     X = _design(years, d, i, use)
     dof = n * d - X.shape[3]
+    # Errors with no variance (a year's estimates known exactly) make the weights infinite:
+    # the fits then come out non-finite and are dropped below, without numpy's warnings.
     try:
-        V = cov[None] + _jitter(X, est, cov, grid)[:, None, :, None] * np.eye(d)  # [m, n, d, d]
-        coef, A, quad = _gls(X, V, est)
+        with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
+            V = cov[None] + _jitter(X, est, cov, grid)[:, None, :, None] * np.eye(d)
+            coef, A, quad = _gls(X, V, est)                                # V: [m, n, d, d]
     except np.linalg.LinAlgError:
         return [None] * len(cands)
     # Overdispersion beyond the stated errors and jitter (never below 1).

@@ -63,6 +63,16 @@ def test_fall_test_finds_a_repair_and_nothing_else():
         assert hits / 300 <= 0.05
 
 
+def test_fall_test_without_error_variance_tests_nothing_quietly():
+    """Estimates known exactly (zero error covariance) give no test, and no numpy warning."""
+    import warnings
+    years = np.arange(1, 11)
+    est = np.random.default_rng(2).standard_normal((10, 2))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert fall_test(years, est, np.zeros((10, 2, 2)), 0, +1) == (1.0, -1, 0.0, 0)
+
+
 def test_fall_test_weighs_inputs_that_trade_off():
     """Two inputs whose yearly errors run along a ridge (correlation -0.95): the second's
     steady line tells the first's fall from a slide along the ridge."""
