@@ -8,6 +8,7 @@ those worth their sigma points and draws are (:func:`~.shapes._change_shapes`).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
@@ -49,19 +50,8 @@ def screen(line: GaussianTrend, E: np.ndarray, S: np.ndarray, grid: tuple):
         line's).
     """
     sigma, log_w = grid
-    Wf, logdet_v = year_weights(line.cov, sigma)
-    K, d, n_l = line.Mk.shape
-    Pb, _, mu, ll = linear_gaussian(Wf, logdet_v, line.Mk[None], line.x, line.prior_P[None],
-                                    np.asarray(line.prior_mean, float)[None],
-                                    np.array([line._log_norm]))
-    Pb, mu, ll = Pb[0], mu[0], ll[0] + log_w                                # [P, ...]
-    Wm = Wf.reshape(len(sigma), K, d, d)
-    WE = np.einsum("pkij,kjc->pkic", Wm, E)                                  # [P, K, d, n_x]
-    D = np.einsum("kia,pkic->pac", E, WE)
-    B = np.einsum("kia,pkic->pac", line.Mk, WE)                              # [P, n_l, n_x]
-    F = D - np.einsum("pac,pad->pcd", B, np.linalg.solve(Pb, B))
-    resid = line.x[None] - np.einsum("kia,pa->pki", line.Mk, mu)
-    r = np.einsum("pkic,pki->pc", WE, resid)                                 # [P, n_x]
+    bt = block_terms(line, E, sigma)
+    ll, F, r = bt.ll + log_w, bt.F, bt.r
 
     def evidence(sets: list) -> np.ndarray:
         idx = np.array(sets, dtype=int).reshape(len(sets), -1)               # [G, n_e]
@@ -79,6 +69,63 @@ def screen(line: GaussianTrend, E: np.ndarray, S: np.ndarray, grid: tuple):
         return top[:, 0] + np.log(np.exp(out - top).sum(axis=1))
 
     return evidence
+
+
+@dataclass
+class BlockTerms:
+    """The line's posterior at sigma points and what extra columns add to it (:func:`block_terms`).
+
+    Attributes
+    ----------
+    Pb : ndarray, shape [P, n_l, n_l]
+        The line's coefficients' posterior precision at each sigma point.
+    mu : ndarray, shape [P, n_l]
+        Their posterior mean.
+    ll : ndarray, shape [P]
+        The line's log marginal likelihood (:func:`~.gaussian_trend.linear_gaussian`'s).
+    F : ndarray, shape [P, n_x, n_x]
+        The columns' information given the line's coefficients.
+    r : ndarray, shape [P, n_x]
+        Their score at the line's posterior mean.
+    PiB : ndarray, shape [P, n_l, n_x]
+        ``Pb^-1 B``, ``B`` the cross information of the line's coefficients and the columns:
+        a set ``e`` of columns moves the line's mean by ``-PiB[:, e] mu_e``.
+    """
+
+    Pb: np.ndarray
+    mu: np.ndarray
+    ll: np.ndarray
+    F: np.ndarray
+    r: np.ndarray
+    PiB: np.ndarray
+
+
+def block_terms(line: GaussianTrend, E: np.ndarray, sigma: np.ndarray,
+                post: tuple | None = None) -> BlockTerms:
+    """The line's posterior at sigma points ``sigma`` [P, d] and the block-update terms of
+    extra columns ``E`` [K, d, n_x] (:func:`screen`'s formula): with a set ``e`` of them
+    and its prior precision ``P_e``, ``V = P_e + F_ee`` is the set's posterior precision
+    given the line's, ``V^-1 r_e`` its mean. ``post``: the line's ``(Pb, mu, ll)`` at
+    ``sigma`` when already computed (``line._conditional(sigma)``'s)."""
+    Wf, logdet_v = year_weights(line.cov, sigma)
+    K, d, n_l = line.Mk.shape
+    if post is None:
+        Pb, _, mu, ll = linear_gaussian(Wf, logdet_v, line.Mk[None], line.x,
+                                        line.prior_P[None],
+                                        np.asarray(line.prior_mean, float)[None],
+                                        np.array([line._log_norm]))
+        post = Pb[0], mu[0], ll[0]                                           # [P, ...]
+    Pb, mu, ll = post
+    P, n_x = len(sigma), E.shape[2]
+    # Sums over (year, input) as matrix products of the flattened arrays.
+    WE = np.matmul(Wf.reshape(P, K, d, d), E).reshape(P, K * d, n_x)        # [P, K d, n_x]
+    D = np.matmul(E.reshape(K * d, n_x).T, WE)
+    B = np.matmul(line.Mk.reshape(K * d, n_l).T, WE)                         # [P, n_l, n_x]
+    PiB = np.linalg.solve(Pb, B)
+    F = D - np.matmul(np.swapaxes(B, 1, 2), PiB)
+    resid = (line.x[None] - np.einsum("kia,pa->pki", line.Mk, mu)).reshape(P, 1, K * d)
+    r = np.matmul(resid, WE)[:, 0]                                           # [P, n_x]
+    return BlockTerms(Pb, mu, ll, F, r, PiB)
 
 
 def screen_grid(A: np.ndarray, n: int = SCREEN_POINTS) -> tuple[np.ndarray, np.ndarray]:

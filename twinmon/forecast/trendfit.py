@@ -175,6 +175,14 @@ def predict_ahead(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarray
     weights prior times evidence. The shapes' Zellner priors take the straight line's
     posterior mean of sigma on these years as their reference, as calibration does.
 
+    Every shape is the line plus a set of extra columns (:func:`~twinmon.calibrate.shapes.
+    shape_sets`), so its posterior is a block update of the line's at each sigma
+    (:func:`~twinmon.calibrate.shape_screen.block_terms`): with ``V = P_e + F_ee`` the set's
+    posterior precision given the line's and ``G = H_e - H_b Pb^-1 B_e``, the trend one year
+    on has mean ``H_b mu_b + G V^-1 r_e`` and covariance ``H_b Pb^-1 H_b' + G V^-1 G'``
+    (the block inverse of the whole precision), and the evidence gains the screen's term.
+    The same numbers as a model per shape, at a few batched products per set size.
+
     Parameters
     ----------
     years : ndarray of int, shape [K]
@@ -197,68 +205,91 @@ def predict_ahead(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarray
     S : ndarray, shape [n, d, d]
         Each component's predictive mean and covariance of year ``k``'s site.
     """
-    from ..calibrate.gaussian_trend import GaussianTrend, linear_gaussian, year_weights
+    from ..calibrate.gaussian_trend import GaussianTrend
     from ..calibrate.methods.laplace import line_model
-    from ..calibrate.shapes import OCCAM, build_shapes, extend
+    from ..calibrate.shape_screen import block_terms
+    from ..calibrate.shapes import OCCAM, extend, line_now, shape_sets
     from ..calibrate.trend import sigma_prior_scale
     sig, log_p0 = grid
     yk = np.asarray(years[:k])
     xk, ck = x[:k], cov[:k]
+    d = x.shape[1]
     st = [s[s <= yk[-1]] for s in starts]
     _, Mk, prec, mean0, slopes, _ = line_model(cfg, yk, st)
-    A = sigma_prior_scale(cfg)
+    line = GaussianTrend(xk, ck, Mk, prec, mean0, sigma_prior_scale(cfg))
+    Pb, _, mu, ll = line._conditional(sig)
     # The line's posterior mean of sigma on these years: the shapes' reference (as
     # calibration takes it from the line's sigma points).
-    lw = log_p0 + GaussianTrend(xk, ck, Mk, prec, mean0, A)._conditional(sig)[3]
+    lw = log_p0 + ll
     w = np.exp(lw - lw.max())
     s_ref = (w / w.sum()) @ sig
-    shapes = [s for s in build_shapes(yk, xk, ck, Mk, prec, mean0, A, slopes,
-                                      np.array([s[-1] for s in st]), priors, None,
-                                      sigma_ref=s_ref)
-              if np.isfinite(s.log_prior)]
-    Wg, lv_g = year_weights(ck, sig)
-    # Shapes of one size are evaluated together (one batched product each).
-    groups: dict = {}
-    for s in shapes:
-        groups.setdefault(s.model.Mk.shape[2], []).append(s)
-
-    def evaluate(group, Wf, lv):
-        m = [s.model for s in group]
-        return linear_gaussian(Wf, lv, np.stack([g.Mk for g in m]), xk,
-                               np.stack([g.prior_P for g in m]),
-                               np.stack([np.asarray(g.prior_mean, float) for g in m]),
-                               np.array([g._log_norm for g in m]))
-
+    sets = shape_sets(line, yk, np.array([s[-1] for s in st]), priors, s_ref)
+    u = [float(years[k] - yk[-1])]
+    # Each coefficient's map to the trend one year on (the ``now`` rows extended; extend()
+    # is linear in them, so applied to each column's rows it gives the map's columns).
+    Hb = extend(np.moveaxis(line_now(Mk, slopes), 2, 0), np.zeros(Mk.shape[2]), u)[:, 0].T
+    He = extend(np.moveaxis(sets.now, 2, 0), sets.growth, u)[:, 0].T          # [d, n_x]
     # Occam's window, as calibration's mixture: a shape far less probable than the best at
     # the reference sigma could not hold weight (most change years and growth rates are
     # not worth the grid).
-    Wr, lv_r = year_weights(ck, s_ref[None])
-    quick = {nb: np.array([s.log_prior for s in g]) + evaluate(g, Wr, lv_r)[3][:, 0]
-             for nb, g in groups.items()}
-    best = max(q.max() for q in quick.values())
-    u = float(years[k] - yk[-1])
-    eye = np.eye(x.shape[1])
+    comps = ([((), sets.line_log_prior)] if np.isfinite(sets.line_log_prior) else []) + \
+        [(cols, lp) for _, cols, lp, _ in sets.sets]
+    if sets.sets:
+        at_ref = block_terms(line, sets.E, s_ref[None])
+        quick = np.empty(len(comps))
+        for size in {len(c) for c, _ in comps}:
+            of = [j for j, (c, _) in enumerate(comps) if len(c) == size]
+            quick[of] = [comps[j][1] for j in of] + (
+                _set_moments(at_ref, sets.S, np.array([comps[j][0] for j in of]))[0][:, 0]
+                if size else at_ref.ll[0])
+        comps = [c for c, q in zip(comps, quick) if q >= quick.max() + np.log(OCCAM)]
+    on_grid = block_terms(line, sets.E, sig, (Pb, mu, ll)) if sets.sets else None
+    line_mean = mu @ Hb.T                                                     # [P, d]
+    line_cov = Hb @ np.linalg.solve(Pb, np.broadcast_to(Hb.T, Pb.shape[:2] + (d,)))
+    eye = np.eye(d)
+    noise = sig[:, :, None] ** 2 * eye + cov[k]                               # [P, d, d]
     logw, means, covs = [], [], []
-    for nb, group in groups.items():
-        group = [s for s, q in zip(group, quick[nb]) if q >= best + np.log(OCCAM)]
-        if not group:
+    for size in sorted({len(c) for c, _ in comps}):
+        group = [(c, lp) for c, lp in comps if len(c) == size]
+        lp = np.array([g[1] for g in group])[:, None]
+        if size == 0:
+            logw.append((lp + log_p0 + ll).ravel())
+            means.append(line_mean)
+            covs.append(line_cov + noise)
             continue
-        Pb, _, mb, ll = evaluate(group, Wg, lv_g)                        # [G, P, ...]
-        logw.append((np.array([s.log_prior for s in group])[:, None] + log_p0 + ll).ravel())
-        # Each shape's map to the trend one year on: its ``now`` rows extended.
-        # extend() is linear in the trend's rows: applied to each coefficient's rows (as
-        # if each were a draw) it gives the map's columns.
-        H = np.stack([extend(np.moveaxis(s.now, 2, 0), np.full(nb, s.growth), [u])[:, 0].T
-                      for s in group])                                       # [G, d, nb]
-        means.append(np.einsum("gpb,gdb->gpd", mb, H).reshape(-1, len(eye)))
-        HP = np.linalg.solve(Pb, np.broadcast_to(np.swapaxes(H, 1, 2)[:, None],
-                                                 Pb.shape[:3] + (len(eye),)))
-        covs.append((np.einsum("gdb,gpbe->gpde", H, HP) + sig[None, :, :, None] ** 2 * eye
-                     ).reshape(-1, len(eye), len(eye)) + cov[k])
+        idx = np.array([g[0] for g in group])                                 # [G, n_e]
+        lls, V, r_e = _set_moments(on_grid, sets.S, idx)
+        # G = H_e - H_b Pb^-1 B_e per set and sigma point, [G, P, d, n_e].
+        Gm = He[:, idx].transpose(1, 0, 2)[:, None] - \
+            np.einsum("da,pac->pdc", Hb, on_grid.PiB)[:, :, idx].transpose(2, 0, 1, 3)
+        mu_e = np.linalg.solve(V, r_e[..., None])[..., 0]
+        VG = np.linalg.solve(V, np.swapaxes(Gm, 2, 3))
+        logw.append((lp + log_p0 + lls).ravel())
+        means.append((line_mean + np.einsum("gpde,gpe->gpd", Gm, mu_e)).reshape(-1, d))
+        covs.append((line_cov + Gm @ VG + noise).reshape(-1, d, d))
     logw = np.concatenate(logw)
     keep = logw >= logw.max() + np.log(NEGLIGIBLE)
     w = np.exp(logw[keep] - logw.max())
     return w / w.sum(), np.concatenate(means)[keep], np.concatenate(covs)[keep]
+
+
+def _set_moments(bt, S: np.ndarray, idx: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Log marginal likelihood of the line plus each set of columns ``idx`` [G, n_e] at
+    the sigma points of ``bt`` (:class:`~twinmon.calibrate.shape_screen.BlockTerms`, P of
+    them), their prior precision the rows and columns of ``S``: ``ll`` [G, P] (as
+    :func:`~twinmon.calibrate.gaussian_trend.linear_gaussian` gives a model of its own),
+    the sets' posterior precision given the line's ``V`` [G, P, n_e, n_e] and scores
+    ``r_e`` [G, P, n_e]."""
+    P_e = S[idx[:, :, None], idx[:, None, :]]                                 # [G, n_e, n_e]
+    V = P_e[:, None] + np.swapaxes(bt.F[:, idx[:, :, None], idx[:, None, :]], 0, 1)
+    r_e = np.swapaxes(bt.r[:, idx], 0, 1)
+    L = np.linalg.cholesky(V)
+    z = np.linalg.solve(L, r_e[..., None])[..., 0]
+    ll = bt.ll[None] + 0.5 * (np.linalg.slogdet(P_e)[1][:, None]
+                              - 2.0 * np.log(np.einsum("gpii->gpi", L)).sum(axis=2)
+                              + np.sum(z * z, axis=2))
+    return ll, V, r_e
 
 
 def standardise(y: np.ndarray, w: np.ndarray, mean: np.ndarray, S: np.ndarray
