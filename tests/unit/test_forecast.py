@@ -279,6 +279,19 @@ def test_a_repeated_point_is_evaluated_once_with_the_result_of_every_point(setup
         assert (r.source[k], r.nonphysical[k]) == (one.source[0], one.nonphysical[0])
 
 
+def test_distinct_rows_are_numpys_unique_rows_for_two_inputs_and_more():
+    """Two inputs take another sort (one complex key) than three (lexsort): both give
+    numpy's sorted unique rows and their inverse, ties in the first input included."""
+    from twinmon.forecast.twin import distinct_rows
+    rng = np.random.default_rng(3)
+    for d in (2, 3):
+        pool = rng.integers(0, 4, (30, d)).astype(float) + rng.choice([0.0, 0.5], (30, d))
+        X = pool[rng.integers(0, 30, 200)]
+        U, inv = distinct_rows(X)
+        ref, ref_inv = np.unique(X, axis=0, return_inverse=True)
+        assert np.array_equal(U, ref) and np.array_equal(inv, ref_inv.ravel())
+
+
 def test_failed_fmu_runs_count_as_unsafe(setup):
     cfg = setup[0]
     r = TwinResult(value=np.array([10.0, np.nan]), nonphysical=np.zeros(2, bool),
