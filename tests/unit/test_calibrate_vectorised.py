@@ -84,6 +84,38 @@ def test_batched_surrogate_is_openturns_prediction(setup):
     assert gpbatch.make_predictor(sur)[1]
 
 
+def test_tabulated_surrogate_is_the_gp_prediction_row_by_row(setup, monkeypatch):
+    """The forecast's table of the GP: within its tolerance of GPBatch (and of OpenTURNS)
+    over the box, edges included; a row's value whatever the batch; a point outside the
+    box gets GPBatch's bits; a table that fails its check is not used."""
+    _, _, _, sur = setup
+    gp = gpbatch.GPBatch(sur)
+    table = gpbatch.GPTable(gp)
+    rng = np.random.default_rng(6)
+    lo, width = sur.bounds[:, 0], np.diff(sur.bounds, axis=1).ravel()
+    X = lo + rng.random((400, 2)) * width
+    X[:4] = lo + np.array([[0, 0], [0, 1], [1, 0], [1, 1]]) * width
+    ref = gp(X)
+    err = np.max(np.abs(table(X) / ref - 1))
+    assert 0 < err <= gpbatch.TABLE_RTOL
+    assert np.max(np.abs(table(X) / sur.predict(X) - 1)) < 1e-6
+    perm = rng.permutation(len(X))
+    assert np.array_equal(table(X[perm])[np.argsort(perm)], table(X))
+    assert np.array_equal(np.vstack([table(X[i:i + 9]) for i in range(0, 400, 9)]), table(X))
+    out = np.vstack([lo - 0.1 * width, lo + 1.2 * width, X[:3]])
+    assert np.array_equal(table(out)[:2], gp(out[:2]))
+    assert np.array_equal(table(out)[2:], table(X[:3]))
+    # Kept per surrogate in the process; a table that fails its check leaves GPBatch.
+    monkeypatch.setattr(gpbatch, "_TABLES", {})
+    assert isinstance(gpbatch._numpy_form(sur, True), gpbatch.GPTable)
+    monkeypatch.setattr(gpbatch, "_TABLES", {})
+    monkeypatch.setattr(gpbatch, "TABLE_RTOL", 1e-15)
+    with pytest.raises(ValueError, match="differs from GPBatch"):
+        gpbatch.GPTable(gp)
+    assert type(gpbatch._numpy_form(sur, True)) is gpbatch.GPBatch
+    assert type(gpbatch._numpy_form(sur, False)) is gpbatch.GPBatch
+
+
 def test_batched_diagnostics_equal_the_reference():
     rng = np.random.default_rng(2)
     for trial in range(60):

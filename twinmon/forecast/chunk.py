@@ -40,13 +40,15 @@ from .unit import UnitForecast
 class _TwinState:
     """What forecasting a chunk needs once per process: the config, the surrogate and its
     numpy form (:class:`~twinmon.calibrate.samplers.gpbatch.GPBatch`, checked against OpenTURNS
-    when built), the FMU spec, the executor of the FMU runs and the limit-state model of the
+    when built, tabulated by :class:`~twinmon.calibrate.samplers.gpbatch.GPTable` where that
+    passes its own check), the FMU spec, the executor of the FMU runs and the limit-state model of the
     points outside the box (:class:`~.limitstate.LimitState`, or None)."""
 
     def __init__(self, cfg: Config, sur, spec, executor, limit_state=None):
         from ..calibrate.samplers.gpbatch import make_predictor
         self.cfg, self.sur, self.spec, self.executor = cfg, sur, spec, executor
-        self.predict = make_predictor(sur)[0]
+        # Tabulated: a fleet's forecast evaluates thousands of points a unit.
+        self.predict = make_predictor(sur, table=True)[0]
         self.limit_state = limit_state
 
 
