@@ -29,10 +29,9 @@ its pool workers or Dask cluster), as the sum of their proportional set sizes sa
 process); "1 proc RSS" is the largest single process's high-water mark (``wait4``), exact.
 
 The default (``make bench``) is the full run. On this 2-core machine 1000 units took
-801 s from simulate through report (``--sizes 30 1000 --dask-sizes 30 --update-sizes 1000
---reference 0``, load 1.4-2.5: 28 min in all with the 9-year runs and the updates; report
-33 s with its figures drawn by two processes, 43 s in one); the
-default adds 300 units, Dask at 300 and OpenTURNS' sampler at 30 units: about 45 min.
+386 s from simulate through report (``--sizes 1000 --dask-sizes --update-sizes 1000
+--reference 0``, load 1.1-2.3: 15 min in all with the 9-year runs and the updates); the
+default adds 30 and 300 units, Dask at 30 and 300 and OpenTURNS' sampler at 30 units.
 
     .venv/bin/python benchmarks/fleet_scale.py                 # 30, 300, 1000 (make bench)
     .venv/bin/python benchmarks/fleet_scale.py --sizes 30 300 --dask-sizes 30 300 \\

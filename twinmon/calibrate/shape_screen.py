@@ -4,7 +4,7 @@ grid, by block updates of the line's posterior instead of one model per set.
 
 The change shape's combinations (each input's change in a year of its own: 25 for two inputs
 with five candidate years each) are weighed here before any model is built, so that only
-those worth their sigma points and draws are (:func:`~.shapes._change_shapes`).
+those worth their sigma points and draws are (:func:`~.shape_columns._change_selection`).
 """
 from __future__ import annotations
 

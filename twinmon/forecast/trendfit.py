@@ -175,8 +175,8 @@ def predict_ahead(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarray
     weights prior times evidence. The shapes' Zellner priors take the straight line's
     posterior mean of sigma on these years as their reference, as calibration does.
 
-    Every shape is the line plus a set of extra columns (:func:`~twinmon.calibrate.shapes.
-    shape_sets`), so its posterior is a block update of the line's at each sigma
+    Every shape is the line plus a set of extra columns
+    (:func:`~twinmon.calibrate.shape_columns.shape_sets`), so its posterior is a block update of the line's at each sigma
     (:func:`~twinmon.calibrate.shape_screen.block_terms`): with ``V = P_e + F_ee`` the set's
     posterior precision given the line's and ``G = H_e - H_b Pb^-1 B_e``, the trend one year
     on has mean ``H_b mu_b + G V^-1 r_e`` and covariance ``H_b Pb^-1 H_b' + G V^-1 G'``
@@ -208,7 +208,8 @@ def predict_ahead(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarray
     from ..calibrate.gaussian_trend import GaussianTrend
     from ..calibrate.methods.laplace import line_model
     from ..calibrate.shape_screen import block_terms
-    from ..calibrate.shapes import OCCAM, extend, line_now, shape_sets
+    from ..calibrate.shape_columns import OCCAM, line_now, shape_sets
+    from ..calibrate.shapes import extend
     from ..calibrate.trend import sigma_prior_scale
     sig, log_p0 = grid
     yk = np.asarray(years[:k])
