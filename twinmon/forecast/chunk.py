@@ -47,8 +47,7 @@ class _TwinState:
     def __init__(self, cfg: Config, sur, spec, executor, limit_state=None):
         from ..calibrate.samplers.gpbatch import make_predictor
         self.cfg, self.sur, self.spec, self.executor = cfg, sur, spec, executor
-        # Tabulated: a fleet's forecast evaluates thousands of points a unit.
-        self.predict = make_predictor(sur, table=True)[0]
+        self.predict = make_predictor(sur)[0]
         self.limit_state = limit_state
 
 

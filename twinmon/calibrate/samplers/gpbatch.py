@@ -11,8 +11,8 @@ the others (element-wise operations, per-row sums, einsum rather than BLAS), so 
 does not depend on the batch it is in.
 
 :class:`GPTable` tabulates GPBatch's prediction on a grid over the box and interpolates it
-(cubic B-splines), for the forecast's many points: ten times faster, within 1e-6 of GPBatch
-by its own check (3e-8 on the pump's surrogate).
+(cubic B-splines): ten times faster, within 1e-6 of GPBatch by its own check (3e-8 on the
+pump's surrogate), what :func:`make_predictor` gives the samplers and the forecast.
 """
 from __future__ import annotations
 
@@ -197,8 +197,8 @@ class GPBatch:
 class GPTable:
     """A :class:`GPBatch`'s mode coefficients tabulated on a regular grid over the
     surrogate's box and interpolated by cubic B-splines (``scipy.ndimage``), for the many
-    points of a fleet's forecast: 0.5 µs a point against GPBatch's 4.6, transients included
-    (two inputs, 128 training points, 5 modes).
+    points the samplers and the forecast evaluate: 0.5 µs a point against GPBatch's 4.6,
+    transients included (two inputs, 128 training points, 5 modes).
 
     The table is :data:`TABLE_NODES` nodes over the box (257 a side for two inputs, 40 for
     three), :data:`TABLE_PAD` more beyond each face so that the spline's boundary condition
@@ -208,7 +208,7 @@ class GPTable:
     the training points, and refuses (``ValueError``) a transient more than
     :data:`TABLE_RTOL` off (on the pump's surrogate: 3e-8, against validation errors of
     1e-4 on average; GPBatch's own rounding moves a transient by ~1e-9). A point outside the
-    box, which the forecast never sends, gets GPBatch's prediction. Every row is
+    box (the forecast never sends one; a sampler's proposal may) gets GPBatch's. Every row is
     interpolated on its own: a point's value does not depend on the batch it is in.
 
     Parameters
@@ -269,13 +269,13 @@ class GPTable:
         return self.gp.transient(self.coefficients(X))
 
 
-def make_predictor(surrogate, table: bool = False
+def make_predictor(surrogate, table: bool = True
                    ) -> tuple[Callable[[np.ndarray], np.ndarray], bool]:
     """A batch predictor ``X [m, d] -> [m, n_out]`` for the surrogate, and whether it is the
-    numpy form (:class:`GPBatch`; a stacked view with ``parts`` gets one per part, side by
-    side) or the surrogate's own ``predict``. ``table``: the numpy form tabulated
-    (:class:`GPTable`, kept per surrogate in the process) where it passes its self-check,
-    for callers that evaluate many points (the forecast)."""
+    numpy form (:class:`GPBatch`, tabulated by :class:`GPTable` where that passes its
+    self-check, kept per surrogate in the process; ``table=False``: GPBatch itself; a
+    stacked view with ``parts`` gets one per part, side by side) or the surrogate's own
+    ``predict``."""
     from ...reduce import Surrogate
     parts = getattr(surrogate, "parts", None)
     try:
@@ -289,8 +289,8 @@ def make_predictor(surrogate, table: bool = False
     return surrogate.predict, False
 
 
-#: Tables built in this process, by surrogate fingerprint (a fleet's forecast builds one
-#: per worker; a process forecasting again, as backtest does, reuses it), the last
+#: Tables built in this process, by surrogate fingerprint (a fleet's calibrate or forecast
+#: builds one per worker; a process calibrating again, as backtest does, reuses it), the last
 #: ``TABLES_KEPT`` (about 3 MB each for two inputs).
 _TABLES: dict = {}
 TABLES_KEPT = 4

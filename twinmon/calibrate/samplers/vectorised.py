@@ -8,7 +8,8 @@ of fit); what changes is how it is sampled:
 * **Batched surrogate.** :class:`.gpbatch.GPBatch` evaluates the Karhunen-Loeve +
   Gaussian-process surrogate as array arithmetic, one call per Metropolis step for all chains
   of all units of a batch, instead of one OpenTURNS call per point (the same prediction,
-  checked against OpenTURNS when built).
+  checked against OpenTURNS when built), tabulated on a grid over the box
+  (:class:`.gpbatch.GPTable`, checked against GPBatch).
 * **Batched MAP.** :func:`.batch_map.batch_map` runs a projected Levenberg-Marquardt on every
   unit's standardised residuals at once (the least squares
   :func:`~twinmon.calibrate.density.find_map` solves one unit at a time), from the same start
