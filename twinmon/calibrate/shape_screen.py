@@ -51,20 +51,11 @@ def screen(line: GaussianTrend, E: np.ndarray, S: np.ndarray, grid: tuple):
     """
     sigma, log_w = grid
     bt = block_terms(line, E, sigma)
-    ll, F, r = bt.ll + log_w, bt.F, bt.r
+    ll = bt.ll + log_w
 
     def evidence(sets: list) -> np.ndarray:
         idx = np.array(sets, dtype=int).reshape(len(sets), -1)               # [G, n_e]
-        if idx.shape[1] == 0:
-            out = ll[None]
-        else:
-            P_e = S[idx[:, :, None], idx[:, None, :]]                        # [G, n_e, n_e]
-            V = P_e[:, None] + np.swapaxes(F[:, idx[:, :, None], idx[:, None, :]], 0, 1)
-            L = np.linalg.cholesky(V)                                        # [G, P, n_e, n_e]
-            z = np.linalg.solve(L, np.swapaxes(r[:, idx], 0, 1)[..., None])[..., 0]
-            out = ll[None] + 0.5 * (np.linalg.slogdet(P_e)[1][:, None]
-                                    - 2.0 * np.log(np.einsum("gpii->gpi", L)).sum(axis=2)
-                                    + np.sum(z * z, axis=2))
+        out = ll[None] if idx.shape[1] == 0 else set_loglik(bt, S, idx, ll)[0]
         top = out.max(axis=1, keepdims=True)
         return top[:, 0] + np.log(np.exp(out - top).sum(axis=1))
 
@@ -126,6 +117,35 @@ def block_terms(line: GaussianTrend, E: np.ndarray, sigma: np.ndarray,
     resid = (line.x[None] - np.einsum("kia,pa->pki", line.Mk, mu)).reshape(P, 1, K * d)
     r = np.matmul(resid, WE)[:, 0]                                           # [P, n_x]
     return BlockTerms(Pb, mu, ll, F, r, PiB)
+
+
+def set_loglik(bt: BlockTerms, S: np.ndarray, idx: np.ndarray,
+               base: np.ndarray | None = None
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The log marginal likelihood of the line plus each set of columns ``idx`` [G, n_e]
+    (n_e >= 1) at the sigma points of ``bt`` (P of them), a set's prior precision the rows
+    and columns of ``S`` (:func:`screen`'s formula).
+
+    Returns
+    -------
+    ll : ndarray, shape [G, P]
+        ``base`` [P] (default the line's, ``bt.ll``) plus each set's block update: what
+        :func:`~.gaussian_trend.linear_gaussian` gives the set's model of its own.
+    V : ndarray, shape [G, P, n_e, n_e]
+        The sets' posterior precision given the line's coefficients.
+    r_e : ndarray, shape [G, P, n_e]
+        Their scores at the line's posterior mean (``V^-1 r_e``: their posterior mean).
+    """
+    base = bt.ll if base is None else base
+    P_e = S[idx[:, :, None], idx[:, None, :]]                                # [G, n_e, n_e]
+    V = P_e[:, None] + np.swapaxes(bt.F[:, idx[:, :, None], idx[:, None, :]], 0, 1)
+    r_e = np.swapaxes(bt.r[:, idx], 0, 1)
+    L = np.linalg.cholesky(V)                                                # [G, P, n_e, n_e]
+    z = np.linalg.solve(L, r_e[..., None])[..., 0]
+    ll = base[None] + 0.5 * (np.linalg.slogdet(P_e)[1][:, None]
+                             - 2.0 * np.log(np.einsum("gpii->gpi", L)).sum(axis=2)
+                             + np.sum(z * z, axis=2))
+    return ll, V, r_e
 
 
 def screen_grid(A: np.ndarray, n: int = SCREEN_POINTS) -> tuple[np.ndarray, np.ndarray]:

@@ -39,10 +39,10 @@ from .unit import UnitForecast
 
 class _TwinState:
     """What forecasting a chunk needs once per process: the config, the surrogate and its
-    numpy form (:class:`~twinmon.calibrate.samplers.gpbatch.GPBatch`, checked against OpenTURNS
-    when built, tabulated by :class:`~twinmon.calibrate.samplers.gpbatch.GPTable` where that
-    passes its own check), the FMU spec, the executor of the FMU runs and the limit-state model of the
-    points outside the box (:class:`~.limitstate.LimitState`, or None)."""
+    numpy form (:func:`~twinmon.calibrate.samplers.gpbatch.make_predictor`: GPBatch, checked
+    against OpenTURNS when built, tabulated where the table passes its own check), the FMU
+    spec, the executor of the FMU runs and the limit-state model of the points outside the
+    box (:class:`~.limitstate.LimitState`, or None)."""
 
     def __init__(self, cfg: Config, sur, spec, executor, limit_state=None):
         from ..calibrate.samplers.gpbatch import make_predictor

@@ -176,8 +176,9 @@ def predict_ahead(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarray
     posterior mean of sigma on these years as their reference, as calibration does.
 
     Every shape is the line plus a set of extra columns
-    (:func:`~twinmon.calibrate.shape_columns.shape_sets`), so its posterior is a block update of the line's at each sigma
-    (:func:`~twinmon.calibrate.shape_screen.block_terms`): with ``V = P_e + F_ee`` the set's
+    (:func:`~twinmon.calibrate.shape_columns.shape_sets`), so its posterior is a block
+    update of the line's at each sigma (:func:`~twinmon.calibrate.shape_screen.block_terms`,
+    :func:`~twinmon.calibrate.shape_screen.set_loglik`): with ``V = P_e + F_ee`` the set's
     posterior precision given the line's and ``G = H_e - H_b Pb^-1 B_e``, the trend one year
     on has mean ``H_b mu_b + G V^-1 r_e`` and covariance ``H_b Pb^-1 H_b' + G V^-1 G'``
     (the block inverse of the whole precision), and the evidence gains the screen's term.
@@ -207,7 +208,7 @@ def predict_ahead(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarray
     """
     from ..calibrate.gaussian_trend import GaussianTrend
     from ..calibrate.methods.laplace import line_model
-    from ..calibrate.shape_screen import block_terms
+    from ..calibrate.shape_screen import block_terms, set_loglik
     from ..calibrate.shape_columns import OCCAM, line_now, shape_sets
     from ..calibrate.shapes import extend
     from ..calibrate.trend import sigma_prior_scale
@@ -241,7 +242,7 @@ def predict_ahead(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarray
         for size in {len(c) for c, _ in comps}:
             of = [j for j, (c, _) in enumerate(comps) if len(c) == size]
             quick[of] = [comps[j][1] for j in of] + (
-                _set_moments(at_ref, sets.S, np.array([comps[j][0] for j in of]))[0][:, 0]
+                set_loglik(at_ref, sets.S, np.array([comps[j][0] for j in of]))[0][:, 0]
                 if size else at_ref.ll[0])
         comps = [c for c, q in zip(comps, quick) if q >= quick.max() + np.log(OCCAM)]
     on_grid = block_terms(line, sets.E, sig, (Pb, mu, ll)) if sets.sets else None
@@ -259,7 +260,7 @@ def predict_ahead(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarray
             covs.append(line_cov + noise)
             continue
         idx = np.array([g[0] for g in group])                                 # [G, n_e]
-        lls, V, r_e = _set_moments(on_grid, sets.S, idx)
+        lls, V, r_e = set_loglik(on_grid, sets.S, idx)
         # G = H_e - H_b Pb^-1 B_e per set and sigma point, [G, P, d, n_e].
         Gm = He[:, idx].transpose(1, 0, 2)[:, None] - \
             np.einsum("da,pac->pdc", Hb, on_grid.PiB)[:, :, idx].transpose(2, 0, 1, 3)
@@ -272,25 +273,6 @@ def predict_ahead(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarray
     keep = logw >= logw.max() + np.log(NEGLIGIBLE)
     w = np.exp(logw[keep] - logw.max())
     return w / w.sum(), np.concatenate(means)[keep], np.concatenate(covs)[keep]
-
-
-def _set_moments(bt, S: np.ndarray, idx: np.ndarray
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Log marginal likelihood of the line plus each set of columns ``idx`` [G, n_e] at
-    the sigma points of ``bt`` (:class:`~twinmon.calibrate.shape_screen.BlockTerms`, P of
-    them), their prior precision the rows and columns of ``S``: ``ll`` [G, P] (as
-    :func:`~twinmon.calibrate.gaussian_trend.linear_gaussian` gives a model of its own),
-    the sets' posterior precision given the line's ``V`` [G, P, n_e, n_e] and scores
-    ``r_e`` [G, P, n_e]."""
-    P_e = S[idx[:, :, None], idx[:, None, :]]                                 # [G, n_e, n_e]
-    V = P_e[:, None] + np.swapaxes(bt.F[:, idx[:, :, None], idx[:, None, :]], 0, 1)
-    r_e = np.swapaxes(bt.r[:, idx], 0, 1)
-    L = np.linalg.cholesky(V)
-    z = np.linalg.solve(L, r_e[..., None])[..., 0]
-    ll = bt.ll[None] + 0.5 * (np.linalg.slogdet(P_e)[1][:, None]
-                              - 2.0 * np.log(np.einsum("gpii->gpi", L)).sum(axis=2)
-                              + np.sum(z * z, axis=2))
-    return ll, V, r_e
 
 
 def standardise(y: np.ndarray, w: np.ndarray, mean: np.ndarray, S: np.ndarray

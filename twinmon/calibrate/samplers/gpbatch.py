@@ -203,13 +203,14 @@ class GPTable:
     The table is :data:`TABLE_NODES` nodes over the box (257 a side for two inputs, 40 for
     three), :data:`TABLE_PAD` more beyond each face so that the spline's boundary condition
     stays outside it, and costs one GPBatch evaluation per node when built (0.5 s for two
-    inputs, its check included). It is the GP's prediction to well within the surrogate's own accuracy: built,
-    it checks itself against GPBatch at :data:`TABLE_CHECK` random points of the box and at
-    the training points, and refuses (``ValueError``) a transient more than
-    :data:`TABLE_RTOL` off (on the pump's surrogate: 3e-8, against validation errors of
-    1e-4 on average; GPBatch's own rounding moves a transient by ~1e-9). A point outside the
-    box (the forecast never sends one; a sampler's proposal may) gets GPBatch's. Every row is
-    interpolated on its own: a point's value does not depend on the batch it is in.
+    inputs, its check included). It is the GP's prediction to well within the surrogate's
+    own accuracy: built, it checks itself against GPBatch at :data:`TABLE_CHECK` random
+    points of the box and at the training points, and refuses (``ValueError``) a transient
+    more than :data:`TABLE_RTOL` off (on the pump's surrogate: 3e-8, against validation
+    errors of 1.4e-4 on average; GPBatch's own rounding moves a transient by ~1e-9). A point
+    outside the box (the forecast never sends one; a sampler's proposal may) gets GPBatch's.
+    Every row is interpolated on its own: a point's value does not depend on the batch it
+    is in.
 
     Parameters
     ----------
