@@ -116,6 +116,30 @@ def test_tabulated_surrogate_is_the_gp_prediction_row_by_row(setup, monkeypatch)
     assert type(gpbatch._numpy_form(sur, False)) is gpbatch.GPBatch
 
 
+@pytest.mark.parametrize("d", [1, 3, 4])
+def test_the_table_with_other_numbers_of_inputs(d):
+    """Not the pump alone: a surrogate of 1 or 3 inputs (a first-order response whose gain
+    and time constant they set) is tabulated within the table's tolerance (4097 and 40
+    nodes a side); with 4 inputs (16 a side) the table is refused and GPBatch serves."""
+    from twinmon.config.reduce import ReduceConfig
+    from twinmon.reduce.surrogate import fit_surrogate
+    rng = np.random.default_rng(d)
+    X, t = rng.random((64, d)), np.linspace(0.0, 10.0, 25)
+    tau = 1.0 + X[:, 0] + 0.5 * X[:, -1]
+    gain = 100.0 * (1.0 + 0.3 * X[:, -1] - 0.2 * X[:, 0] * X[:, d // 2])
+    Y = gain[:, None] * (1.0 - np.exp(-t[None, :] / tau[:, None])) + 1.0
+    sur = fit_surrogate(X, Y, t, np.tile([0.0, 1.0], (d, 1)), [f"x{i}" for i in range(d)],
+                        ReduceConfig())
+    gp = gpbatch.GPBatch(sur)
+    if d == 4:
+        with pytest.raises(ValueError, match="too few"):
+            gpbatch.GPTable(gp)
+        return
+    table = gpbatch.GPTable(gp)
+    U = rng.random((500, d))
+    assert np.max(np.abs(table(U) / gp(U) - 1)) <= gpbatch.TABLE_RTOL
+
+
 def test_batched_diagnostics_equal_the_reference():
     rng = np.random.default_rng(2)
     for trial in range(60):
