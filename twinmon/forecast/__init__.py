@@ -79,7 +79,7 @@ from .directions import Direction, degrading_directions, indicator_noise
 from .judge import (STATUS_OK, STATUS_UNRELIABLE, STATUS_WITHHELD, judge, prognosis_status,
                     verdict)
 from .plan import maintenance_plan
-from .pooling import (POOL_MIN_ESS, _pooling_dict, _shapes_dict, fleet_shape_prior,
+from .pooling import (POOL_MIN_ESS, _pooling_dict, _shapes_dict, fleet_priors,
                       fleet_sigma_prior)
 from .predictive import (StatePredictive, residual_correlation, sample_predictive,
                          sample_state, state_interval, state_predictive)
@@ -176,9 +176,8 @@ def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
         truth = read_truth(truth_path)
     directions = degrading_directions(cfg, sur)
     box_ok = box_is_physical(cfg)
-    fleet = fleet_sigma_prior(cfg, post)
+    fleet, shapes = fleet_priors(cfg, post, recorded_shapes(cfg, posterior_path))
     limit_state, why = forecast_limit_state(cfg, directions, box_ok)
-    shapes = fleet_shape_prior(cfg, post, recorded_shapes(cfg, posterior_path), fleet)
     units = {}
     with _open_forecast(output, cfg, names, directions, box_ok, seed=cfg.seed + SEED_OFFSET,
                         inputs=[posterior_path, surrogate_path] +
@@ -250,8 +249,7 @@ def forecast_units(cfg: Config, post, sur, *, posterior_path="<memory>", truth=N
     if limit_state is False:
         limit_state = forecast_limit_state(cfg, directions, box_ok)[0]
     pool_over = post if pool_over is None else pool_over
-    fleet = fleet_sigma_prior(cfg, pool_over)
-    shapes = fleet_shape_prior(cfg, pool_over, recorded_shapes(cfg, posterior_path), fleet)
+    fleet, shapes = fleet_priors(cfg, pool_over, recorded_shapes(cfg, posterior_path))
     units = dict(iter_forecast(cfg, post, sur, posterior_path=posterior_path, truth=truth,
                                truth_path=truth_path, executor=executor, workers=workers,
                                progress=progress, directions=directions, box_ok=box_ok,
