@@ -70,11 +70,11 @@ class ShapeSets:
 
 def shape_sets(line: GaussianTrend, years: np.ndarray, last_start: np.ndarray, priors: dict,
                sigma_ref: np.ndarray) -> ShapeSets:
-    """:func:`build_shapes`' shapes on ``line`` (its sites, design and priors), as sets of
+    """:func:`~.shapes.build_shapes`' shapes on ``line`` (its sites, design and priors), as sets of
     columns (:class:`ShapeSets`): the same accelerating forms, change candidates and
     screened combinations, at the reference sigma ``sigma_ref`` [d]."""
     t = np.asarray(years, float)
-    K, d, n_l = line.Mk.shape
+    K, d, _ = line.Mk.shape
     seg = t[None, :] >= np.asarray(last_start, float)[:, None]
     total = sum(max(float(p), 0.0) for p in priors.values())
     p_line = priors.get("line", 0.0) / total
@@ -88,9 +88,10 @@ def shape_sets(line: GaussianTrend, years: np.ndarray, last_start: np.ndarray, p
         sets.append((code, tuple(range(at, at + len(f))), log_prior, (-1,) * d))
         at += len(f)
     growth = [r for _, f, _, r in extras for _ in f]
-    prior_prec = np.diag(line.prior_P)[:n_l]
+    prior_prec = np.diag(line.prior_P)
+    if cols or any(cand):
+        W = _reference_weights(line.cov, sigma_ref)
     if any(cand):
-        W = _reference_weights(line, line.cov, None, sigma_ref)
         E, S, blocks, bcols, kept = _change_selection(
             line, lp_line, [(f, lp) for _, f, lp, _ in extras], cand, t, seg,
             np.log(p_change), W, prior_prec, line.A)
@@ -100,7 +101,6 @@ def shape_sets(line: GaussianTrend, years: np.ndarray, last_start: np.ndarray, p
             sets.append((2, tuple(at + 2 * b + c for b in combo for c in (0, 1)), log_prior,
                          when))
     elif cols:
-        W = _reference_weights(line, line.cov, None, sigma_ref)
         E = np.stack([c for c, _, _ in cols], axis=2)
         S = _unit_information(W, line.Mk, E, prior_prec, K)
     else:
@@ -113,8 +113,9 @@ def shape_sets(line: GaussianTrend, years: np.ndarray, last_start: np.ndarray, p
 
 def _accelerating_forms(t: np.ndarray, seg: np.ndarray, priors: dict, total: float) -> list:
     """The accelerating shape's forms on the inputs' current segments ``seg`` [d, K]: per
-    form ``(1, columns, log prior, growth rate)``, the columns as :func:`_extended` takes
-    them (the quadratic first, then the exponentials of :data:`GROWTH_RATES`)."""
+    form ``(1, columns, log prior, growth rate)``, the columns as
+    :func:`~.shapes._extended` takes them (the quadratic first, then the exponentials of
+    :data:`GROWTH_RATES`)."""
     if priors.get("accelerating", 0.0) <= 0:
         return []
     d, K = seg.shape
@@ -153,16 +154,10 @@ def _change_candidates(t: np.ndarray, seg: np.ndarray, p_change: float) -> list:
             for i in range(len(seg))]
 
 
-def _reference_weights(line: GaussianTrend, cov: np.ndarray, rng, sigma_ref) -> np.ndarray:
-    """The years' weights ``(C_k + diag(s^2))^-1`` [K, d, d] at the reference sigma: the
-    line's posterior mean of it (from its sigma points), or ``sigma_ref`` when given; the
-    same for every extra block."""
-    if sigma_ref is None:
-        sig, w = line.sigma_points(rng)[:2]
-        s_ref = w @ sig                                                      # [d]
-    else:
-        s_ref = np.asarray(sigma_ref, float)
-    return np.linalg.inv(cov + np.diag(s_ref ** 2)[None])
+def _reference_weights(cov: np.ndarray, s_ref: np.ndarray) -> np.ndarray:
+    """The years' weights ``(C_k + diag(s_ref^2))^-1`` [K, d, d] at the reference sigma
+    ``s_ref`` [d] (the line's posterior mean of it), the same for every extra block."""
+    return np.linalg.inv(cov + np.diag(np.asarray(s_ref, float) ** 2)[None])
 
 
 def _change_columns(t: np.ndarray, seg: np.ndarray, i: int, d: int, y: int) -> list:

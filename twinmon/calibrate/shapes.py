@@ -107,8 +107,7 @@ class Shape:
 def build_shapes(years: np.ndarray, x: np.ndarray, cov: np.ndarray, Mk: np.ndarray,
                  prior_prec: np.ndarray, prior_mean: np.ndarray, A: np.ndarray,
                  slopes: np.ndarray, last_start: np.ndarray, priors: dict,
-                 rng: Optional[np.random.Generator], sigma_ref: Optional[np.ndarray] = None
-                 ) -> list[Shape]:
+                 rng: np.random.Generator) -> list[Shape]:
     """A unit's shapes on its sites.
 
     Parameters
@@ -129,10 +128,8 @@ def build_shapes(years: np.ndarray, x: np.ndarray, cov: np.ndarray, Mk: np.ndarr
     priors : dict shape name -> float
         Prior probabilities (``calibrate.shapes``; absent or 0: not fitted).
     rng : numpy Generator
-        For the line's sigma points (the reference sigma of the other shapes' priors).
-    sigma_ref : ndarray, shape [d], optional
-        That reference sigma given (input units; ``rng`` then unused): the one-year-ahead
-        check of :mod:`twinmon.forecast.trendfit` fixes sigma at the unit's posterior mean.
+        For the line's sigma points (their mean: the reference sigma of the other shapes'
+        priors; :func:`~.shape_columns.shape_sets` takes it given instead).
 
     Returns
     -------
@@ -153,7 +150,8 @@ def build_shapes(years: np.ndarray, x: np.ndarray, cov: np.ndarray, Mk: np.ndarr
     cand = _change_candidates(t, seg, p_change)
     if not extras and not any(cand):
         return shapes
-    W = _reference_weights(line, cov, rng, sigma_ref)
+    sig, w = line.sigma_points(rng)[:2]
+    W = _reference_weights(cov, w @ sig)
     for code, cols, log_prior, growth in extras:
         shapes.append(_extended(shapes[0], code, cols, log_prior, W, prior_prec, prior_mean,
                                 A, (-1,) * d, growth))

@@ -239,8 +239,7 @@ def predict_ahead(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarray
     if sets.sets:
         at_ref = block_terms(line, sets.E, s_ref[None])
         quick = np.empty(len(comps))
-        for size in {len(c) for c, _ in comps}:
-            of = [j for j, (c, _) in enumerate(comps) if len(c) == size]
+        for size, of in _by_size(comps):
             quick[of] = [comps[j][1] for j in of] + (
                 set_loglik(at_ref, sets.S, np.array([comps[j][0] for j in of]))[0][:, 0]
                 if size else at_ref.ll[0])
@@ -251,8 +250,8 @@ def predict_ahead(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarray
     eye = np.eye(d)
     noise = sig[:, :, None] ** 2 * eye + cov[k]                               # [P, d, d]
     logw, means, covs = [], [], []
-    for size in sorted({len(c) for c, _ in comps}):
-        group = [(c, lp) for c, lp in comps if len(c) == size]
+    for size, of in _by_size(comps):
+        group = [comps[j] for j in of]
         lp = np.array([g[1] for g in group])[:, None]
         if size == 0:
             logw.append((lp + log_p0 + ll).ravel())
@@ -273,6 +272,13 @@ def predict_ahead(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarray
     keep = logw >= logw.max() + np.log(NEGLIGIBLE)
     w = np.exp(logw[keep] - logw.max())
     return w / w.sum(), np.concatenate(means)[keep], np.concatenate(covs)[keep]
+
+
+def _by_size(comps: list) -> list:
+    """The mixture's components ``(columns, log prior)`` grouped by their number of extra
+    columns (a group's sets are evaluated together): ``(size, positions)`` by size."""
+    sizes = sorted({len(c) for c, _ in comps})
+    return [(n, [j for j, (c, _) in enumerate(comps) if len(c) == n]) for n in sizes]
 
 
 def standardise(y: np.ndarray, w: np.ndarray, mean: np.ndarray, S: np.ndarray

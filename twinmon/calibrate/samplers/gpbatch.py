@@ -298,12 +298,14 @@ TABLES_KEPT = 4
 
 
 def _numpy_form(surrogate, table: bool):
-    """GPBatch of one surrogate, tabulated when asked and it passes its self-check."""
-    gp = GPBatch(surrogate)
+    """GPBatch of one surrogate, tabulated when asked and it passes its self-check (a
+    surrogate seen before in this process: its form kept, GPBatch not built and checked
+    against OpenTURNS again)."""
     if not table:
-        return gp
+        return GPBatch(surrogate)
     key = surrogate.fingerprint()
     if key not in _TABLES:
+        gp = GPBatch(surrogate)
         while len(_TABLES) >= TABLES_KEPT:
             _TABLES.pop(next(iter(_TABLES)))
         try:
