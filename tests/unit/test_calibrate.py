@@ -144,6 +144,25 @@ def test_average_ranks_are_scipys_with_ties():
         assert np.array_equal(_average_ranks(x), rankdata(x, method="average").reshape(x.shape))
 
 
+def test_split_rhat_many_gives_split_rhats_values_bit_for_bit():
+    # Resampled draws tie, a quantity may be constant, its folded values may be constant.
+    from twinmon.calibrate.diagnostics import split_rhat_many
+    rng = np.random.default_rng(4)
+    for trial in range(60):
+        m, n, B = int(rng.integers(1, 6)), int(rng.integers(4, 60)), int(rng.integers(1, 7))
+        x = rng.standard_normal((B, m, n))
+        if trial % 4 == 1:
+            x = np.round(x, 1)
+        elif trial % 4 == 2:
+            x[0] = 3.0
+        elif trial % 4 == 3:
+            x = np.abs(np.round(x, 0))
+        want = np.array([split_rhat(c) for c in x])
+        assert np.array_equal(split_rhat_many(x), want, equal_nan=True)
+    x = rng.standard_normal((3, 2, 4, 50))
+    assert split_rhat_many(x).shape == (3, 2)
+
+
 def test_noise_source_file_then_config_then_estimated(setup):
     cfg, cfg_path, _, _ = setup
     with_file = UnitObservations(np.array([1]), {"m_flow": np.zeros((1, 25))}, {"m_flow": 3.0})

@@ -40,6 +40,20 @@ def _line_model(years, c, A, slope_sd, d=1):
                                    np.asarray(A, float))
 
 
+def test_closed_form_inverse_and_factor_are_numpys():
+    # The years' conditional covariances of 2 inputs are inverted and factored in closed
+    # form; 1 and 3 inputs go through LAPACK.
+    from twinmon.calibrate.gaussian_trend import _inv_chol
+    rng = np.random.default_rng(2)
+    for d in (1, 2, 3):
+        A = rng.standard_normal((50, 4, d, d))
+        A = A @ np.swapaxes(A, -1, -2) + 0.1 * np.eye(d)
+        G, L = _inv_chol(A)
+        np.testing.assert_allclose(G, np.linalg.inv(A), rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(L, np.linalg.cholesky(np.linalg.inv(A)), rtol=1e-9,
+                                   atol=1e-12)
+
+
 def test_posterior_matches_a_dense_quadrature_over_sigma():
     """One input, eight years with unequal errors: the draws' slope and sigma moments equal
     those of a brute-force posterior (the years' joint Gaussian written out whole, a nearly

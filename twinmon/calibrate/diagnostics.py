@@ -72,6 +72,81 @@ def split_rhat(chains: np.ndarray, rank_normalize: bool = True) -> float:
     return max(bulk, tail)
 
 
+def _z_scale_rows(x: np.ndarray) -> np.ndarray:
+    """:func:`_z_scale` of each ``x[b]`` [B, ...] on its own, in one sort: the same values,
+    bit for bit (the ranks are found within each row as :func:`_average_ranks` finds them)."""
+    from scipy.special import ndtri
+    B = x.shape[0]
+    flat = x.reshape(B, -1)
+    N = flat.shape[1]
+    # Ties share their group's average rank whatever their order within it, so an
+    # unstable sort (twice as fast as a stable one here) gives the same ranks.
+    order = np.argsort(flat, axis=1)
+    srt = np.take_along_axis(flat, order, axis=1)
+    new = np.empty((B, N), bool)
+    new[:, 0] = True
+    np.not_equal(srt[:, 1:], srt[:, :-1], out=new[:, 1:])
+    # Groups of ties over the rows laid end to end: a row's first value always opens one.
+    starts = np.flatnonzero(new.ravel())
+    ends = np.append(starts[1:], B * N)
+    offset = (starts // N) * N
+    avg = ((starts - offset) + (ends - offset) + 1) / 2.0
+    # Normal scores per group of ties, then spread to its members (resampled draws repeat).
+    score = ndtri((avg - 0.375) / (N + 0.25))
+    z = np.empty((B, N))
+    np.put_along_axis(z, order, score[np.cumsum(new.ravel()) - 1].reshape(B, N), axis=1)
+    return z.reshape(x.shape)
+
+
+def _rhat_rows(chains: np.ndarray) -> np.ndarray:
+    """:func:`_rhat` of each ``chains[b]`` [B, m, n]: [B] (NaN where the within-chain
+    variance is 0)."""
+    n = chains.shape[2]
+    within = np.mean(np.var(chains, axis=2, ddof=1), axis=1)
+    between = n * np.var(np.mean(chains, axis=2), axis=1, ddof=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = np.sqrt((between / within + n - 1) / n)
+    return np.where(within > 0, r, np.nan)
+
+
+def split_rhat_many(chains: np.ndarray) -> np.ndarray:
+    """:func:`split_rhat` (rank-normalised) of many scalar quantities at once, the same
+    values bit for bit: a unit's years and inputs are dozens of quantities, and one call
+    each cost more than the arithmetic.
+
+    Parameters
+    ----------
+    chains : ndarray, shape [..., m, n]
+        ``m`` chains of ``n`` draws of each quantity.
+
+    Returns
+    -------
+    ndarray, shape [...]
+    """
+    x = np.asarray(chains, float)
+    lead, (m, n) = x.shape[:-2], x.shape[-2:]
+    x = x.reshape(-1, m, n)
+    out = np.full(len(x), np.nan)
+    live = np.ptp(x.reshape(len(x), -1), axis=1) != 0
+    if not live.any():
+        return out.reshape(lead)
+    x = x[live]
+    half = n // 2
+
+    def split(c):
+        return np.concatenate([c[:, :, :half], c[:, :, n - half:]], axis=1)
+
+    bulk = _rhat_rows(_z_scale_rows(split(x)))
+    folded = np.abs(x - np.median(x.reshape(len(x), -1), axis=1)[:, None, None])
+    spread = np.ptp(folded.reshape(len(x), -1), axis=1) > 0
+    tail = bulk.copy()
+    if spread.any():
+        tail[spread] = _rhat_rows(_z_scale_rows(split(folded[spread])))
+    # max() of two floats as split_rhat takes it: a NaN bulk gives NaN, a NaN tail the bulk.
+    out[live] = np.where(np.isnan(bulk) | ~(tail > bulk), bulk, tail)
+    return out.reshape(lead)
+
+
 def _autocov(x: np.ndarray) -> np.ndarray:
     """Biased autocovariance of each row, shape [m, n], by FFT."""
     m, n = x.shape

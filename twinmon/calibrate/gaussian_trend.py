@@ -47,6 +47,24 @@ def _inv_logdet(V: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.linalg.inv(V), 2.0 * np.log(np.diagonal(L, axis1=-2, axis2=-1)).sum(axis=-1)
 
 
+def _inv_chol(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Inverses of stacked symmetric positive definite matrices ``A`` [..., d, d] and the
+    inverses' Cholesky factors; closed form for d = 2 (a unit's draws are thousands of
+    2 x 2 matrices, for which LAPACK's per-matrix calls cost ten times the arithmetic)."""
+    if A.shape[-1] != 2:
+        G = np.linalg.inv(A)
+        return G, np.linalg.cholesky(G)
+    a, b, c = A[..., 0, 0], A[..., 0, 1], A[..., 1, 1]
+    det = a * c - b * b
+    g00, g01, g11 = c / det, -b / det, a / det
+    G = np.stack([np.stack([g00, g01], -1), np.stack([g01, g11], -1)], -2)
+    l00 = np.sqrt(g00)
+    l10 = g01 / l00
+    L = np.zeros_like(G)
+    L[..., 0, 0], L[..., 1, 0], L[..., 1, 1] = l00, l10, np.sqrt(g11 - l10 * l10)
+    return G, L
+
+
 def year_weights(cov: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Each year's weight ``(C_k + diag(sigma^2))^-1`` at sigma points ``sigma`` [P, d], the
     sites' covariances ``cov`` [K, d, d]: flattened, [P, K d d], and the log-determinant of
@@ -362,9 +380,10 @@ class GaussianTrend(SiteModel):
         uniq, inv = np.unique(pick, return_inverse=True)
         sigma_u = pts[uniq]
         Pb, Lb, mean, _ = self._conditional(sigma_u)
-        # beta = mean + Lb^-T z: covariance Pb^-1.
+        # beta = mean + Lb^-T z: covariance Pb^-1. Lb is inverted once per distinct sigma
+        # point (a few hundred), not solved once per draw (thousands).
         z = rng.standard_normal((n, mean.shape[1]))
-        beta = mean[inv] + np.linalg.solve(np.swapaxes(Lb, 1, 2)[inv], z[:, :, None])[:, :, 0]
+        beta = mean[inv] + np.einsum("nba,nb->na", np.linalg.inv(Lb)[inv], z)
         return beta, sigma_u[inv], n_eff
 
 
@@ -389,10 +408,9 @@ def draw_years(x: np.ndarray, cov: np.ndarray, m: np.ndarray, sigma: np.ndarray,
     d = x.shape[1]
     H = np.linalg.inv(cov)                                                    # [K, d, d]
     S_inv = 1.0 / sigma ** 2                                                  # [n, d]
-    G = np.linalg.inv(H[None] + S_inv[:, None, :, None] * np.eye(d))          # [n, K, d, d]
+    G, Lg = _inv_chol(H[None] + S_inv[:, None, :, None] * np.eye(d))          # [n, K, d, d]
     hx = np.einsum("kij,kj->ki", H, x)
     mu = np.einsum("nkij,nkj->nki", G, hx[None] + S_inv[:, None, :] * m)
-    Lg = np.linalg.cholesky(G)
     lo, hi = bounds[:, 0], bounds[:, 1]
     theta = np.empty_like(mu)
     todo = np.ones(mu.shape[:2], bool)

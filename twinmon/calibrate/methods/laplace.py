@@ -46,7 +46,7 @@ import numpy as np
 from ...config import Config
 from ...errors import CalibrationError
 from ..base import Method, Sampler, Work
-from ..diagnostics import split_rhat
+from ..diagnostics import split_rhat_many
 from ..fit import years_fit
 from ..posterior import UnitPosterior, draw_statistics
 from ..samplers.batch_map import Batch, batch_map
@@ -276,7 +276,7 @@ class LaplaceRun:
         converged = n_eff >= cc.ess_warn
         pooled = np.ascontiguousarray(theta.transpose(1, 0, 2))              # [K, n, d]
         chains = pooled.reshape(K, n_c, n_s, d)
-        rhat = np.array([[split_rhat(chains[k, :, :, j]) for j in range(d)] for k in range(K)])
+        rhat = split_rhat_many(np.moveaxis(chains, 3, 1))                     # [K, d]
         # Resampled draws repeat: their number overstates them, the weights' does not.
         n_eff_years = np.full((K, d), n_eff)
         fit = years_fit(surrogate, cfg, self.flows, total, pooled, ext, converged)
@@ -311,11 +311,10 @@ class LaplaceRun:
                 b[:, j, i] = ((m[:, last, i] - m[:, first, i]) / span if span > 0
                               else now[:, 1, i])
                 a[:, j, i] = m[:, first, i] - b[:, j, i] * (years[first] - starts[i][j])
-        rhat = np.empty((3, d))
-        for i in range(d):
-            last = len(starts[i]) - 1
-            for r, v in enumerate((a[:, last, i], b[:, last, i], sigma[:, i])):
-                rhat[r, i] = split_rhat(v.reshape(n_c, n_s))
+        last = [len(s) - 1 for s in starts]
+        rhat = split_rhat_many(np.stack([
+            np.stack([v.reshape(n_c, n_s) for v in (a[:, last[i], i], b[:, last[i], i],
+                                                    sigma[:, i])]) for i in range(d)], axis=1))
         shapes = model.shapes
         shape = np.array([shapes[c].code for c in code], dtype=np.int64)
         return {"start": start, "intercept": a, "slope": b, "sigma": sigma,
