@@ -54,6 +54,22 @@ def test_closed_form_inverse_and_factor_are_numpys():
                                    atol=1e-12)
 
 
+def test_evidence_alone_from_the_factor_is_the_solves():
+    # The log marginal likelihood without beta's mean (forward substitution on Pb's
+    # factor) is the one computed with it.
+    from twinmon.calibrate.gaussian_trend import linear_gaussian, year_weights
+    rng = np.random.default_rng(3)
+    K, d, nb, G = 6, 2, 5, 3
+    cov = rng.standard_normal((K, d, d))
+    cov = cov @ np.swapaxes(cov, 1, 2) + 0.1 * np.eye(d)
+    Wf, logdet_v = year_weights(cov, np.abs(rng.standard_normal((40, d))))
+    args = (Wf, logdet_v, rng.standard_normal((G, K, d, nb)), rng.standard_normal((K, d)),
+            np.tile(np.eye(nb), (G, 1, 1)), rng.standard_normal((G, nb)), np.zeros(G))
+    full, alone = linear_gaussian(*args), linear_gaussian(*args, want_mean=False)
+    assert alone[2] is None
+    np.testing.assert_allclose(alone[3], full[3], rtol=1e-12)
+
+
 def test_posterior_matches_a_dense_quadrature_over_sigma():
     """One input, eight years with unequal errors: the draws' slope and sigma moments equal
     those of a brute-force posterior (the years' joint Gaussian written out whole, a nearly
