@@ -68,6 +68,27 @@ def test_evidence_alone_from_the_factor_is_the_solves():
     full, alone = linear_gaussian(*args), linear_gaussian(*args, want_mean=False)
     assert alone[2] is None
     np.testing.assert_allclose(alone[3], full[3], rtol=1e-12)
+    # Many systems go through the substitution, few through LAPACK's solve: the same mean.
+    for P in (8, 400):
+        Wf, logdet_v = year_weights(cov, np.abs(rng.standard_normal((P, d))))
+        Pb, _, mean, _ = linear_gaussian(Wf, logdet_v, *args[2:])
+        Mk, x, prior_P, prior_mean = args[2], args[3], args[4], args[5]
+        W = Wf.reshape(P, K, d, d)
+        b = np.einsum("gkia,pkij,kj->gpa", Mk, W, x) + \
+            np.einsum("gab,gb->ga", prior_P, prior_mean)[:, None]
+        np.testing.assert_allclose(np.einsum("gpab,gpb->gpa", Pb, mean), b, rtol=1e-9,
+                                   atol=1e-9 * np.abs(b).max())
+
+
+def test_year_weights_closed_form_is_the_general_inverse():
+    from twinmon.calibrate.gaussian_trend import _inv_logdet, year_weights
+    rng = np.random.default_rng(5)
+    cov = rng.standard_normal((7, 2, 2))
+    cov = cov @ np.swapaxes(cov, 1, 2) + 0.1 * np.eye(2)
+    sigma = np.abs(rng.standard_normal((30, 2)))
+    W, logdet = year_weights(cov, sigma)
+    W0, l0 = _inv_logdet(cov[None] + (sigma ** 2)[:, None, :, None] * np.eye(2))
+    assert np.array_equal(W, W0.reshape(30, -1)) and np.array_equal(logdet, l0.sum(axis=1))
 
 
 def test_posterior_matches_a_dense_quadrature_over_sigma():

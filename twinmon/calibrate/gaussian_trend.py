@@ -27,6 +27,10 @@ EP_SWEEPS = 3
 EP_DRAWS = 1000
 EP_POINTS = 300
 EP_MIN_ESS = 30.0
+#: Fewest systems :func:`linear_gaussian` solves by substitution on their Cholesky factors
+#: rather than by LAPACK's solve (measured: 100 systems of 6, 33 against 61 us; 512, 236
+#: against 168 us; 16 x 512 of 8, 3.8 against 1.2 ms).
+SMALL_STACK = 256
 #: No box: the Gaussian model's own draws (the box enters through the weights).
 WIDE_BOX = np.tile([-np.inf, np.inf], (64, 1))
 
@@ -70,20 +74,44 @@ def year_weights(cov: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.nda
     sites' covariances ``cov`` [K, d, d]: flattened, [P, K d d], and the log-determinant of
     the years' covariances summed, [P]."""
     P, (K, d) = len(sigma), cov.shape[:2]
+    if d == 2:
+        # _inv_logdet's closed form written straight into the flattened output, without
+        # the [P, K, 2, 2] sums and stacks (the same values, bit for bit): this is called
+        # some ninety times a unit.
+        s2 = sigma ** 2
+        a = cov[None, :, 0, 0] + s2[:, None, 0]
+        c = cov[None, :, 1, 1] + s2[:, None, 1]
+        b = cov[:, 0, 1]
+        det = a * c - b * b
+        W = np.empty((P, K, 4))
+        W[..., 0] = c / det
+        W[..., 1] = W[..., 2] = -b / det
+        W[..., 3] = a / det
+        return W.reshape(P, K * 4), np.log(det).sum(axis=1)
     V = cov[None] + (sigma ** 2)[:, None, :, None] * np.eye(d)               # [P, K, d, d]
     W, logdet_v = _inv_logdet(V)
     return W.reshape(P, K * d * d), logdet_v.sum(axis=1)
 
 
-def _forward_norm2(L: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``|L^-1 b|^2`` for stacked lower-triangular ``L`` [..., n, n] and ``b`` [..., n], by
-    forward substitution over the ``n`` rows (``b' Pb^-1 b`` from Pb's Cholesky factor:
-    ten times cheaper than a general solve on thousands of small systems)."""
+def _chol_solve(L: np.ndarray, b: np.ndarray, want_x: bool = True):
+    """``y = L^-1 b`` and ``x = L^-T y`` (so ``(L L')^-1 b``) for stacked lower-triangular
+    ``L`` [..., n, n] and ``b`` [..., n], by forward then back substitution over the ``n``
+    rows, each row one vectorised step over the stack: ``Pb``'s mean and ``b' Pb^-1 b =
+    |y|^2`` from the Cholesky factor already taken for the log-determinant, where a general
+    solve of hundreds of small systems costs 2-5 times as much. Returns ``(y, x)``, ``x``
+    None without ``want_x``."""
+    n = L.shape[-1]
     y = np.empty_like(b)
-    for i in range(L.shape[-1]):
+    for i in range(n):
         y[..., i] = (b[..., i] - np.einsum("...j,...j->...", L[..., i, :i], y[..., :i])) \
             / L[..., i, i]
-    return np.einsum("...i,...i->...", y, y)
+    if not want_x:
+        return y, None
+    x = np.empty_like(b)
+    for i in range(n - 1, -1, -1):
+        x[..., i] = (y[..., i] - np.einsum("...j,...j->...", L[..., i + 1:, i],
+                                           x[..., i + 1:])) / L[..., i, i]
+    return y, x
 
 
 def linear_gaussian(Wf: np.ndarray, logdet_v: np.ndarray, Mk: np.ndarray, x: np.ndarray,
@@ -103,8 +131,8 @@ def linear_gaussian(Wf: np.ndarray, logdet_v: np.ndarray, Mk: np.ndarray, x: np.
     log_norm : ndarray, shape [G]
         The proper part of each prior's log normalisation.
     want_mean : bool
-        False: ``mean`` is None (the log marginal likelihood alone, from the Cholesky
-        factor: what the evidence and sigma's points need).
+        False: ``mean`` is None (the log marginal likelihood alone: what the evidence and
+        sigma's points need).
 
     Returns
     -------
@@ -135,11 +163,13 @@ def linear_gaussian(Wf: np.ndarray, logdet_v: np.ndarray, Mk: np.ndarray, x: np.
     b = b + np.einsum("gab,gb->ga", prior_P, prior_mean)[:, None]
     quad = Wf @ np.einsum("ki,kj->kij", x, x).ravel()
     Lb = np.linalg.cholesky(Pb)
-    if want_mean:
+    if want_mean and G * P < SMALL_STACK:
+        # Few systems: LAPACK's solve beats the substitution's per-row steps.
         mean = np.linalg.solve(Pb, b[..., None])[..., 0]
         fit = np.einsum("gpa,gpa->gp", b, mean)
     else:
-        mean, fit = None, _forward_norm2(Lb, b)
+        y, mean = _chol_solve(Lb, b, want_mean)
+        fit = np.einsum("gpa,gpa->gp", y, y)
     logdet_b = 2.0 * np.log(np.einsum("gpii->gpi", Lb)).sum(axis=2)
     ll = -0.5 * (logdet_v + quad - fit + logdet_b) + log_norm[:, None]
     return Pb, Lb, mean, ll
