@@ -118,6 +118,34 @@ def test_a_repeated_run_comes_from_the_cache_with_the_fmus_bits(cfg, fmu, monkey
         fresh.close()
 
 
+def test_a_twin_takes_over_the_last_closed_twins_fmu_with_the_same_bits(cfg, fmu):
+    """The next unit's twin reuses the FMU instance of the last one closed (no extraction
+    again); its runs equal a fresh instance's, and release_spare frees it."""
+    import twinmon.diagnose.twin as tw
+    args = (cfg, fmu, ["m_flow"], cfg.model.output.times.times, {"m_flow": SIGMA},
+            list(cfg.model.effects))
+    theta, eff = np.array([12.0, 3.4]), {"valve.opening_time": 4.0}
+    a = Twin(*args)
+    first = a.run(theta + 1.0, eff)
+    model = a.model
+    a.close()
+    b = Twin(*args)
+    try:
+        assert b.model is model and not tw._SPARE
+        again, fresh = b.run(theta), Twin(*args)
+        assert fresh.model is not model
+        ref = fresh.run(theta)
+        for name in ref:
+            np.testing.assert_array_equal(again[name], ref[name])
+        for name, x in fresh.run(theta + 1.0, eff).items():
+            np.testing.assert_array_equal(x, first[name])
+        fresh.close()
+    finally:
+        b.close()
+        tw.release_spare()
+    assert not tw._SPARE and model._fmu is None
+
+
 def test_base_fit_recovers_the_inputs(twin):
     truth = np.array([14.0, 3.3])
     y = twin.predict(truth)[None]

@@ -71,7 +71,7 @@ from .fit import FD_STEP, FitResult, JointFit
 from .result import VERDICTS, UnitGap
 from .state import UnitState
 from .stats import estimate_noise, ljung_box, pooled_onset_pvalues
-from .twin import SNAP, Twin
+from .twin import SNAP, Twin, release_spare
 from .unit import run_unit
 from .update import YearCache, plan_update, unit_digests
 
@@ -302,10 +302,15 @@ def diagnose(cfg: Config, observations: str | os.PathLike, output: str | os.Path
     try:
         if n_workers <= 1 and not (cfg.diagnose.executor == "dask" and cfg.dask.address):
             results = {}
-            for i, j in enumerate(jobs, 1):
-                results[j[2]] = _job(j)
-                if progress:
-                    progress(i)
+            try:
+                for i, j in enumerate(jobs, 1):
+                    results[j[2]] = _job(j)
+                    if progress:
+                        progress(i)
+            finally:
+                # The units shared one FMU instance; a library call leaves none behind. (A
+                # pool worker's goes with its process and the pool's scratch folder.)
+                release_spare()
         else:
             results = _map_units(cfg, jobs, n_workers, fmu, progress)
         write_gap(output, results, cfg, obs.time,

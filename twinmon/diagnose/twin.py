@@ -26,6 +26,12 @@ SNAP = 1e-3
 #: same; 4096 runs of a few outputs are a few MB.
 CACHE_RUNS = 4096
 
+#: The FMU instance of the last twin closed in this process, by what it was opened with: the
+#: next unit's twin takes it over instead of extracting and instantiating the FMU again
+#: (10 ms a unit, 6 % of a diagnose --update of 120 units). Every run resets the instance
+#: and sets all its parameters, so a run gives the same bits on any instance.
+_SPARE: dict = {}
+
 
 class Twin:
     """The FMU seen by ``diagnose``: degradation inputs + effects in, observed channels out.
@@ -56,10 +62,16 @@ class Twin:
         extra = [out.variable, cfg.indicator_variable] + list(cfg.model.channels)
         if cfg.model.nonphysical:
             extra.append(cfg.model.nonphysical)
-        outputs = list(dict.fromkeys(list(self.var.values()) + extra))
-        self.model = FMUModel(fmu_path, outputs, time, fmi_type=cfg.model.fmi_type,
-                              start_values=dict(cfg.model.fixed))
+        #: The FMU variables each run records, in the order of :meth:`run`'s dict.
+        self.outputs = list(dict.fromkeys(list(self.var.values()) + extra))
         self.time = np.asarray(time, float)
+        fixed = dict(cfg.model.fixed)
+        self._model_key = (str(fmu_path), tuple(self.outputs), self.time.tobytes(),
+                           cfg.model.fmi_type, tuple(sorted(fixed.items())))
+        self.model = _SPARE.pop(self._model_key, None)
+        if self.model is None:
+            self.model = FMUModel(fmu_path, self.outputs, time, fmi_type=cfg.model.fmi_type,
+                                  start_values=fixed)
         self.sigma = np.concatenate([np.full(self.time.size, float(sigma[c]))
                                      for c in self.channels])
         self.in_vars = [s.variable for s in cfg.model.inputs.values()]
@@ -91,9 +103,8 @@ class Twin:
         return (float(value) - e.low) / (e.high - e.low)
 
     # -- runs ---------------------------------------------------------------------------
-    def run(self, theta: np.ndarray, effects: dict | None = None) -> dict:
-        """All recorded outputs (each [n_t]) for inputs ``theta`` [d] (input units) and
-        effect values ``{fmu parameter: value}``."""
+    def _key(self, theta: np.ndarray, effects: dict | None) -> tuple:
+        """The FMU parameters of a run ``{variable: value}`` and its key in the run cache."""
         p = {v: float(x) for v, x in zip(self.in_vars, theta)}
         for k, v in (effects or {}).items():
             e = self.effects.get(k)
@@ -101,23 +112,49 @@ class Twin:
                 v = e.baseline
             p[k] = float(v)
         # The values' bits, not their float equality (0.0 == -0.0).
-        key = (tuple(p), np.array(list(p.values())).tobytes())
+        return p, (tuple(p), np.array(list(p.values())).tobytes())
+
+    def run(self, theta: np.ndarray, effects: dict | None = None) -> dict:
+        """All recorded outputs (each [n_t]) for inputs ``theta`` [d] (input units) and
+        effect values ``{fmu parameter: value}``."""
+        # Copies: a caller may work on the arrays in place.
+        return {name: x.copy() for name, x in self._run(theta, effects).items()}
+
+    def _run(self, theta: np.ndarray, effects: dict | None) -> dict:
+        """:meth:`run`'s outputs as the run cache holds them: not to be modified."""
+        p, key = self._key(theta, effects)
         out = self._cache.get(key)
         if out is None:
             self.runs += 1
             out = self.model.run(p)
-            self._cache[key] = out
-            if len(self._cache) > CACHE_RUNS:
-                self._cache.popitem(last=False)
+            self._remember(key, out)
         else:
             self._cache.move_to_end(key)
-        # Copies: a caller may work on the arrays in place.
-        return {name: x.copy() for name, x in out.items()}
+        return out
+
+    def _remember(self, key: tuple, out: dict) -> None:
+        self._cache[key] = out
+        if len(self._cache) > CACHE_RUNS:
+            self._cache.popitem(last=False)
 
     def predict(self, theta: np.ndarray, effects: dict | None = None) -> np.ndarray:
         """Whitened prediction of the observed channels, shape [n_ch * n_t] (channel-major)."""
-        out = self.run(theta, effects)
+        # concatenate makes a new array: the cached outputs need no copy first.
+        out = self._run(theta, effects)
         return np.concatenate([out[self.var[c]] for c in self.channels]) / self.sigma
 
     def close(self) -> None:
-        self.model.close()
+        """Done with this twin: its FMU instance is kept for the next twin of the process
+        (:func:`release_spare` frees it)."""
+        if self.model is None:
+            return
+        release_spare()
+        _SPARE[self._model_key] = self.model
+        self.model = None
+
+
+def release_spare() -> None:
+    """Free the FMU instance kept by the last twin closed in this process (and remove its
+    extracted FMU)."""
+    while _SPARE:
+        _SPARE.popitem()[1].close()
