@@ -156,5 +156,11 @@ class Twin:
 def release_spare() -> None:
     """Free the FMU instance kept by the last twin closed in this process (and remove its
     extracted FMU)."""
-    while _SPARE:
-        _SPARE.popitem()[1].close()
+    # popitem, not a test then a pop: Dask workers run one task at a time, but a library
+    # caller may close twins from threads.
+    while True:
+        try:
+            _, model = _SPARE.popitem()
+        except KeyError:
+            return
+        model.close()
