@@ -131,21 +131,38 @@ def set_loglik(bt: BlockTerms, S: np.ndarray, idx: np.ndarray,
     ll : ndarray, shape [G, P]
         ``base`` [P] (default the line's, ``bt.ll``) plus each set's block update: what
         :func:`~.gaussian_trend.linear_gaussian` gives the set's model of its own.
-    V : ndarray, shape [G, P, n_e, n_e]
-        The sets' posterior precision given the line's coefficients.
-    r_e : ndarray, shape [G, P, n_e]
-        Their scores at the line's posterior mean (``V^-1 r_e``: their posterior mean).
+    L : ndarray, shape [G, P, n_e, n_e]
+        Cholesky factor of the sets' posterior precision given the line's coefficients,
+        ``V = L L'``.
+    z : ndarray, shape [G, P, n_e]
+        ``L^-1 r_e``, ``r_e`` the sets' scores at the line's posterior mean (``L'^-1 z``:
+        their posterior mean).
     """
     base = bt.ll if base is None else base
     P_e = S[idx[:, :, None], idx[:, None, :]]                                # [G, n_e, n_e]
     V = P_e[:, None] + np.swapaxes(bt.F[:, idx[:, :, None], idx[:, None, :]], 0, 1)
     r_e = np.swapaxes(bt.r[:, idx], 0, 1)
     L = np.linalg.cholesky(V)                                                # [G, P, n_e, n_e]
-    z = np.linalg.solve(L, r_e[..., None])[..., 0]
+    z = forward_solve(L, r_e[..., None])[..., 0]
     ll = base[None] + 0.5 * (np.linalg.slogdet(P_e)[1][:, None]
                              - 2.0 * np.log(np.einsum("gpii->gpi", L)).sum(axis=2)
                              + np.sum(z * z, axis=2))
-    return ll, V, r_e
+    return ll, L, z
+
+
+def forward_solve(L: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """``L^-1 B`` for stacked lower-triangular ``L`` [..., n, n] and ``B`` [..., n, m], by
+    forward substitution over the ``n`` rows, each an operation on the whole stack: a
+    set's few columns make thousands of systems of 2 to 6 rows, on which LAPACK's
+    per-matrix calls of a general solve cost several times the arithmetic."""
+    n = L.shape[-1]
+    Y = np.empty(np.broadcast_shapes(L.shape[:-2], B.shape[:-2]) + B.shape[-2:])
+    for i in range(n):
+        acc = B[..., i, :].copy()
+        for j in range(i):
+            acc -= L[..., i, j, None] * Y[..., j, :]
+        Y[..., i, :] = acc / L[..., i, i, None]
+    return Y
 
 
 def screen_grid(A: np.ndarray, n: int = SCREEN_POINTS) -> tuple[np.ndarray, np.ndarray]:

@@ -208,7 +208,7 @@ def predict_ahead(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarray
     """
     from ..calibrate.gaussian_trend import GaussianTrend
     from ..calibrate.methods.laplace import line_model
-    from ..calibrate.shape_screen import block_terms, set_loglik
+    from ..calibrate.shape_screen import block_terms, forward_solve, set_loglik
     from ..calibrate.shape_columns import OCCAM, line_now, shape_sets
     from ..calibrate.shapes import extend
     from ..calibrate.trend import sigma_prior_scale
@@ -259,15 +259,15 @@ def predict_ahead(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarray
             covs.append(line_cov + noise)
             continue
         idx = np.array([g[0] for g in group])                                 # [G, n_e]
-        lls, V, r_e = set_loglik(on_grid, sets.S, idx)
+        lls, L, z = set_loglik(on_grid, sets.S, idx)
         # G = H_e - H_b Pb^-1 B_e per set and sigma point, [G, P, d, n_e].
         Gm = He[:, idx].transpose(1, 0, 2)[:, None] - \
             np.einsum("da,pac->pdc", Hb, on_grid.PiB)[:, :, idx].transpose(2, 0, 1, 3)
-        mu_e = np.linalg.solve(V, r_e[..., None])[..., 0]
-        VG = np.linalg.solve(V, np.swapaxes(Gm, 2, 3))
+        # With V = L L': G V^-1 r_e = Y' z and G V^-1 G' = Y' Y, Y = L^-1 G'.
+        Y = forward_solve(L, np.swapaxes(Gm, 2, 3))                          # [G, P, n_e, d]
         logw.append((lp + log_p0 + lls).ravel())
-        means.append((line_mean + np.einsum("gpde,gpe->gpd", Gm, mu_e)).reshape(-1, d))
-        covs.append((line_cov + Gm @ VG + noise).reshape(-1, d, d))
+        means.append((line_mean + np.einsum("gped,gpe->gpd", Y, z)).reshape(-1, d))
+        covs.append((line_cov + np.swapaxes(Y, 2, 3) @ Y + noise).reshape(-1, d, d))
     logw = np.concatenate(logw)
     keep = logw >= logw.max() + np.log(NEGLIGIBLE)
     w = np.exp(logw[keep] - logw.max())
@@ -300,8 +300,10 @@ def standardise(y: np.ndarray, w: np.ndarray, mean: np.ndarray, S: np.ndarray
         ``(y - E y) / sd(y)`` per input under the mixture.
     """
     from scipy.special import ndtr, ndtri
+
+    from ..calibrate.shape_screen import forward_solve
     L = np.linalg.cholesky(S)                                                  # [n, d, d]
-    e = np.linalg.solve(L, (y - mean)[:, :, None])[:, :, 0]                     # [n, d]
+    e = forward_solve(L, (y - mean)[:, :, None])[:, :, 0]                      # [n, d]
     diag = np.einsum("nii->ni", L)
     d = y.size
     z = np.empty(d)
