@@ -69,10 +69,12 @@ class ShapeSets:
 
 
 def shape_sets(line: GaussianTrend, years: np.ndarray, last_start: np.ndarray, priors: dict,
-               sigma_ref: np.ndarray) -> ShapeSets:
+               sigma_ref: np.ndarray, screen_weights: tuple | None = None) -> ShapeSets:
     """:func:`~.shapes.build_shapes`' shapes on ``line`` (its sites, design and priors), as sets of
     columns (:class:`ShapeSets`): the same accelerating forms, change candidates and
-    screened combinations, at the reference sigma ``sigma_ref`` [d]."""
+    screened combinations, at the reference sigma ``sigma_ref`` [d]. ``screen_weights``:
+    the sites' :func:`~.gaussian_trend.year_weights` at the change screen's sigma points
+    (:func:`~.shape_screen.screen_grid` of ``line.A``) when already computed."""
     t = np.asarray(years, float)
     K, d, _ = line.Mk.shape
     seg = t[None, :] >= np.asarray(last_start, float)[:, None]
@@ -94,7 +96,7 @@ def shape_sets(line: GaussianTrend, years: np.ndarray, last_start: np.ndarray, p
     if any(cand):
         E, S, blocks, bcols, kept = _change_selection(
             line, lp_line, [(f, lp) for _, f, lp, _ in extras], cand, t, seg,
-            np.log(p_change), W, prior_prec, line.A)
+            np.log(p_change), W, prior_prec, line.A, screen_weights)
         cols += [c for pair in bcols for c in pair]
         growth += [0.0] * (2 * len(blocks))
         for combo, log_prior, when in kept:
@@ -195,7 +197,8 @@ def _change_block_columns(t: np.ndarray, seg: np.ndarray, d: int, blocks: list) 
 
 def _change_selection(line: GaussianTrend, line_log_prior: float, forms: list, cand: list,
                       t: np.ndarray, seg: np.ndarray, log_p: float, W: np.ndarray,
-                      prior_prec: np.ndarray, A: np.ndarray) -> tuple:
+                      prior_prec: np.ndarray, A: np.ndarray,
+                      screen_weights: tuple | None = None) -> tuple:
     """The ``change`` shape's combinations worth weighing (the module docstring): those in
     Occam's window of the best shape and past the razor, on their evidence integrated over
     sigma on the screen's grid (:func:`~.shape_screen.screen_grid`).
@@ -218,6 +221,9 @@ def _change_selection(line: GaussianTrend, line_log_prior: float, forms: list, c
         The years' weights at the reference sigma (:func:`_unit_information`).
     A : ndarray, shape [d]
         sigma's prior scale.
+    screen_weights : (Wf, logdet_v), optional
+        The sites' :func:`~.gaussian_trend.year_weights` at ``screen_grid(A)``'s sigma,
+        when already computed.
 
     Returns
     -------
@@ -246,7 +252,7 @@ def _change_selection(line: GaussianTrend, line_log_prior: float, forms: list, c
     at = np.cumsum([0] + [len(f) for f, _ in forms])
     base = at[-1]
     S = _unit_information(W, Mk, E, prior_prec, K)
-    evidence = screen(line, E, S, screen_grid(A))
+    evidence = screen(line, E, S, screen_grid(A), screen_weights)
     # Each block's log number of candidate years (its input's): a combination's prior
     # takes one per block.
     log_n = np.log([len(cand[i]) for i, _ in blocks])

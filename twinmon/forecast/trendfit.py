@@ -165,8 +165,26 @@ def sigma_grid(cfg: Config, fleet=None, n: int = SIGMA_GRID
     return sigma, np.sum(np.log(sigma) - np.log1p((sigma / A) ** 2), axis=1)
 
 
+def year_weight_table(cov: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each year's weight ``(C_k + diag(sigma^2))^-1`` and the log-determinant of its
+    covariance at sigma points ``sigma`` [P, d], for every year of the sites ``cov``
+    [K, d, d]: [P, K, d, d] and [P, K]. Those of the years before a cut are a slice
+    (:func:`_weights_before`): a unit's cuts share them."""
+    from ..calibrate.gaussian_trend import _inv_logdet
+    V = cov[None] + (sigma ** 2)[:, None, :, None] * np.eye(cov.shape[1])
+    return _inv_logdet(V)
+
+
+def _weights_before(table: tuple, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`~twinmon.calibrate.gaussian_trend.year_weights` of years ``[0, k)`` from their
+    :func:`year_weight_table`: ``(Wf [P, k d d], logdet_v [P])``."""
+    W, logdet = table
+    return W[:, :k].reshape(len(W), -1), logdet[:, :k].sum(axis=1)
+
+
 def predict_ahead(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarray,
-                  starts: list, priors: dict, k: int, grid: tuple
+                  starts: list, priors: dict, k: int, grid: tuple,
+                  tables: tuple | None = None
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The trend model fitted to years ``[0, k)`` and its predictive of year ``k``'s site.
 
@@ -196,6 +214,10 @@ def predict_ahead(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarray
         ``calibrate.shapes`` the posterior was drawn with.
     grid : (sigma [P, d], log_prior [P])
         :func:`sigma_grid`.
+    tables : tuple, optional
+        :func:`year_weight_table` of ``cov`` at ``grid``'s sigma and at the change screen's
+        (:func:`~twinmon.calibrate.shape_screen.screen_grid`), when already computed (a
+        unit's cuts share them).
 
     Returns
     -------
@@ -206,26 +228,34 @@ def predict_ahead(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarray
     S : ndarray, shape [n, d, d]
         Each component's predictive mean and covariance of year ``k``'s site.
     """
-    from ..calibrate.gaussian_trend import GaussianTrend
+    from ..calibrate.gaussian_trend import GaussianTrend, linear_gaussian
     from ..calibrate.methods.laplace import line_model
-    from ..calibrate.shape_screen import block_terms, forward_solve, set_loglik
+    from ..calibrate.shape_screen import block_terms, forward_solve, screen_grid, set_loglik
     from ..calibrate.shape_columns import OCCAM, line_now, shape_sets
     from ..calibrate.shapes import extend
     from ..calibrate.trend import sigma_prior_scale
     sig, log_p0 = grid
+    A = sigma_prior_scale(cfg)
+    if tables is None:
+        tables = (year_weight_table(cov, sig), year_weight_table(cov, screen_grid(A)[0]))
     yk = np.asarray(years[:k])
     xk, ck = x[:k], cov[:k]
     d = x.shape[1]
     st = [s[s <= yk[-1]] for s in starts]
     _, Mk, prec, mean0, slopes, _ = line_model(cfg, yk, st)
-    line = GaussianTrend(xk, ck, Mk, prec, mean0, sigma_prior_scale(cfg))
-    Pb, _, mu, ll = line._conditional(sig)
+    line = GaussianTrend(xk, ck, Mk, prec, mean0, A)
+    on_sig = _weights_before(tables[0], k)
+    # The line's posterior at the grid (GaussianTrend._conditional's, on the shared weights).
+    Pb, _, mu, ll = (a[0] for a in linear_gaussian(
+        *on_sig, Mk[None], xk, line.prior_P[None], np.asarray(mean0, float)[None],
+        np.array([line._log_norm])))
     # The line's posterior mean of sigma on these years: the shapes' reference (as
     # calibration takes it from the line's sigma points).
     lw = log_p0 + ll
     w = np.exp(lw - lw.max())
     s_ref = (w / w.sum()) @ sig
-    sets = shape_sets(line, yk, np.array([s[-1] for s in st]), priors, s_ref)
+    sets = shape_sets(line, yk, np.array([s[-1] for s in st]), priors, s_ref,
+                      _weights_before(tables[1], k))
     u = [float(years[k] - yk[-1])]
     # Each coefficient's map to the trend one year on (the ``now`` rows extended; extend()
     # is linear in them, so applied to each column's rows it gives the map's columns).
@@ -244,7 +274,7 @@ def predict_ahead(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarray
                 set_loglik(at_ref, sets.S, np.array([comps[j][0] for j in of]))[0][:, 0]
                 if size else at_ref.ll[0])
         comps = [c for c, q in zip(comps, quick) if q >= quick.max() + np.log(OCCAM)]
-    on_grid = block_terms(line, sets.E, sig, (Pb, mu, ll)) if sets.sets else None
+    on_grid = block_terms(line, sets.E, sig, (Pb, mu, ll), on_sig) if sets.sets else None
     line_mean = mu @ Hb.T                                                     # [P, d]
     line_cov = Hb @ np.linalg.solve(Pb, np.broadcast_to(Hb.T, Pb.shape[:2] + (d,)))
     eye = np.eye(d)
@@ -301,8 +331,8 @@ def standardise(y: np.ndarray, w: np.ndarray, mean: np.ndarray, S: np.ndarray
     """
     from scipy.special import ndtr, ndtri
 
-    from ..calibrate.shape_screen import forward_solve
-    L = np.linalg.cholesky(S)                                                  # [n, d, d]
+    from ..calibrate.shape_screen import forward_solve, small_cholesky
+    L = small_cholesky(S)                                                      # [n, d, d]
     e = forward_solve(L, (y - mean)[:, :, None])[:, :, 0]                      # [n, d]
     diag = np.einsum("nii->ni", L)
     d = y.size
@@ -352,9 +382,13 @@ def check_trend_fit(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarr
     d = x.shape[1]
     z = np.empty((cuts.size, d))
     marg = np.empty((cuts.size, d))
+    from ..calibrate.shape_screen import screen_grid
+    from ..calibrate.trend import sigma_prior_scale
     grid = sigma_grid(cfg, fleet)
+    tables = (year_weight_table(cov, grid[0]),
+              year_weight_table(cov, screen_grid(sigma_prior_scale(cfg))[0]))
     for j, k in enumerate(cuts):
-        w, mean, S = predict_ahead(cfg, years, x, cov, starts, priors, int(k), grid)
+        w, mean, S = predict_ahead(cfg, years, x, cov, starts, priors, int(k), grid, tables)
         z[j], marg[j] = standardise(x[k], w, mean, S)
     q = np.sum(z * z, axis=1)
     year_p = stats.chi2.sf(q, d)
