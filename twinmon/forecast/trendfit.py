@@ -228,7 +228,7 @@ def predict_ahead(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarray
     S : ndarray, shape [n, d, d]
         Each component's predictive mean and covariance of year ``k``'s site.
     """
-    from ..calibrate.gaussian_trend import GaussianTrend, linear_gaussian
+    from ..calibrate.gaussian_trend import GaussianTrend, linear_gaussian, year_weights
     from ..calibrate.methods.laplace import line_model
     from ..calibrate.shape_screen import block_terms, forward_solve, screen_grid, set_loglik
     from ..calibrate.shape_columns import OCCAM, line_now, shape_sets
@@ -266,33 +266,49 @@ def predict_ahead(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarray
     # not worth the grid).
     comps = ([((), sets.line_log_prior)] if np.isfinite(sets.line_log_prior) else []) + \
         [(cols, lp) for _, cols, lp, _ in sets.sets]
+    groups = _by_size(comps)
+    ok = np.ones(len(comps), bool)
     if sets.sets:
-        at_ref = block_terms(line, sets.E, s_ref[None])
+        # The block terms at the grid and at the reference sigma in one evaluation (the
+        # reference its last point; the line's posterior there its own), each set's
+        # log-likelihood at both in one call per size: every set in the window is weighed
+        # on the grid after (a set the window drops costs no more than its row).
+        ref_w = year_weights(ck, s_ref[None])
+        Pr, _, mr, lr = linear_gaussian(*ref_w, Mk[None], xk, line.prior_P[None],
+                                        np.asarray(mean0, float)[None],
+                                        np.array([line._log_norm]))
+        bt = block_terms(line, sets.E, np.vstack([sig, s_ref[None]]),
+                         (np.concatenate([Pb, Pr[0]]), np.concatenate([mu, mr[0]]),
+                          np.concatenate([ll, lr[0]])),
+                         tuple(np.concatenate(p) for p in zip(on_sig, ref_w)))
+        terms = {size: set_loglik(bt, sets.S, np.array([comps[j][0] for j in of]))
+                 for size, of in groups if size}
         quick = np.empty(len(comps))
-        for size, of in _by_size(comps):
+        for size, of in groups:
             quick[of] = [comps[j][1] for j in of] + (
-                set_loglik(at_ref, sets.S, np.array([comps[j][0] for j in of]))[0][:, 0]
-                if size else at_ref.ll[0])
-        comps = [c for c, q in zip(comps, quick) if q >= quick.max() + np.log(OCCAM)]
-    on_grid = block_terms(line, sets.E, sig, (Pb, mu, ll), on_sig) if sets.sets else None
+                terms[size][0][:, -1] if size else lr[0, 0])
+        ok = quick >= quick.max() + np.log(OCCAM)
+        # G's line part, H_b Pb^-1 B, at every grid point [P, d, n_x].
+        HPiB = np.einsum("da,pac->pdc", Hb, bt.PiB[:-1])
     line_mean = mu @ Hb.T                                                     # [P, d]
     line_cov = Hb @ np.linalg.solve(Pb, np.broadcast_to(Hb.T, Pb.shape[:2] + (d,)))
     eye = np.eye(d)
     noise = sig[:, :, None] ** 2 * eye + cov[k]                               # [P, d, d]
     logw, means, covs = [], [], []
-    for size, of in _by_size(comps):
-        group = [comps[j] for j in of]
-        lp = np.array([g[1] for g in group])[:, None]
+    for size, of in groups:
+        rows = [r for r, j in enumerate(of) if ok[j]]
+        if not rows:
+            continue
+        lp = np.array([comps[of[r]][1] for r in rows])[:, None]
         if size == 0:
             logw.append((lp + log_p0 + ll).ravel())
             means.append(line_mean)
             covs.append(line_cov + noise)
             continue
-        idx = np.array([g[0] for g in group])                                 # [G, n_e]
-        lls, L, z = set_loglik(on_grid, sets.S, idx)
+        idx = np.array([comps[of[r]][0] for r in rows])                       # [G, n_e]
+        lls, L, z = (a[rows, :-1] for a in terms[size])
         # G = H_e - H_b Pb^-1 B_e per set and sigma point, [G, P, d, n_e].
-        Gm = He[:, idx].transpose(1, 0, 2)[:, None] - \
-            np.einsum("da,pac->pdc", Hb, on_grid.PiB)[:, :, idx].transpose(2, 0, 1, 3)
+        Gm = He[:, idx].transpose(1, 0, 2)[:, None] - HPiB[:, :, idx].transpose(2, 0, 1, 3)
         # With V = L L': G V^-1 r_e = Y' z and G V^-1 G' = Y' Y, Y = L^-1 G'.
         Y = forward_solve(L, np.swapaxes(Gm, 2, 3))                          # [G, P, n_e, d]
         logw.append((lp + log_p0 + lls).ravel())
