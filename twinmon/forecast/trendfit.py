@@ -182,6 +182,15 @@ def _weights_before(table: tuple, k: int) -> tuple[np.ndarray, np.ndarray]:
     return W[:, :k].reshape(len(W), -1), logdet[:, :k].sum(axis=1)
 
 
+def _weight_tables(cov: np.ndarray, sigma: np.ndarray, A: np.ndarray, priors: dict) -> tuple:
+    """:func:`year_weight_table` at the grid's sigma ``sigma`` [P, d] and at the change
+    screen's (:func:`~twinmon.calibrate.shape_screen.screen_grid` of sigma's prior scale
+    ``A`` [d]; None when the change shape has no prior weight: no screen)."""
+    from ..calibrate.shape_screen import screen_grid
+    return (year_weight_table(cov, sigma),
+            year_weight_table(cov, screen_grid(A)[0]) if priors.get("change", 0) > 0 else None)
+
+
 def predict_ahead(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarray,
                   starts: list, priors: dict, k: int, grid: tuple,
                   tables: tuple | None = None
@@ -216,8 +225,8 @@ def predict_ahead(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarray
         :func:`sigma_grid`.
     tables : tuple, optional
         :func:`year_weight_table` of ``cov`` at ``grid``'s sigma and at the change screen's
-        (:func:`~twinmon.calibrate.shape_screen.screen_grid`), when already computed (a
-        unit's cuts share them).
+        (:func:`~twinmon.calibrate.shape_screen.screen_grid`; None without the change
+        shape), when already computed (:func:`_weight_tables`: a unit's cuts share them).
 
     Returns
     -------
@@ -230,14 +239,14 @@ def predict_ahead(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarray
     """
     from ..calibrate.gaussian_trend import GaussianTrend, linear_gaussian, year_weights
     from ..calibrate.methods.laplace import line_model
-    from ..calibrate.shape_screen import block_terms, forward_solve, screen_grid, set_loglik
+    from ..calibrate.shape_screen import block_terms, forward_solve, set_loglik
     from ..calibrate.shape_columns import OCCAM, line_now, shape_sets
     from ..calibrate.shapes import extend
     from ..calibrate.trend import sigma_prior_scale
     sig, log_p0 = grid
     A = sigma_prior_scale(cfg)
     if tables is None:
-        tables = (year_weight_table(cov, sig), year_weight_table(cov, screen_grid(A)[0]))
+        tables = _weight_tables(cov, sig, A, priors)
     yk = np.asarray(years[:k])
     xk, ck = x[:k], cov[:k]
     d = x.shape[1]
@@ -255,24 +264,24 @@ def predict_ahead(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarray
     w = np.exp(lw - lw.max())
     s_ref = (w / w.sum()) @ sig
     sets = shape_sets(line, yk, np.array([s[-1] for s in st]), priors, s_ref,
-                      _weights_before(tables[1], k))
+                      None if tables[1] is None else _weights_before(tables[1], k))
     u = [float(years[k] - yk[-1])]
     # Each coefficient's map to the trend one year on (the ``now`` rows extended; extend()
     # is linear in them, so applied to each column's rows it gives the map's columns).
     Hb = extend(np.moveaxis(line_now(Mk, slopes), 2, 0), np.zeros(Mk.shape[2]), u)[:, 0].T
     He = extend(np.moveaxis(sets.now, 2, 0), sets.growth, u)[:, 0].T          # [d, n_x]
     # Occam's window, as calibration's mixture: a shape far less probable than the best at
-    # the reference sigma could not hold weight (most change years and growth rates are
-    # not worth the grid).
+    # the reference sigma could not hold weight, and is left out of the mixture.
     comps = ([((), sets.line_log_prior)] if np.isfinite(sets.line_log_prior) else []) + \
         [(cols, lp) for _, cols, lp, _ in sets.sets]
     groups = _by_size(comps)
     ok = np.ones(len(comps), bool)
     if sets.sets:
         # The block terms at the grid and at the reference sigma in one evaluation (the
-        # reference its last point; the line's posterior there its own), each set's
-        # log-likelihood at both in one call per size: every set in the window is weighed
-        # on the grid after (a set the window drops costs no more than its row).
+        # reference the last point, with the line's posterior there), and each set's
+        # log-likelihood at both in one call per size: a call per size and sigma costs
+        # more than the grid rows of the sets the window drops (on 60 units of a fleet it
+        # dropped none).
         ref_w = year_weights(ck, s_ref[None])
         Pr, _, mr, lr = linear_gaussian(*ref_w, Mk[None], xk, line.prior_P[None],
                                         np.asarray(mean0, float)[None],
@@ -398,11 +407,9 @@ def check_trend_fit(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarr
     d = x.shape[1]
     z = np.empty((cuts.size, d))
     marg = np.empty((cuts.size, d))
-    from ..calibrate.shape_screen import screen_grid
     from ..calibrate.trend import sigma_prior_scale
     grid = sigma_grid(cfg, fleet)
-    tables = (year_weight_table(cov, grid[0]),
-              year_weight_table(cov, screen_grid(sigma_prior_scale(cfg))[0]))
+    tables = _weight_tables(cov, grid[0], sigma_prior_scale(cfg), priors)
     for j, k in enumerate(cuts):
         w, mean, S = predict_ahead(cfg, years, x, cov, starts, priors, int(k), grid, tables)
         z[j], marg[j] = standardise(x[k], w, mean, S)
