@@ -296,3 +296,17 @@ def test_a_straight_line_stays_the_line():
         hits += lo <= slope <= hi
     assert np.median(p_line) > 0.7, p_line
     assert hits >= 16, hits
+
+
+def test_stacked_small_factors_and_forward_solves_match_lapack():
+    from twinmon.calibrate.shape_screen import forward_solve, small_cholesky
+    rng = np.random.default_rng(3)
+    # Entry by entry (many of n <= 4), and LAPACK's (few, or n = 5).
+    for shape, n in (((30, 64), 2), ((12, 64), 4), ((3,), 2), ((64,), 5)):
+        A = rng.standard_normal(shape + (n, n + 2))
+        V = A @ np.swapaxes(A, -1, -2)
+        L = small_cholesky(V)
+        np.testing.assert_allclose(L, np.linalg.cholesky(V), rtol=0, atol=1e-12)
+        B = rng.standard_normal(shape + (n, 3))
+        np.testing.assert_allclose(forward_solve(L, B), np.linalg.solve(L, B), rtol=0,
+                                   atol=1e-10)

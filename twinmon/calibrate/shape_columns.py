@@ -69,10 +69,12 @@ class ShapeSets:
 
 
 def shape_sets(line: GaussianTrend, years: np.ndarray, last_start: np.ndarray, priors: dict,
-               sigma_ref: np.ndarray) -> ShapeSets:
+               sigma_ref: np.ndarray, screen_weights: tuple | None = None) -> ShapeSets:
     """:func:`~.shapes.build_shapes`' shapes on ``line`` (its sites, design and priors), as sets of
     columns (:class:`ShapeSets`): the same accelerating forms, change candidates and
-    screened combinations, at the reference sigma ``sigma_ref`` [d]."""
+    screened combinations, at the reference sigma ``sigma_ref`` [d]. ``screen_weights``:
+    the sites' :func:`~.gaussian_trend.year_weights` at the change screen's sigma points
+    (:func:`~.shape_screen.screen_grid` of ``line.A``) when already computed."""
     t = np.asarray(years, float)
     K, d, _ = line.Mk.shape
     seg = t[None, :] >= np.asarray(last_start, float)[:, None]
@@ -94,7 +96,7 @@ def shape_sets(line: GaussianTrend, years: np.ndarray, last_start: np.ndarray, p
     if any(cand):
         E, S, blocks, bcols, kept = _change_selection(
             line, lp_line, [(f, lp) for _, f, lp, _ in extras], cand, t, seg,
-            np.log(p_change), W, prior_prec, line.A)
+            np.log(p_change), W, prior_prec, line.A, screen_weights)
         cols += [c for pair in bcols for c in pair]
         growth += [0.0] * (2 * len(blocks))
         for combo, log_prior, when in kept:
@@ -120,25 +122,24 @@ def _accelerating_forms(t: np.ndarray, seg: np.ndarray, priors: dict, total: flo
         return []
     d, K = seg.shape
     t_last = t[-1]
-    forms = []
-    for r in (0.0,) + tuple(GROWTH_RATES):
-        cols = []
-        for i in range(d):
-            if seg[i].sum() < ACCELERATING_MIN_YEARS:
-                continue
-            ts = t[seg[i]]
-            col = np.zeros((K, d))
-            if r == 0.0:
-                c = ts.mean()
-                v = np.mean((ts - c) ** 2)
-                col[seg[i], i] = (ts - c) ** 2 - v
-                cols.append((col, i, ((t_last - c) ** 2 - v, 2.0 * (t_last - c), 1.0, 0.0)))
-            else:
-                g = np.exp(r * (ts - t_last))
-                col[seg[i], i] = g - g.mean()
-                cols.append((col, i, (1.0 - g.mean(), r, 0.0, 1.0)))
-        if cols:
-            forms.append((r, cols))
+    rates = (0.0,) + tuple(GROWTH_RATES)
+    able = [i for i in range(d) if seg[i].sum() >= ACCELERATING_MIN_YEARS]
+    # Every form's column of every input in one array (a view each), the exponentials of
+    # all rates at once: the forms are rebuilt for each of a unit's cut years.
+    col = np.zeros((len(rates), d, K, d))
+    per = {}
+    for i in able:
+        ts = t[seg[i]]
+        c = ts.mean()
+        v = np.mean((ts - c) ** 2)
+        col[0, i, seg[i], i] = (ts - c) ** 2 - v
+        g = np.exp(np.array(GROWTH_RATES)[:, None] * (ts - t_last))          # [R, n]
+        g_mean = g.mean(axis=1)
+        col[1:, i, seg[i], i] = g - g_mean[:, None]
+        per[i] = [((t_last - c) ** 2 - v, 2.0 * (t_last - c), 1.0, 0.0)] + \
+            [(1.0 - g_mean[j], r, 0.0, 1.0) for j, r in enumerate(GROWTH_RATES)]
+    forms = [(r, [(col[j, i], i, per[i][j]) for i in able]) for j, r in enumerate(rates)
+             if able]
     # The forms share the shape's prior equally (half on the quadratic, half shared by the
     # rates, measured worse on benchmarks/prognosis.py's accelerating fleets, seed 11:
     # quadratic coverage 0.79 against 0.83, exponential 0.89 against 0.94).
@@ -149,9 +150,15 @@ def _accelerating_forms(t: np.ndarray, seg: np.ndarray, priors: dict, total: flo
 def _change_candidates(t: np.ndarray, seg: np.ndarray, p_change: float) -> list:
     """Each input's years of a change: :data:`CHANGE_MIN_YEARS` of its segment before and
     from it (none when the change has prior 0)."""
-    return [[int(y) for y in t if (seg[i] & (t < y)).sum() >= CHANGE_MIN_YEARS
-             and (seg[i] & (t >= y)).sum() >= CHANGE_MIN_YEARS] if p_change > 0 else []
-            for i in range(len(seg))]
+    if p_change <= 0:
+        return [[] for _ in range(len(seg))]
+    # Years of each segment before each candidate year and from it, [d, K], every input
+    # and year at once.
+    on = seg.astype(float)
+    before = on @ (t[None, :] < t[:, None]).T.astype(float)
+    after = on @ (t[None, :] >= t[:, None]).T.astype(float)
+    ok = (before >= CHANGE_MIN_YEARS) & (after >= CHANGE_MIN_YEARS)
+    return [[int(y) for y in t[ok[i]]] for i in range(len(seg))]
 
 
 def _reference_weights(cov: np.ndarray, s_ref: np.ndarray) -> np.ndarray:
@@ -172,9 +179,26 @@ def _change_columns(t: np.ndarray, seg: np.ndarray, i: int, d: int, y: int) -> l
     return [(jump, i, (1.0, 0.0, 0.0, 0.0)), (rate, i, (t[-1] - y, 1.0, 0.0, 0.0))]
 
 
+def _change_block_columns(t: np.ndarray, seg: np.ndarray, d: int, blocks: list) -> tuple:
+    """:func:`_change_columns` of every block ``(input, year)`` at once: their entries (views
+    of one array) and the columns themselves [K, d, 2 n_blocks], each block's jump then
+    rate."""
+    K, n = len(t), len(blocks)
+    ins = np.array([i for i, _ in blocks], dtype=int)
+    ys = np.array([y for _, y in blocks], float)
+    on = seg[ins] & (t[None, :] >= ys[:, None])                              # [n, K]
+    E = np.zeros((n, 2, K, d))
+    E[np.arange(n), 0, :, ins] = on
+    E[np.arange(n), 1, :, ins] = np.where(on, t[None, :] - ys[:, None], 0.0)
+    cols = [[(E[b, 0], i, (1.0, 0.0, 0.0, 0.0)), (E[b, 1], i, (t[-1] - y, 1.0, 0.0, 0.0))]
+            for b, (i, y) in enumerate(blocks)]
+    return cols, np.moveaxis(E.reshape(2 * n, K, d), 0, 2)
+
+
 def _change_selection(line: GaussianTrend, line_log_prior: float, forms: list, cand: list,
                       t: np.ndarray, seg: np.ndarray, log_p: float, W: np.ndarray,
-                      prior_prec: np.ndarray, A: np.ndarray) -> tuple:
+                      prior_prec: np.ndarray, A: np.ndarray,
+                      screen_weights: tuple | None = None) -> tuple:
     """The ``change`` shape's combinations worth weighing (the module docstring): those in
     Occam's window of the best shape and past the razor, on their evidence integrated over
     sigma on the screen's grid (:func:`~.shape_screen.screen_grid`).
@@ -197,6 +221,9 @@ def _change_selection(line: GaussianTrend, line_log_prior: float, forms: list, c
         The years' weights at the reference sigma (:func:`_unit_information`).
     A : ndarray, shape [d]
         sigma's prior scale.
+    screen_weights : (Wf, logdet_v), optional
+        The sites' :func:`~.gaussian_trend.year_weights` at ``screen_grid(A)``'s sigma,
+        when already computed.
 
     Returns
     -------
@@ -218,24 +245,26 @@ def _change_selection(line: GaussianTrend, line_log_prior: float, forms: list, c
     # given that one does: the sets of inputs that change are equally likely.
     log_norm = log_p - np.log1p(-0.5 ** len(able)) + len(able) * np.log(0.5)
     blocks = [(i, y) for i in able for y in cand[i]]
-    cols = [_change_columns(t, seg[i], i, d, y) for i, y in blocks]
+    cols, E_change = _change_block_columns(t, seg, d, blocks)
     # Every extra column at once: the forms' (first), then two per change block.
-    extra = [c for f, _ in forms for c in f] + [c for pair in cols for c in pair]
-    E = np.stack([c for c, _, _ in extra], axis=2)                          # [K, d, n_x]
+    E = np.concatenate([np.stack([c for f, _ in forms for c, _, _ in f], axis=2)
+                        if forms else np.zeros((K, d, 0)), E_change], axis=2)  # [K, d, n_x]
     at = np.cumsum([0] + [len(f) for f, _ in forms])
     base = at[-1]
     S = _unit_information(W, Mk, E, prior_prec, K)
-    evidence = screen(line, E, S, screen_grid(A))
+    evidence = screen(line, E, S, screen_grid(A), screen_weights)
+    # Each block's log number of candidate years (its input's): a combination's prior
+    # takes one per block.
+    log_n = np.log([len(cand[i]) for i, _ in blocks])
 
-    def block_cols(combo: tuple) -> list:
-        return [base + 2 * b + c for b in combo for c in (0, 1)]
-
-    def prior(combo: tuple) -> float:
-        return log_norm - sum(np.log(len(cand[blocks[b][0]])) for b in combo)
+    def prior(combos: list) -> np.ndarray:
+        return log_norm - log_n[np.array(combos, dtype=int)].sum(axis=1)
 
     def score(combos: list) -> np.ndarray:
-        return np.array([prior(c) for c in combos]) + \
-            evidence([block_cols(c) for c in combos])
+        # A combination's columns: its blocks' two each, in the blocks' order.
+        idx = (base + 2 * np.array(combos, dtype=int)[:, :, None] + np.arange(2)).reshape(
+            len(combos), -1)
+        return prior(combos) + evidence(idx)
 
     years = [[b for b in range(len(blocks)) if blocks[b][0] == i] for i in range(d)]
     if np.prod([len(cand[i]) + 1 for i in able]) - 1 > CHANGE_COMBOS:
@@ -268,7 +297,7 @@ def _change_selection(line: GaussianTrend, line_log_prior: float, forms: list, c
         when = [-1] * d
         for b in c:
             when[blocks[b][0]] = blocks[b][1]
-        kept.append((c, prior(c), tuple(when)))
+        kept.append((c, float(prior([c])[0]), tuple(when)))
     return E, S, blocks, cols, kept
 
 

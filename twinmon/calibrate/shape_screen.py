@@ -19,9 +19,13 @@ from .gaussian_trend import GaussianTrend, linear_gaussian, year_weights
 #: combinations are screened (:func:`screen_grid`).
 SCREEN_POINTS = 64
 SCREEN_SEED = 20
+#: Fewest matrices of a stack that :func:`small_cholesky` factors entry by entry (fewer:
+#: LAPACK's calls cost no more).
+SMALL_STACK = 64
 
 
-def screen(line: GaussianTrend, E: np.ndarray, S: np.ndarray, grid: tuple):
+def screen(line: GaussianTrend, E: np.ndarray, S: np.ndarray, grid: tuple,
+           weights: tuple | None = None):
     """The log evidence of the line plus sets of extra columns, integrated over sigma on a
     grid, without building the models: at each sigma point the line's posterior is
     computed once, and a set's columns add a block-update of its marginal likelihood,
@@ -42,6 +46,9 @@ def screen(line: GaussianTrend, E: np.ndarray, S: np.ndarray, grid: tuple):
         Their prior precision (a set's is its rows and columns).
     grid : (sigma [P, d], log_weight [P])
         :func:`screen_grid`.
+    weights : (Wf [P, K d d], logdet_v [P]), optional
+        :func:`~.gaussian_trend.year_weights` of the line's sites at ``grid``'s sigma, when
+        already computed.
 
     Returns
     -------
@@ -50,7 +57,7 @@ def screen(line: GaussianTrend, E: np.ndarray, S: np.ndarray, grid: tuple):
         line's).
     """
     sigma, log_w = grid
-    bt = block_terms(line, E, sigma)
+    bt = block_terms(line, E, sigma, weights=weights)
     ll = bt.ll + log_w
 
     def evidence(sets: list) -> np.ndarray:
@@ -92,13 +99,15 @@ class BlockTerms:
 
 
 def block_terms(line: GaussianTrend, E: np.ndarray, sigma: np.ndarray,
-                post: tuple | None = None) -> BlockTerms:
+                post: tuple | None = None, weights: tuple | None = None) -> BlockTerms:
     """The line's posterior at sigma points ``sigma`` [P, d] and the block-update terms of
     extra columns ``E`` [K, d, n_x] (:func:`screen`'s formula): with a set ``e`` of them
     and its prior precision ``P_e``, ``V = P_e + F_ee`` is the set's posterior precision
     given the line's, ``V^-1 r_e`` its mean. ``post``: the line's ``(Pb, mu, ll)`` at
-    ``sigma`` when already computed (``line._conditional(sigma)``'s)."""
-    Wf, logdet_v = year_weights(line.cov, sigma)
+    ``sigma`` when already computed (``line._conditional(sigma)``'s); ``weights``: the
+    years' ``(Wf, logdet_v)`` at ``sigma`` when already computed
+    (:func:`~.gaussian_trend.year_weights`'s)."""
+    Wf, logdet_v = year_weights(line.cov, sigma) if weights is None else weights
     K, d, n_l = line.Mk.shape
     if post is None:
         Pb, _, mu, ll = linear_gaussian(Wf, logdet_v, line.Mk[None], line.x,
@@ -131,21 +140,63 @@ def set_loglik(bt: BlockTerms, S: np.ndarray, idx: np.ndarray,
     ll : ndarray, shape [G, P]
         ``base`` [P] (default the line's, ``bt.ll``) plus each set's block update: what
         :func:`~.gaussian_trend.linear_gaussian` gives the set's model of its own.
-    V : ndarray, shape [G, P, n_e, n_e]
-        The sets' posterior precision given the line's coefficients.
-    r_e : ndarray, shape [G, P, n_e]
-        Their scores at the line's posterior mean (``V^-1 r_e``: their posterior mean).
+    L : ndarray, shape [G, P, n_e, n_e]
+        Cholesky factor of the sets' posterior precision given the line's coefficients,
+        ``V = L L'``.
+    z : ndarray, shape [G, P, n_e]
+        ``L^-1 r_e``, ``r_e`` the sets' scores at the line's posterior mean (``L'^-1 z``:
+        their posterior mean).
     """
     base = bt.ll if base is None else base
     P_e = S[idx[:, :, None], idx[:, None, :]]                                # [G, n_e, n_e]
     V = P_e[:, None] + np.swapaxes(bt.F[:, idx[:, :, None], idx[:, None, :]], 0, 1)
     r_e = np.swapaxes(bt.r[:, idx], 0, 1)
-    L = np.linalg.cholesky(V)                                                # [G, P, n_e, n_e]
-    z = np.linalg.solve(L, r_e[..., None])[..., 0]
+    L = small_cholesky(V)                                                    # [G, P, n_e, n_e]
+    z = forward_solve(L, r_e[..., None])[..., 0]
     ll = base[None] + 0.5 * (np.linalg.slogdet(P_e)[1][:, None]
                              - 2.0 * np.log(np.einsum("gpii->gpi", L)).sum(axis=2)
                              + np.sum(z * z, axis=2))
-    return ll, V, r_e
+    return ll, L, z
+
+
+def small_cholesky(V: np.ndarray) -> np.ndarray:
+    """Cholesky factors of stacked symmetric positive definite matrices ``V`` [..., n, n],
+    entry by entry over the whole stack when they are small and many (n <= 4, more than
+    :data:`SMALL_STACK` of them: a set's thousands of 2 x 2 and 4 x 4 systems, on which
+    LAPACK's per-matrix calls cost several times the arithmetic), else LAPACK's (which also
+    raises on a matrix that is not positive definite)."""
+    n = V.shape[-1]
+    if n > 4 or V.size < SMALL_STACK * n * n:
+        return np.linalg.cholesky(V)
+    L = np.zeros_like(V)
+    for j in range(n):
+        acc = V[..., j, j].copy()
+        for m in range(j):
+            acc -= L[..., j, m] ** 2
+        L[..., j, j] = np.sqrt(acc)
+        for i in range(j + 1, n):
+            acc = V[..., i, j].copy()
+            for m in range(j):
+                acc -= L[..., i, m] * L[..., j, m]
+            L[..., i, j] = acc / L[..., j, j]
+    if not np.all(np.einsum("...ii->...i", L) > 0):
+        return np.linalg.cholesky(V)
+    return L
+
+
+def forward_solve(L: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """``L^-1 B`` for stacked lower-triangular ``L`` [..., n, n] and ``B`` [..., n, m], by
+    forward substitution over the ``n`` rows, each an operation on the whole stack: a
+    set's few columns make thousands of systems of 2 to 6 rows, on which LAPACK's
+    per-matrix calls of a general solve cost several times the arithmetic."""
+    n = L.shape[-1]
+    Y = np.empty(np.broadcast_shapes(L.shape[:-2], B.shape[:-2]) + B.shape[-2:])
+    for i in range(n):
+        acc = B[..., i, :].copy()
+        for j in range(i):
+            acc -= L[..., i, j, None] * Y[..., j, :]
+        Y[..., i, :] = acc / L[..., i, i, None]
+    return Y
 
 
 def screen_grid(A: np.ndarray, n: int = SCREEN_POINTS) -> tuple[np.ndarray, np.ndarray]:

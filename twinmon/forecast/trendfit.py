@@ -165,8 +165,35 @@ def sigma_grid(cfg: Config, fleet=None, n: int = SIGMA_GRID
     return sigma, np.sum(np.log(sigma) - np.log1p((sigma / A) ** 2), axis=1)
 
 
+def year_weight_table(cov: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each year's weight ``(C_k + diag(sigma^2))^-1`` and the log-determinant of its
+    covariance at sigma points ``sigma`` [P, d], for every year of the sites ``cov``
+    [K, d, d]: [P, K, d, d] and [P, K]. Those of the years before a cut are a slice
+    (:func:`_weights_before`): a unit's cuts share them."""
+    from ..calibrate.gaussian_trend import _inv_logdet
+    V = cov[None] + (sigma ** 2)[:, None, :, None] * np.eye(cov.shape[1])
+    return _inv_logdet(V)
+
+
+def _weights_before(table: tuple, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`~twinmon.calibrate.gaussian_trend.year_weights` of years ``[0, k)`` from their
+    :func:`year_weight_table`: ``(Wf [P, k d d], logdet_v [P])``."""
+    W, logdet = table
+    return W[:, :k].reshape(len(W), -1), logdet[:, :k].sum(axis=1)
+
+
+def _weight_tables(cov: np.ndarray, sigma: np.ndarray, A: np.ndarray, priors: dict) -> tuple:
+    """:func:`year_weight_table` at the grid's sigma ``sigma`` [P, d] and at the change
+    screen's (:func:`~twinmon.calibrate.shape_screen.screen_grid` of sigma's prior scale
+    ``A`` [d]; None when the change shape has no prior weight: no screen)."""
+    from ..calibrate.shape_screen import screen_grid
+    return (year_weight_table(cov, sigma),
+            year_weight_table(cov, screen_grid(A)[0]) if priors.get("change", 0) > 0 else None)
+
+
 def predict_ahead(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarray,
-                  starts: list, priors: dict, k: int, grid: tuple
+                  starts: list, priors: dict, k: int, grid: tuple,
+                  tables: tuple | None = None
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The trend model fitted to years ``[0, k)`` and its predictive of year ``k``'s site.
 
@@ -196,6 +223,10 @@ def predict_ahead(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarray
         ``calibrate.shapes`` the posterior was drawn with.
     grid : (sigma [P, d], log_prior [P])
         :func:`sigma_grid`.
+    tables : tuple, optional
+        :func:`year_weight_table` of ``cov`` at ``grid``'s sigma and at the change screen's
+        (:func:`~twinmon.calibrate.shape_screen.screen_grid`; None without the change
+        shape), when already computed (:func:`_weight_tables`: a unit's cuts share them).
 
     Returns
     -------
@@ -206,68 +237,92 @@ def predict_ahead(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarray
     S : ndarray, shape [n, d, d]
         Each component's predictive mean and covariance of year ``k``'s site.
     """
-    from ..calibrate.gaussian_trend import GaussianTrend
+    from ..calibrate.gaussian_trend import GaussianTrend, linear_gaussian, year_weights
     from ..calibrate.methods.laplace import line_model
-    from ..calibrate.shape_screen import block_terms, set_loglik
+    from ..calibrate.shape_screen import block_terms, forward_solve, set_loglik
     from ..calibrate.shape_columns import OCCAM, line_now, shape_sets
     from ..calibrate.shapes import extend
     from ..calibrate.trend import sigma_prior_scale
     sig, log_p0 = grid
+    A = sigma_prior_scale(cfg)
+    if tables is None:
+        tables = _weight_tables(cov, sig, A, priors)
     yk = np.asarray(years[:k])
     xk, ck = x[:k], cov[:k]
     d = x.shape[1]
     st = [s[s <= yk[-1]] for s in starts]
     _, Mk, prec, mean0, slopes, _ = line_model(cfg, yk, st)
-    line = GaussianTrend(xk, ck, Mk, prec, mean0, sigma_prior_scale(cfg))
-    Pb, _, mu, ll = line._conditional(sig)
+    line = GaussianTrend(xk, ck, Mk, prec, mean0, A)
+    on_sig = _weights_before(tables[0], k)
+    # The line's posterior at the grid (GaussianTrend._conditional's, on the shared weights).
+    Pb, _, mu, ll = (a[0] for a in linear_gaussian(
+        *on_sig, Mk[None], xk, line.prior_P[None], np.asarray(mean0, float)[None],
+        np.array([line._log_norm])))
     # The line's posterior mean of sigma on these years: the shapes' reference (as
     # calibration takes it from the line's sigma points).
     lw = log_p0 + ll
     w = np.exp(lw - lw.max())
     s_ref = (w / w.sum()) @ sig
-    sets = shape_sets(line, yk, np.array([s[-1] for s in st]), priors, s_ref)
+    sets = shape_sets(line, yk, np.array([s[-1] for s in st]), priors, s_ref,
+                      None if tables[1] is None else _weights_before(tables[1], k))
     u = [float(years[k] - yk[-1])]
     # Each coefficient's map to the trend one year on (the ``now`` rows extended; extend()
     # is linear in them, so applied to each column's rows it gives the map's columns).
     Hb = extend(np.moveaxis(line_now(Mk, slopes), 2, 0), np.zeros(Mk.shape[2]), u)[:, 0].T
     He = extend(np.moveaxis(sets.now, 2, 0), sets.growth, u)[:, 0].T          # [d, n_x]
     # Occam's window, as calibration's mixture: a shape far less probable than the best at
-    # the reference sigma could not hold weight (most change years and growth rates are
-    # not worth the grid).
+    # the reference sigma could not hold weight, and is left out of the mixture.
     comps = ([((), sets.line_log_prior)] if np.isfinite(sets.line_log_prior) else []) + \
         [(cols, lp) for _, cols, lp, _ in sets.sets]
+    groups = _by_size(comps)
+    ok = np.ones(len(comps), bool)
     if sets.sets:
-        at_ref = block_terms(line, sets.E, s_ref[None])
+        # The block terms at the grid and at the reference sigma in one evaluation (the
+        # reference the last point, with the line's posterior there), and each set's
+        # log-likelihood at both in one call per size: a call per size and sigma costs
+        # more than the grid rows of the sets the window drops (on 60 units of a fleet it
+        # dropped none).
+        ref_w = year_weights(ck, s_ref[None])
+        Pr, _, mr, lr = linear_gaussian(*ref_w, Mk[None], xk, line.prior_P[None],
+                                        np.asarray(mean0, float)[None],
+                                        np.array([line._log_norm]))
+        bt = block_terms(line, sets.E, np.vstack([sig, s_ref[None]]),
+                         (np.concatenate([Pb, Pr[0]]), np.concatenate([mu, mr[0]]),
+                          np.concatenate([ll, lr[0]])),
+                         tuple(np.concatenate(p) for p in zip(on_sig, ref_w)))
+        terms = {size: set_loglik(bt, sets.S, np.array([comps[j][0] for j in of]))
+                 for size, of in groups if size}
         quick = np.empty(len(comps))
-        for size, of in _by_size(comps):
+        for size, of in groups:
             quick[of] = [comps[j][1] for j in of] + (
-                set_loglik(at_ref, sets.S, np.array([comps[j][0] for j in of]))[0][:, 0]
-                if size else at_ref.ll[0])
-        comps = [c for c, q in zip(comps, quick) if q >= quick.max() + np.log(OCCAM)]
-    on_grid = block_terms(line, sets.E, sig, (Pb, mu, ll)) if sets.sets else None
+                terms[size][0][:, -1] if size else lr[0, 0])
+        ok = quick >= quick.max() + np.log(OCCAM)
+        # G's line part, H_b Pb^-1 B, at every grid point [P, d, n_x].
+        HPiB = np.einsum("da,pac->pdc", Hb, bt.PiB[:-1])
     line_mean = mu @ Hb.T                                                     # [P, d]
     line_cov = Hb @ np.linalg.solve(Pb, np.broadcast_to(Hb.T, Pb.shape[:2] + (d,)))
     eye = np.eye(d)
     noise = sig[:, :, None] ** 2 * eye + cov[k]                               # [P, d, d]
     logw, means, covs = [], [], []
-    for size, of in _by_size(comps):
-        group = [comps[j] for j in of]
-        lp = np.array([g[1] for g in group])[:, None]
+    for size, of in groups:
+        rows = [r for r, j in enumerate(of) if ok[j]]
+        if not rows:
+            continue
+        lp = np.array([comps[of[r]][1] for r in rows])[:, None]
         if size == 0:
             logw.append((lp + log_p0 + ll).ravel())
             means.append(line_mean)
             covs.append(line_cov + noise)
             continue
-        idx = np.array([g[0] for g in group])                                 # [G, n_e]
-        lls, V, r_e = set_loglik(on_grid, sets.S, idx)
+        idx = np.array([comps[of[r]][0] for r in rows])                       # [G, n_e]
+        lls, L, z = (a[rows, :-1] for a in terms[size])
         # G = H_e - H_b Pb^-1 B_e per set and sigma point, [G, P, d, n_e].
-        Gm = He[:, idx].transpose(1, 0, 2)[:, None] - \
-            np.einsum("da,pac->pdc", Hb, on_grid.PiB)[:, :, idx].transpose(2, 0, 1, 3)
-        mu_e = np.linalg.solve(V, r_e[..., None])[..., 0]
-        VG = np.linalg.solve(V, np.swapaxes(Gm, 2, 3))
+        Gm = He[:, idx].transpose(1, 0, 2)[:, None] - HPiB[:, :, idx].transpose(2, 0, 1, 3)
+        # With V = L L': G V^-1 r_e = Y' z and G V^-1 G' = Y' Y, Y = L^-1 G'.
+        Y = forward_solve(L, np.swapaxes(Gm, 2, 3))                          # [G, P, n_e, d]
         logw.append((lp + log_p0 + lls).ravel())
-        means.append((line_mean + np.einsum("gpde,gpe->gpd", Gm, mu_e)).reshape(-1, d))
-        covs.append((line_cov + Gm @ VG + noise).reshape(-1, d, d))
+        means.append((line_mean + np.einsum("gped,gpe->gpd", Y, z)).reshape(-1, d))
+        covs.append((line_cov + np.swapaxes(Y, 2, 3) @ Y + noise).reshape(-1, d, d))
     logw = np.concatenate(logw)
     keep = logw >= logw.max() + np.log(NEGLIGIBLE)
     w = np.exp(logw[keep] - logw.max())
@@ -300,8 +355,10 @@ def standardise(y: np.ndarray, w: np.ndarray, mean: np.ndarray, S: np.ndarray
         ``(y - E y) / sd(y)`` per input under the mixture.
     """
     from scipy.special import ndtr, ndtri
-    L = np.linalg.cholesky(S)                                                  # [n, d, d]
-    e = np.linalg.solve(L, (y - mean)[:, :, None])[:, :, 0]                     # [n, d]
+
+    from ..calibrate.shape_screen import forward_solve, small_cholesky
+    L = small_cholesky(S)                                                      # [n, d, d]
+    e = forward_solve(L, (y - mean)[:, :, None])[:, :, 0]                      # [n, d]
     diag = np.einsum("nii->ni", L)
     d = y.size
     z = np.empty(d)
@@ -350,9 +407,11 @@ def check_trend_fit(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarr
     d = x.shape[1]
     z = np.empty((cuts.size, d))
     marg = np.empty((cuts.size, d))
+    from ..calibrate.trend import sigma_prior_scale
     grid = sigma_grid(cfg, fleet)
+    tables = _weight_tables(cov, grid[0], sigma_prior_scale(cfg), priors)
     for j, k in enumerate(cuts):
-        w, mean, S = predict_ahead(cfg, years, x, cov, starts, priors, int(k), grid)
+        w, mean, S = predict_ahead(cfg, years, x, cov, starts, priors, int(k), grid, tables)
         z[j], marg[j] = standardise(x[k], w, mean, S)
     q = np.sum(z * z, axis=1)
     year_p = stats.chi2.sf(q, d)
