@@ -43,12 +43,12 @@ def _line_model(years, c, A, slope_sd, d=1):
 def test_closed_form_inverse_and_factor_are_numpys():
     # The years' conditional covariances of 2 inputs are inverted and factored in closed
     # form; 1 and 3 inputs go through LAPACK.
-    from twinmon.calibrate.gaussian_trend import _inv_chol
+    from twinmon.calibrate.stacked import inv_chol
     rng = np.random.default_rng(2)
     for d in (1, 2, 3):
         A = rng.standard_normal((50, 4, d, d))
         A = A @ np.swapaxes(A, -1, -2) + 0.1 * np.eye(d)
-        G, L = _inv_chol(A)
+        G, L = inv_chol(A)
         np.testing.assert_allclose(G, np.linalg.inv(A), rtol=1e-9, atol=1e-12)
         np.testing.assert_allclose(L, np.linalg.cholesky(np.linalg.inv(A)), rtol=1e-9,
                                    atol=1e-12)
@@ -81,13 +81,14 @@ def test_evidence_alone_from_the_factor_is_the_solves():
 
 
 def test_year_weights_closed_form_is_the_general_inverse():
-    from twinmon.calibrate.gaussian_trend import _inv_logdet, year_weights
+    from twinmon.calibrate.gaussian_trend import year_weights
+    from twinmon.calibrate.stacked import inv_logdet
     rng = np.random.default_rng(5)
     cov = rng.standard_normal((7, 2, 2))
     cov = cov @ np.swapaxes(cov, 1, 2) + 0.1 * np.eye(2)
     sigma = np.abs(rng.standard_normal((30, 2)))
     W, logdet = year_weights(cov, sigma)
-    W0, l0 = _inv_logdet(cov[None] + (sigma ** 2)[:, None, :, None] * np.eye(2))
+    W0, l0 = inv_logdet(cov[None] + (sigma ** 2)[:, None, :, None] * np.eye(2))
     assert np.array_equal(W, W0.reshape(30, -1)) and np.array_equal(logdet, l0.sum(axis=1))
 
 

@@ -299,7 +299,7 @@ def test_a_straight_line_stays_the_line():
 
 
 def test_stacked_small_factors_and_forward_solves_match_lapack():
-    from twinmon.calibrate.shape_screen import forward_solve, small_cholesky
+    from twinmon.calibrate.stacked import forward_solve, small_cholesky
     rng = np.random.default_rng(3)
     # Entry by entry (many of n <= 4), and LAPACK's (few, or n = 5).
     for shape, n in (((30, 64), 2), ((12, 64), 4), ((3,), 2), ((64,), 5)):

@@ -8,6 +8,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .stacked import chol_solve, inv_chol, inv_logdet
+
 #: Quasi-random sigma points per round, and the effective number of them the weights must
 #: reach before the zooming stops (at most :data:`SIGMA_ROUNDS` rounds).
 SIGMA_POINTS = 512
@@ -27,46 +29,8 @@ EP_SWEEPS = 3
 EP_DRAWS = 1000
 EP_POINTS = 300
 EP_MIN_ESS = 30.0
-#: Fewest systems :func:`linear_gaussian` solves by substitution on their Cholesky factors
-#: rather than by LAPACK's solve (measured: 100 systems of 6, 33 against 61 us; 512, 236
-#: against 168 us; 16 x 512 of 8, 3.8 against 1.2 ms).
-SMALL_STACK = 256
 #: No box: the Gaussian model's own draws (the box enters through the weights).
 WIDE_BOX = np.tile([-np.inf, np.inf], (64, 1))
-
-
-def _inv_logdet(V: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Inverses and log-determinants of stacked symmetric positive definite matrices
-    ``V`` [..., d, d]; closed form for d <= 2 (the usual case: LAPACK's per-matrix calls
-    cost more than the arithmetic)."""
-    d = V.shape[-1]
-    if d == 1:
-        return 1.0 / V, np.log(V[..., 0, 0])
-    if d == 2:
-        a, b, c = V[..., 0, 0], V[..., 0, 1], V[..., 1, 1]
-        det = a * c - b * b
-        inv = np.stack([np.stack([c, -b], -1), np.stack([-b, a], -1)], -2) / det[..., None, None]
-        return inv, np.log(det)
-    L = np.linalg.cholesky(V)
-    return np.linalg.inv(V), 2.0 * np.log(np.diagonal(L, axis1=-2, axis2=-1)).sum(axis=-1)
-
-
-def _inv_chol(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Inverses of stacked symmetric positive definite matrices ``A`` [..., d, d] and the
-    inverses' Cholesky factors; closed form for d = 2 (a unit's draws are thousands of
-    2 x 2 matrices, for which LAPACK's per-matrix calls cost ten times the arithmetic)."""
-    if A.shape[-1] != 2:
-        G = np.linalg.inv(A)
-        return G, np.linalg.cholesky(G)
-    a, b, c = A[..., 0, 0], A[..., 0, 1], A[..., 1, 1]
-    det = a * c - b * b
-    g00, g01, g11 = c / det, -b / det, a / det
-    G = np.stack([np.stack([g00, g01], -1), np.stack([g01, g11], -1)], -2)
-    l00 = np.sqrt(g00)
-    l10 = g01 / l00
-    L = np.zeros_like(G)
-    L[..., 0, 0], L[..., 1, 0], L[..., 1, 1] = l00, l10, np.sqrt(g11 - l10 * l10)
-    return G, L
 
 
 def year_weights(cov: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -75,7 +39,7 @@ def year_weights(cov: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.nda
     the years' covariances summed, [P]."""
     P, (K, d) = len(sigma), cov.shape[:2]
     if d == 2:
-        # _inv_logdet's closed form written straight into the flattened output, without
+        # inv_logdet's closed form written straight into the flattened output, without
         # the [P, K, 2, 2] sums and stacks (the same values, bit for bit): this is called
         # some ninety times a unit.
         s2 = sigma ** 2
@@ -89,29 +53,8 @@ def year_weights(cov: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.nda
         W[..., 3] = a / det
         return W.reshape(P, K * 4), np.log(det).sum(axis=1)
     V = cov[None] + (sigma ** 2)[:, None, :, None] * np.eye(d)               # [P, K, d, d]
-    W, logdet_v = _inv_logdet(V)
+    W, logdet_v = inv_logdet(V)
     return W.reshape(P, K * d * d), logdet_v.sum(axis=1)
-
-
-def _chol_solve(L: np.ndarray, b: np.ndarray, want_x: bool = True):
-    """``y = L^-1 b`` and ``x = L^-T y`` (so ``(L L')^-1 b``) for stacked lower-triangular
-    ``L`` [..., n, n] and ``b`` [..., n], by forward then back substitution over the ``n``
-    rows, each row one vectorised step over the stack: ``Pb``'s mean and ``b' Pb^-1 b =
-    |y|^2`` from the Cholesky factor already taken for the log-determinant, where a general
-    solve of hundreds of small systems costs 2-5 times as much. Returns ``(y, x)``, ``x``
-    None without ``want_x``."""
-    n = L.shape[-1]
-    y = np.empty_like(b)
-    for i in range(n):
-        y[..., i] = (b[..., i] - np.einsum("...j,...j->...", L[..., i, :i], y[..., :i])) \
-            / L[..., i, i]
-    if not want_x:
-        return y, None
-    x = np.empty_like(b)
-    for i in range(n - 1, -1, -1):
-        x[..., i] = (y[..., i] - np.einsum("...j,...j->...", L[..., i + 1:, i],
-                                           x[..., i + 1:])) / L[..., i, i]
-    return y, x
 
 
 def linear_gaussian(Wf: np.ndarray, logdet_v: np.ndarray, Mk: np.ndarray, x: np.ndarray,
@@ -163,13 +106,8 @@ def linear_gaussian(Wf: np.ndarray, logdet_v: np.ndarray, Mk: np.ndarray, x: np.
     b = b + np.einsum("gab,gb->ga", prior_P, prior_mean)[:, None]
     quad = Wf @ np.einsum("ki,kj->kij", x, x).ravel()
     Lb = np.linalg.cholesky(Pb)
-    if want_mean and G * P < SMALL_STACK:
-        # Few systems: LAPACK's solve beats the substitution's per-row steps.
-        mean = np.linalg.solve(Pb, b[..., None])[..., 0]
-        fit = np.einsum("gpa,gpa->gp", b, mean)
-    else:
-        y, mean = _chol_solve(Lb, b, want_mean)
-        fit = np.einsum("gpa,gpa->gp", y, y)
+    y, mean = chol_solve(Pb, Lb, b, want_mean)
+    fit = np.einsum("gpa,gpa->gp", b, mean) if y is None else np.einsum("gpa,gpa->gp", y, y)
     logdet_b = 2.0 * np.log(np.einsum("gpii->gpi", Lb)).sum(axis=2)
     ll = -0.5 * (logdet_v + quad - fit + logdet_b) + log_norm[:, None]
     return Pb, Lb, mean, ll
@@ -456,7 +394,7 @@ def draw_years(x: np.ndarray, cov: np.ndarray, m: np.ndarray, sigma: np.ndarray,
     d = x.shape[1]
     H = np.linalg.inv(cov)                                                    # [K, d, d]
     S_inv = 1.0 / sigma ** 2                                                  # [n, d]
-    G, Lg = _inv_chol(H[None] + S_inv[:, None, :, None] * np.eye(d))          # [n, K, d, d]
+    G, Lg = inv_chol(H[None] + S_inv[:, None, :, None] * np.eye(d))          # [n, K, d, d]
     hx = np.einsum("kij,kj->ki", H, x)
     mu = np.einsum("nkij,nkj->nki", G, hx[None] + S_inv[:, None, :] * m)
     lo, hi = bounds[:, 0], bounds[:, 1]

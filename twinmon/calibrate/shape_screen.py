@@ -14,14 +14,12 @@ from functools import lru_cache
 import numpy as np
 
 from .gaussian_trend import GaussianTrend, linear_gaussian, year_weights
+from .stacked import forward_solve, small_cholesky
 
 #: Sigma points (and the seed of their quasi-random set) on which the change's
 #: combinations are screened (:func:`screen_grid`).
 SCREEN_POINTS = 64
 SCREEN_SEED = 20
-#: Fewest matrices of a stack that :func:`small_cholesky` factors entry by entry (fewer:
-#: LAPACK's calls cost no more).
-SMALL_STACK = 64
 
 
 def screen(line: GaussianTrend, E: np.ndarray, S: np.ndarray, grid: tuple,
@@ -157,46 +155,6 @@ def set_loglik(bt: BlockTerms, S: np.ndarray, idx: np.ndarray,
                              - 2.0 * np.log(np.einsum("gpii->gpi", L)).sum(axis=2)
                              + np.sum(z * z, axis=2))
     return ll, L, z
-
-
-def small_cholesky(V: np.ndarray) -> np.ndarray:
-    """Cholesky factors of stacked symmetric positive definite matrices ``V`` [..., n, n],
-    entry by entry over the whole stack when they are small and many (n <= 4, more than
-    :data:`SMALL_STACK` of them: a set's thousands of 2 x 2 and 4 x 4 systems, on which
-    LAPACK's per-matrix calls cost several times the arithmetic), else LAPACK's (which also
-    raises on a matrix that is not positive definite)."""
-    n = V.shape[-1]
-    if n > 4 or V.size < SMALL_STACK * n * n:
-        return np.linalg.cholesky(V)
-    L = np.zeros_like(V)
-    for j in range(n):
-        acc = V[..., j, j].copy()
-        for m in range(j):
-            acc -= L[..., j, m] ** 2
-        L[..., j, j] = np.sqrt(acc)
-        for i in range(j + 1, n):
-            acc = V[..., i, j].copy()
-            for m in range(j):
-                acc -= L[..., i, m] * L[..., j, m]
-            L[..., i, j] = acc / L[..., j, j]
-    if not np.all(np.einsum("...ii->...i", L) > 0):
-        return np.linalg.cholesky(V)
-    return L
-
-
-def forward_solve(L: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """``L^-1 B`` for stacked lower-triangular ``L`` [..., n, n] and ``B`` [..., n, m], by
-    forward substitution over the ``n`` rows, each an operation on the whole stack: a
-    set's few columns make thousands of systems of 2 to 6 rows, on which LAPACK's
-    per-matrix calls of a general solve cost several times the arithmetic."""
-    n = L.shape[-1]
-    Y = np.empty(np.broadcast_shapes(L.shape[:-2], B.shape[:-2]) + B.shape[-2:])
-    for i in range(n):
-        acc = B[..., i, :].copy()
-        for j in range(i):
-            acc -= L[..., i, j, None] * Y[..., j, :]
-        Y[..., i, :] = acc / L[..., i, i, None]
-    return Y
 
 
 def screen_grid(A: np.ndarray, n: int = SCREEN_POINTS) -> tuple[np.ndarray, np.ndarray]:

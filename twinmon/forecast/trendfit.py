@@ -170,9 +170,9 @@ def year_weight_table(cov: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, n
     covariance at sigma points ``sigma`` [P, d], for every year of the sites ``cov``
     [K, d, d]: [P, K, d, d] and [P, K]. Those of the years before a cut are a slice
     (:func:`_weights_before`): a unit's cuts share them."""
-    from ..calibrate.gaussian_trend import _inv_logdet
+    from ..calibrate.stacked import inv_logdet
     V = cov[None] + (sigma ** 2)[:, None, :, None] * np.eye(cov.shape[1])
-    return _inv_logdet(V)
+    return inv_logdet(V)
 
 
 def _weights_before(table: tuple, k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -239,9 +239,10 @@ def predict_ahead(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarray
     """
     from ..calibrate.gaussian_trend import GaussianTrend, linear_gaussian, year_weights
     from ..calibrate.methods.laplace import line_model
-    from ..calibrate.shape_screen import block_terms, forward_solve, set_loglik
     from ..calibrate.shape_columns import OCCAM, line_now, shape_sets
+    from ..calibrate.shape_screen import block_terms, set_loglik
     from ..calibrate.shapes import extend
+    from ..calibrate.stacked import forward_solve
     from ..calibrate.trend import sigma_prior_scale
     sig, log_p0 = grid
     A = sigma_prior_scale(cfg)
@@ -356,7 +357,7 @@ def standardise(y: np.ndarray, w: np.ndarray, mean: np.ndarray, S: np.ndarray
     """
     from scipy.special import ndtr, ndtri
 
-    from ..calibrate.shape_screen import forward_solve, small_cholesky
+    from ..calibrate.stacked import forward_solve, small_cholesky
     L = small_cholesky(S)                                                      # [n, d, d]
     e = forward_solve(L, (y - mean)[:, :, None])[:, :, 0]                      # [n, d]
     diag = np.einsum("nii->ni", L)
