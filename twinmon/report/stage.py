@@ -22,7 +22,7 @@ from .fig_surrogate import fig_surrogate
 from .fleet import check_requested, fleet_view, is_fleet
 from .html import (calibration_table, diagnose_table, e_p, fleet_overview, page,
                    stored_validation_text, surrogate_text)
-from .load import Inputs, check_consistency, load, observed_indicator, posterior_statistics
+from .load import Inputs, check_consistency, fleet_statistics, load, observed_indicator
 from .summary import ReportSummary, calibration_diagnostics, unit_summary, words_dict
 
 #: Units per figure when a large fleet's units are drawn in detail (Figures 6 and 7 give
@@ -113,13 +113,14 @@ def _report(cfg: Config, output_dir: str | os.PathLike, *,
 
 
 def _figure_pool(cfg: Config, out: Path):
-    """A pool of ``report.workers`` processes for :class:`Figures` (none with one worker or
-    one core), shut down with the report, stopped at once on an error or a Ctrl-C."""
+    """A pool of ``report.workers`` processes (none with one worker or one core) for the
+    fleet's statistics (:func:`~.load.fleet_statistics`) then :class:`Figures`, shut down
+    with the report, stopped at once on an error or a Ctrl-C."""
     from contextlib import nullcontext
 
     from ..errors import Interrupted, TwinmonError
     from ..executors import closing_pool, start_pool
-    workers = cfg.report.workers or len(os.sched_getaffinity(0))
+    workers = _workers(cfg)
     if workers <= 1:
         return nullcontext(None)
     from .common import freeze_inherited
@@ -127,6 +128,11 @@ def _figure_pool(cfg: Config, out: Path):
         f"{out}: a worker process died while drawing the figures (out of memory?); nothing "
         "was written; re-run with --set report.workers=1"),
         Interrupted("report: interrupted; nothing was written"))
+
+
+def _workers(cfg: Config) -> int:
+    """Processes drawing the figures: ``report.workers``, or one per core."""
+    return cfg.report.workers or len(os.sched_getaffinity(0))
 
 
 def _render(cfg: Config, inp: Inputs, tmp: Path, out: Path, provenance: dict,
@@ -142,14 +148,8 @@ def _render(cfg: Config, inp: Inputs, tmp: Path, out: Path, provenance: dict,
     observed = observed_indicator(inp)
     # The summaries read each unit's figures, not its Monte Carlo arrays (a fleet's forecast
     # holds ~0.4 MB of them per unit; only the drawn units' figures need them) nor its
-    # posterior draws (read in one pass: the fleet's statistics are a few kB a unit).
-    light = inp
-    if inp.forecast is not None and Path(inp.forecast.path).is_file():
-        from ..forecast import read_forecast
-        light = dataclasses.replace(light, forecast=read_forecast(inp.forecast.path,
-                                                                  arrays=False))
-    if inp.posterior is not None and Path(inp.posterior.path).is_file():
-        light = dataclasses.replace(light, posterior=posterior_statistics(inp.posterior.path))
+    # posterior draws.
+    light = fleet_statistics(inp, pool, _workers(cfg))
     summaries = {u: unit_summary(u, light, observed) for u in units}
     fleet = None
     if is_fleet(cfg, len(units)):
