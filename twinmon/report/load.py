@@ -88,9 +88,21 @@ def load(cfg: Config, paths: dict) -> Inputs:
             if not same:
                 inp.gap_other_source = diagnosed[0]["path"]
     if paths.get("truth") is not None:
+        # Checked here, its units read for the units drawn (:func:`with_truth_of`).
         from ..fabricate import read_truth
-        inp.truth = read_truth(paths["truth"])
+        inp.truth = read_truth(paths["truth"], units=())
     return inp
+
+
+def with_truth_of(inp: Inputs, units: list) -> Inputs:
+    """``inp`` with the truth of ``units`` (the units drawn: only their figures show it),
+    when a truth file was given; :func:`load` read none of its units."""
+    if inp.truth is None:
+        return inp
+    import dataclasses
+
+    from ..fabricate import read_truth
+    return dataclasses.replace(inp, truth=read_truth(inp.paths["truth"], units=units))
 
 
 def fleet_statistics(inp: Inputs, pool=None, parts: int = 1) -> Inputs:

@@ -22,7 +22,8 @@ from .fig_surrogate import fig_surrogate
 from .fleet import check_requested, fleet_view, is_fleet
 from .html import (calibration_table, diagnose_table, e_p, fleet_overview, page,
                    stored_validation_text, surrogate_text)
-from .load import Inputs, check_consistency, fleet_statistics, load, observed_indicator
+from .load import (Inputs, check_consistency, fleet_statistics, load, observed_indicator,
+                   with_truth_of)
 from .summary import ReportSummary, calibration_diagnostics, unit_summary, words_dict
 
 #: Units per figure when a large fleet's units are drawn in detail (Figures 6 and 7 give
@@ -162,6 +163,7 @@ def _render(cfg: Config, inp: Inputs, tmp: Path, out: Path, provenance: dict,
     else:
         check_requested(summaries, requested)
         drawn, groups = units, [units]
+    inp = with_truth_of(inp, drawn)
     colours = {u: UNIT_COLOURS[i % len(UNIT_COLOURS)] for i, u in enumerate(drawn)}
     views = _views(inp, groups, fleet is not None)
 
