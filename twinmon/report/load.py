@@ -105,39 +105,56 @@ def with_truth_of(inp: Inputs, units: list) -> Inputs:
     return dataclasses.replace(inp, truth=read_truth(inp.paths["truth"], units=units))
 
 
-def fleet_statistics(inp: Inputs, pool=None, parts: int = 1) -> Inputs:
-    """``inp`` with every unit's figures that the fleet's summaries and diagnostics read in
-    memory: the forecast's units without their Monte Carlo arrays (~0.4 MB a unit left on
-    disk) and the posterior's without their draws (the years' and the trend's), a few kB a
-    unit either way. Each artifact is read in one opening of its file (the forecast's units
-    were read one opening each before).
+def start_fleet_statistics(paths: dict, pool=None, parts: int = 1) -> dict:
+    """Start reading every unit's figures that the fleet's summaries and diagnostics need:
+    the forecast's units without their Monte Carlo arrays (~0.4 MB a unit left on disk) and
+    the posterior's without their draws (the years' and the trend's), a few kB a unit either
+    way; :func:`fleet_statistics` collects them.
 
-    With a ``pool``, each artifact is read in ``parts`` runs of its units side by side, all
-    of them at once: reading is most of a large fleet's own cost (1000 units: 4.5 s for the
-    forecast, 1 s for the posterior, on one core), and the pool's workers are idle until the
-    first figure comes.
+    ``paths``: {role: path or None}, as :func:`load` takes it. With a ``pool``, each
+    artifact is read in ``parts`` runs of its units side by side while this process loads
+    the other artifacts: reading is most of a large fleet's own cost (1000 units: 4.5 s of
+    CPU for the forecast, 1 s for the posterior), and the workers are idle until the first
+    figure comes. Without one, nothing is read here. An artifact that does not open is left
+    to :func:`load`, which says what is wrong with it.
     """
-    import dataclasses
     from pathlib import Path
-    kinds = {kind: obj for kind, obj in (("forecast", inp.forecast),
-                                         ("posterior", inp.posterior))
-             if obj is not None and Path(obj.path).is_file()}
-    heads = {kind: _slim(kind, obj.path) for kind, obj in kinds.items()}
-    pending = {}
-    for kind, head in heads.items():
+
+    from ..errors import TwinmonError
+    started = {}
+    for kind in ("forecast", "posterior"):
+        path = paths.get(kind)
+        if path is None or not Path(path).is_file():
+            continue
+        try:
+            head = _slim(kind, path)
+        except TwinmonError:
+            continue
         names = list(head.units)
         size = -(-len(names) // max(parts, 1))
-        if pool is None or size >= len(names):
-            pending[kind] = [dict(head.units.each())]
-        else:
-            pending[kind] = [pool.submit(read_units, kind, str(head.units.path),
-                                         names[i:i + size])
-                             for i in range(0, len(names), size)]
+        runs = []
+        if pool is not None and size < len(names):
+            runs = [pool.submit(read_units, kind, str(path), names[i:i + size])
+                    for i in range(0, len(names), size)]
+        started[kind] = (head, runs)
+    return started
+
+
+def fleet_statistics(inp: Inputs, started: dict) -> Inputs:
+    """``inp`` with the statistics :func:`start_fleet_statistics` started reading (those it
+    did not, read here: each artifact in one opening of its file)."""
+    import dataclasses
+    from pathlib import Path
     out = inp
-    for kind, head in heads.items():
+    for kind, obj in (("forecast", inp.forecast), ("posterior", inp.posterior)):
+        if obj is None or not Path(obj.path).is_file():
+            continue
+        head, runs = started.get(kind) or (_slim(kind, obj.path), [])
         units: dict = {}
-        for part in pending[kind]:
-            units.update(part if isinstance(part, dict) else part.result())
+        for run in runs:
+            units.update(run.result())
+        if not runs:
+            units = dict(head.units.each())
         if kind == "forecast":
             out = dataclasses.replace(out, forecast=dataclasses.replace(head, units=units))
         else:
@@ -158,7 +175,7 @@ def _slim(kind: str, path):
 
 
 def read_units(kind: str, path: str, names: list) -> dict:
-    """Pool task of :func:`fleet_statistics`: the units ``names`` of the forecast or the
+    """Pool task of :func:`start_fleet_statistics`: the units ``names`` of the forecast or the
     posterior at ``path``, {unit: its statistics}, in one opening of the file."""
     return dict(_slim(kind, path).units.each(names))
 
