@@ -119,7 +119,7 @@ def _report(cfg: Config, output_dir: str | os.PathLike, *,
 def _figure_pool(cfg: Config, out: Path):
     """A pool of ``report.workers`` processes (none with one worker or one core) for the
     fleet's statistics (:func:`~.load.start_fleet_statistics`) then :class:`Figures`, shut
-    down with the report, stopped at once on an error or a Ctrl-C."""
+    down with the report, ended at once on an error or a Ctrl-C."""
     from contextlib import nullcontext
 
     from ..errors import Interrupted, TwinmonError
