@@ -14,6 +14,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Optional, Sequence
 
 import numpy as np
 
@@ -332,14 +333,21 @@ class Truth:
     unrecorded: dict[str, list[tuple[int, str]]] = field(default_factory=dict)
 
 
-def read_truth(path: str | os.PathLike) -> Truth:
-    """Load a ``twinmon.truth/1`` file."""
+def read_truth(path: str | os.PathLike, units: Optional[Sequence[str]] = None) -> Truth:
+    """Load a ``twinmon.truth/1`` file; with ``units``, the units of it among them only, in
+    the file's order (a report shows the truth of the few units it draws: a 1000-unit
+    fleet's whole truth took 1.4 s to read)."""
     import json
     path = Path(path)
     with artifacts.open_artifact(path, "truth") as f:
         years, inputs, effects, dist, events, hidden = {}, {}, {}, {}, {}, {}
         fut_years, fut_inputs = {}, {}
-        for unit, g in f["units"].items():
+        every = f["units"]
+        wanted = None if units is None else set(units)
+        for unit in every:
+            if wanted is not None and unit not in wanted:
+                continue
+            g = every[unit]
             if "future" in g:
                 fut_years[unit] = artifacts.get(g, "future/years", path)
                 if "inputs" not in g["future"]:

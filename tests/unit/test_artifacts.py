@@ -106,6 +106,19 @@ def test_stale_temporaries_of_dead_writers_are_removed(tmp_path):
     assert not stale.exists()
 
 
+def test_lazy_units_read_a_run_of_units_in_one_opening(tmp_path):
+    out = tmp_path / "g.h5"
+    with artifacts.write_artifact(out, "gap") as f:
+        for u in ("A", "B", "C"):
+            artifacts.put(f, f"units/{u}/v", [float(ord(u))], "1", "value")
+    units = artifacts.LazyUnits(out, "gap", ["A", "B", "C"],
+                                lambda f, unit, p: float(f[f"units/{unit}/v"][0]))
+    assert list(units.each()) == [("A", 65.0), ("B", 66.0), ("C", 67.0)]
+    assert list(units.each(["C", "A"])) == [("C", 67.0), ("A", 65.0)]
+    with pytest.raises(KeyError):
+        list(units.each(["A", "D"]))
+
+
 def _stored(obj) -> dict:
     """Each attribute's stored type and value."""
     return {k: (obj.attrs.get_id(k).dtype, obj.attrs.get_id(k).shape, obj.attrs[k])

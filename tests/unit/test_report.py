@@ -342,14 +342,19 @@ def test_figures_drawn_by_worker_processes_are_the_same_bytes(pipeline):
     # report.workers > 1 pickles each figure to a pool that lays it out and writes it; the
     # PNGs (and so the page's images) must not depend on it. Digests, not bytes: on a
     # mismatch the message names the figures (pytest's diff of the bytes took over an hour).
+    # The pool also reads the units' statistics, in one run of units per worker: the
+    # summaries must not depend on it either.
     _, cfg_path, tmp, art = pipeline
-    made = {}
+    made, said = {}, {}
     for workers in (1, 2):
         cfg = load_config(cfg_path, [f"report.workers={workers}"])
-        s = report(cfg, tmp / f"report_w{workers}", **art)
+        out = tmp / f"report_w{workers}"
+        s = report(cfg, out, **art)
         made[workers] = {f["name"]: file_sha256(f["path"]) for f in s.figures}
+        said[workers] = (out / "summary.json").read_text().replace(str(out), "OUT")
     assert len(made[1]) >= 5
     assert [n for n in made[1] if made[2].get(n) != made[1][n]] == []
+    assert said[1] == said[2]
 
 
 def test_a_pickled_figure_keys_its_transforms_by_this_processs_ids(tmp_path):

@@ -163,13 +163,22 @@ class LazyUnits(Mapping):
             self._cache.popitem(last=False)
         return value
 
-    def each(self) -> Iterator[tuple[str, Any]]:
-        """Every unit in the file's order, read in one opening of the file (a stage that
-        needs them all: opening the file per unit costs more than reading a small one).
-        The cache is not filled."""
+    def each(self, names: Sequence[str] | None = None) -> Iterator[tuple[str, Any]]:
+        """Every unit in the file's order (or those of ``names``, in their order), read in
+        one opening of the file (a stage that needs them all: opening the file per unit
+        costs more than reading a small one). The cache is not filled.
+
+        Raises
+        ------
+        KeyError
+            A unit of ``names`` is not in the file.
+        """
+        missing = [u for u in names or () if u not in self._known]
+        if missing:
+            raise KeyError(missing[0])
         self._check_unchanged()
         with open_artifact(self.path, self.kind) as f:
-            for unit in self._names:
+            for unit in self._names if names is None else names:
                 yield unit, self._read(f, unit, self.path)
 
     def _check_unchanged(self, reading: str = "") -> None:

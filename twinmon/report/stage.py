@@ -6,7 +6,7 @@ import dataclasses
 import os
 import shutil
 from pathlib import Path
-from typing import Sequence
+from typing import Optional, Sequence
 
 from .. import artifacts
 from ..config import Config
@@ -22,7 +22,8 @@ from .fig_surrogate import fig_surrogate
 from .fleet import check_requested, fleet_view, is_fleet
 from .html import (calibration_table, diagnose_table, e_p, fleet_overview, page,
                    stored_validation_text, surrogate_text)
-from .load import Inputs, check_consistency, load, observed_indicator, posterior_statistics
+from .load import (Inputs, check_consistency, fleet_statistics, load, observed_indicator,
+                   start_fleet_statistics, with_truth_of)
 from .summary import ReportSummary, calibration_diagnostics, unit_summary, words_dict
 
 #: Units per figure when a large fleet's units are drawn in detail (Figures 6 and 7 give
@@ -88,49 +89,63 @@ def _report(cfg: Config, output_dir: str | os.PathLike, *,
     paths = {"observations": observations, "simulations": simulations, "surrogate": surrogate,
              "posterior": posterior, "forecast": forecast, "gap": gap, "truth": truth,
              "backtest": backtest}
-    inp = load(cfg, paths)
-    check_consistency(cfg, inp)
-    provenance = {role: artifacts.read_provenance(p) for role, p in inp.paths.items()}
-
     out = Path(output_dir)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    # One writer per report folder; folders left by a killed report are removed first.
-    with artifacts.output_lock(out, "twinmon report"):
-        artifacts.remove_stale_temporaries(out)
-        tmp = out.parent / f".{out.name}.{os.getpid()}.tmp"
-        shutil.rmtree(tmp, ignore_errors=True)
-        (tmp / "figures").mkdir(parents=True)
-        try:
-            with matplotlib.rc_context({"font.size": 10, "axes.titlesize": 11,
-                                        "figure.titlesize": 12, "legend.framealpha": 0.85}):
-                # Forked inside the context: the workers draw with the same settings.
-                with _figure_pool(cfg, out) as pool:
-                    summary = _render(cfg, inp, tmp, out, provenance, list(units), pool)
-            _install(tmp, out)
-        finally:
-            shutil.rmtree(tmp, ignore_errors=True)
+    with matplotlib.rc_context({"font.size": 10, "axes.titlesize": 11,
+                                "figure.titlesize": 12, "legend.framealpha": 0.85}):
+        # Forked inside the context: the workers draw with the same settings. Forked before
+        # the artifacts are loaded: the workers read the fleet's statistics meanwhile.
+        with _figure_pool(cfg, out) as pool:
+            started = start_fleet_statistics(paths, pool, _workers(cfg))
+            inp = load(cfg, paths)
+            check_consistency(cfg, inp)
+            provenance = {role: artifacts.read_provenance(p) for role, p in inp.paths.items()}
+            out.parent.mkdir(parents=True, exist_ok=True)
+            # One writer per report folder; folders left by a killed report are removed
+            # first.
+            with artifacts.output_lock(out, "twinmon report"):
+                artifacts.remove_stale_temporaries(out)
+                tmp = out.parent / f".{out.name}.{os.getpid()}.tmp"
+                shutil.rmtree(tmp, ignore_errors=True)
+                (tmp / "figures").mkdir(parents=True)
+                try:
+                    summary = _render(cfg, inp, tmp, out, provenance, list(units), pool,
+                                      started)
+                    _install(tmp, out)
+                finally:
+                    shutil.rmtree(tmp, ignore_errors=True)
     return summary
 
 
 def _figure_pool(cfg: Config, out: Path):
-    """A pool of ``report.workers`` processes for :class:`Figures` (none with one worker or
-    one core), shut down with the report, stopped at once on an error or a Ctrl-C."""
+    """A pool of ``report.workers`` processes (none with one worker or one core) for the
+    fleet's statistics (:func:`~.load.start_fleet_statistics`) then :class:`Figures`, shut
+    down with the report, ended at once on an error or a Ctrl-C."""
     from contextlib import nullcontext
 
     from ..errors import Interrupted, TwinmonError
     from ..executors import closing_pool, start_pool
-    workers = cfg.report.workers or len(os.sched_getaffinity(0))
+    workers = _workers(cfg)
     if workers <= 1:
         return nullcontext(None)
     from .common import freeze_inherited
+
+    # Imported before the fork, once: each worker would otherwise import them to unpickle
+    # its first figure (0.25 s of CPU each, against 0.004 s to unpickle a small figure).
+    import matplotlib.backends.backend_agg  # noqa: F401
+    import matplotlib.figure  # noqa: F401
     return closing_pool(start_pool(workers, freeze_inherited), TwinmonError(
-        f"{out}: a worker process died while drawing the figures (out of memory?); nothing "
-        "was written; re-run with --set report.workers=1"),
+        f"{out}: a worker process died while reading the fleet or drawing the figures (out "
+        "of memory?); nothing was written; re-run with --set report.workers=1"),
         Interrupted("report: interrupted; nothing was written"))
 
 
+def _workers(cfg: Config) -> int:
+    """Processes drawing the figures: ``report.workers``, or one per core."""
+    return cfg.report.workers or len(os.sched_getaffinity(0))
+
+
 def _render(cfg: Config, inp: Inputs, tmp: Path, out: Path, provenance: dict,
-            requested: list, pool=None) -> ReportSummary:
+            requested: list, pool=None, started: Optional[dict] = None) -> ReportSummary:
     figs = Figures(tmp / "figures", pool)
     w = inp.words
     units = inp.unit_names()
@@ -142,14 +157,8 @@ def _render(cfg: Config, inp: Inputs, tmp: Path, out: Path, provenance: dict,
     observed = observed_indicator(inp)
     # The summaries read each unit's figures, not its Monte Carlo arrays (a fleet's forecast
     # holds ~0.4 MB of them per unit; only the drawn units' figures need them) nor its
-    # posterior draws (read in one pass: the fleet's statistics are a few kB a unit).
-    light = inp
-    if inp.forecast is not None and Path(inp.forecast.path).is_file():
-        from ..forecast import read_forecast
-        light = dataclasses.replace(light, forecast=read_forecast(inp.forecast.path,
-                                                                  arrays=False))
-    if inp.posterior is not None and Path(inp.posterior.path).is_file():
-        light = dataclasses.replace(light, posterior=posterior_statistics(inp.posterior.path))
+    # posterior draws.
+    light = fleet_statistics(inp, started or {})
     summaries = {u: unit_summary(u, light, observed) for u in units}
     fleet = None
     if is_fleet(cfg, len(units)):
@@ -162,6 +171,7 @@ def _render(cfg: Config, inp: Inputs, tmp: Path, out: Path, provenance: dict,
     else:
         check_requested(summaries, requested)
         drawn, groups = units, [units]
+    inp = with_truth_of(inp, drawn)
     colours = {u: UNIT_COLOURS[i % len(UNIT_COLOURS)] for i, u in enumerate(drawn)}
     views = _views(inp, groups, fleet is not None)
 
