@@ -230,3 +230,25 @@ def test_forecast_on_dask_gives_the_process_pools_forecast(surrogate_setup, tmp_
         assert np.array_equal(a.indicator, b.indicator, equal_nan=True)
         assert np.array_equal(a.source, b.source) and a.plan == b.plan
     assert (fc["process"].units["B"].source > 0).any()      # FMU runs on the workers too
+
+
+def test_what_a_task_leaves_open_is_closed_with_its_pool():
+    # On a Dask worker (a pool's token set) a closer registers once and runs when the pool
+    # is forgotten; outside a Dask pool's task it is not kept.
+    from twinmon.executors import dask as dx
+    calls = []
+
+    def close():
+        calls.append(1)
+
+    dx.close_with_pool(close)
+    assert dx._state.closers == []
+    dx._state.token = "pool"
+    try:
+        dx.close_with_pool(close)
+        dx.close_with_pool(close)
+        assert dx._state.closers == [close]
+        dx._forget("pool")
+        assert calls == [1] and dx._state.closers == [] and dx._state.token is None
+    finally:
+        dx._forget()

@@ -151,6 +151,10 @@ class Twin:
         release_spare()
         _SPARE[self._model_key] = self.model
         self.model = None
+        # A Dask worker outlives the stage: the pool's end frees the spare (and removes its
+        # extracted FMU), as it closes what the pool's set-up opened (docs/cluster.md).
+        from ..executors.dask import close_with_pool
+        close_with_pool(release_spare)
 
 
 def release_spare() -> None:

@@ -115,6 +115,16 @@ def _forget(token: str | None = None) -> None:
     _state.model = None
 
 
+def close_with_pool(close: Callable[[], None]) -> None:
+    """Have ``close`` run when the current pool ends on this Dask worker (or the next pool
+    comes), with what the pool's set-up opened: for what a task leaves open for the next
+    tasks of its process (diagnose's spare FMU instance). Outside a Dask pool's task it does
+    nothing: a process pool's worker ends with its pool, and the command's own process
+    closes what it opened."""
+    if _state.token is not None and close not in _state.closers:
+        _state.closers.append(close)
+
+
 def _materialise(orig: str, digest: str, data: bytes) -> str:
     """A path on this worker holding ``data``: the user's own when it is here and the same,
     else a copy in this worker's temporary folder, named by content."""
