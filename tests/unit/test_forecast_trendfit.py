@@ -87,8 +87,8 @@ def test_cut_years_need_three_years_of_the_segment_in_force():
 
 
 def test_the_years_weights_before_a_cut_are_a_slice_of_the_units():
-    from twinmon.calibrate.gaussian_trend import year_weights
-    from twinmon.forecast.trendfit import _weights_before, year_weight_table
+    from twinmon.calibrate.gaussian_trend import year_weight_table, year_weights
+    from twinmon.forecast.trendfit import _weights_before
     rng = np.random.default_rng(5)
     A = rng.standard_normal((10, 2, 3))
     cov = A @ np.swapaxes(A, 1, 2)

@@ -33,28 +33,35 @@ EP_MIN_ESS = 30.0
 WIDE_BOX = np.tile([-np.inf, np.inf], (64, 1))
 
 
-def year_weights(cov: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Each year's weight ``(C_k + diag(sigma^2))^-1`` at sigma points ``sigma`` [P, d], the
-    sites' covariances ``cov`` [K, d, d]: flattened, [P, K d d], and the log-determinant of
-    the years' covariances summed, [P]."""
+def year_weight_table(cov: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each year's weight ``(C_k + diag(sigma^2))^-1`` and the log-determinant of its
+    covariance, at sigma points ``sigma`` [P, d], for the sites' covariances ``cov``
+    [K, d, d]: [P, K, d, d] and [P, K]. The years before a cut are a slice of it (the
+    forecast's trend-fit check shares one table between its cuts)."""
     P, (K, d) = len(sigma), cov.shape[:2]
     if d == 2:
-        # inv_logdet's closed form written straight into the flattened output, without
-        # the [P, K, 2, 2] sums and stacks (the same values, bit for bit): this is called
-        # some ninety times a unit.
+        # inv_logdet's closed form written straight into the output, without the
+        # [P, K, 2, 2] sums and stacks (the same values, bit for bit): this is called some
+        # ninety times a unit.
         s2 = sigma ** 2
         a = cov[None, :, 0, 0] + s2[:, None, 0]
         c = cov[None, :, 1, 1] + s2[:, None, 1]
         b = cov[:, 0, 1]
         det = a * c - b * b
-        W = np.empty((P, K, 4))
-        W[..., 0] = c / det
-        W[..., 1] = W[..., 2] = -b / det
-        W[..., 3] = a / det
-        return W.reshape(P, K * 4), np.log(det).sum(axis=1)
-    V = cov[None] + (sigma ** 2)[:, None, :, None] * np.eye(d)               # [P, K, d, d]
-    W, logdet_v = inv_logdet(V)
-    return W.reshape(P, K * d * d), logdet_v.sum(axis=1)
+        W = np.empty((P, K, 2, 2))
+        W[..., 0, 0] = c / det
+        W[..., 0, 1] = W[..., 1, 0] = -b / det
+        W[..., 1, 1] = a / det
+        return W, np.log(det)
+    return inv_logdet(cov[None] + (sigma ** 2)[:, None, :, None] * np.eye(d))
+
+
+def year_weights(cov: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each year's weight ``(C_k + diag(sigma^2))^-1`` at sigma points ``sigma`` [P, d], the
+    sites' covariances ``cov`` [K, d, d]: flattened, [P, K d d], and the log-determinant of
+    the years' covariances summed, [P] (:func:`year_weight_table`, summed over the years)."""
+    W, logdet = year_weight_table(cov, sigma)
+    return W.reshape(len(W), -1), logdet.sum(axis=1)
 
 
 def linear_gaussian(Wf: np.ndarray, logdet_v: np.ndarray, Mk: np.ndarray, x: np.ndarray,

@@ -165,27 +165,20 @@ def sigma_grid(cfg: Config, fleet=None, n: int = SIGMA_GRID
     return sigma, np.sum(np.log(sigma) - np.log1p((sigma / A) ** 2), axis=1)
 
 
-def year_weight_table(cov: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Each year's weight ``(C_k + diag(sigma^2))^-1`` and the log-determinant of its
-    covariance at sigma points ``sigma`` [P, d], for every year of the sites ``cov``
-    [K, d, d]: [P, K, d, d] and [P, K]. Those of the years before a cut are a slice
-    (:func:`_weights_before`): a unit's cuts share them."""
-    from ..calibrate.stacked import inv_logdet
-    V = cov[None] + (sigma ** 2)[:, None, :, None] * np.eye(cov.shape[1])
-    return inv_logdet(V)
-
-
 def _weights_before(table: tuple, k: int) -> tuple[np.ndarray, np.ndarray]:
     """:func:`~twinmon.calibrate.gaussian_trend.year_weights` of years ``[0, k)`` from their
-    :func:`year_weight_table`: ``(Wf [P, k d d], logdet_v [P])``."""
+    :func:`~twinmon.calibrate.gaussian_trend.year_weight_table`: ``(Wf [P, k d d],
+    logdet_v [P])``."""
     W, logdet = table
     return W[:, :k].reshape(len(W), -1), logdet[:, :k].sum(axis=1)
 
 
 def _weight_tables(cov: np.ndarray, sigma: np.ndarray, A: np.ndarray, priors: dict) -> tuple:
-    """:func:`year_weight_table` at the grid's sigma ``sigma`` [P, d] and at the change
-    screen's (:func:`~twinmon.calibrate.shape_screen.screen_grid` of sigma's prior scale
-    ``A`` [d]; None when the change shape has no prior weight: no screen)."""
+    """:func:`~twinmon.calibrate.gaussian_trend.year_weight_table` at the grid's sigma
+    ``sigma`` [P, d] and at the change screen's
+    (:func:`~twinmon.calibrate.shape_screen.screen_grid` of sigma's prior scale ``A`` [d];
+    None when the change shape has no prior weight: no screen)."""
+    from ..calibrate.gaussian_trend import year_weight_table
     from ..calibrate.shape_screen import screen_grid
     return (year_weight_table(cov, sigma),
             year_weight_table(cov, screen_grid(A)[0]) if priors.get("change", 0) > 0 else None)
@@ -224,7 +217,8 @@ def predict_ahead(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarray
     grid : (sigma [P, d], log_prior [P])
         :func:`sigma_grid`.
     tables : tuple, optional
-        :func:`year_weight_table` of ``cov`` at ``grid``'s sigma and at the change screen's
+        :func:`~twinmon.calibrate.gaussian_trend.year_weight_table` of ``cov`` at ``grid``'s
+        sigma and at the change screen's
         (:func:`~twinmon.calibrate.shape_screen.screen_grid`; None without the change
         shape), when already computed (:func:`_weight_tables`: a unit's cuts share them).
 
@@ -401,6 +395,8 @@ def check_trend_fit(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarr
         None when no year can be predicted (too few years in a segment).
     """
     from scipy import stats
+
+    from ..calibrate.trend import sigma_prior_scale
     years = np.asarray(years)
     cuts = cut_indices(years, starts, min_years)
     if cuts.size == 0:
@@ -408,7 +404,6 @@ def check_trend_fit(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarr
     d = x.shape[1]
     z = np.empty((cuts.size, d))
     marg = np.empty((cuts.size, d))
-    from ..calibrate.trend import sigma_prior_scale
     grid = sigma_grid(cfg, fleet)
     tables = _weight_tables(cov, grid[0], sigma_prior_scale(cfg), priors)
     for j, k in enumerate(cuts):
