@@ -62,14 +62,9 @@ def split_rhat(chains: np.ndarray, rank_normalize: bool = True) -> float:
         Near 1 when the chains agree; > 1.01-1.05 signals poor mixing.
     """
     chains = np.atleast_2d(np.asarray(chains, float))
-    if np.ptp(chains) == 0:
-        return float("nan")
     if not rank_normalize:
-        return _rhat(_split(chains))
-    bulk = _rhat(_z_scale(_split(chains)))
-    folded = np.abs(chains - np.median(chains))
-    tail = _rhat(_z_scale(_split(folded))) if np.ptp(folded) > 0 else bulk
-    return max(bulk, tail)
+        return float("nan") if np.ptp(chains) == 0 else _rhat(_split(chains))
+    return float(split_rhat_many(chains[None])[0])
 
 
 def _z_scale_rows(x: np.ndarray) -> np.ndarray:
@@ -110,9 +105,9 @@ def _rhat_rows(chains: np.ndarray) -> np.ndarray:
 
 
 def split_rhat_many(chains: np.ndarray) -> np.ndarray:
-    """:func:`split_rhat` (rank-normalised) of many scalar quantities at once, the same
-    values bit for bit: a unit's years and inputs are dozens of quantities, and one call
-    each cost more than the arithmetic.
+    """:func:`split_rhat` (rank-normalised) of many scalar quantities at once: the larger of
+    the bulk and tail R-hats of each, NaN for a constant one. A unit's years and inputs are
+    dozens of quantities, and a call each cost more than the arithmetic.
 
     Parameters
     ----------
