@@ -27,7 +27,13 @@ MAX_WARNINGS = 12
                    "(and units) added to the observations since. Same result as a full run.")
 @json_option
 def calibrate(config_path, overrides, surrogate, observations, truth, output, update, as_json):
-    """Bayesian calibration (MCMC) of each unit's inputs, year by year."""
+    """Bayesian posterior of each unit's degradation inputs, every recorded year.
+
+    calibrate.method (default auto): a fleet the forecast can pool is drawn jointly over
+    each unit's years with its trend (a line, accelerating wear or a change, averaged by
+    their evidence; unrecorded repairs found restart it) by the laplace method; a few units
+    are sampled by MCMC year by year (sequential), each year's prior from the last.
+    """
     from ..calibrate import calibrate as run
     from ..repairs import FoundRepair
     refuse_overwrite({"-o": output}, {"--surrogate": surrogate, "--observations": observations,

@@ -29,10 +29,13 @@ def forecast(config_path, overrides, posterior, surrogate, output, truth, worker
              force_prognosis, as_json):
     """Trend of each input, P(unsafe) per future year, failure year, root cause and plan.
 
-    Linear trends of the yearly posterior means, the future states they predict
-    propagated by Monte Carlo through the twin (surrogate inside its training box, FMU
-    outside it); degradation detected on the health indicator's drift and the inputs'
-    slopes against normal ageing, then attributed to components with probabilities.
+    Each input's trend (the posterior's own for a fleet calibrated jointly, with its
+    shape; else lines through the yearly posterior means) extended over the horizon, the
+    future states propagated by Monte Carlo through the twin (surrogate inside its training
+    box, a learnt limit-state model or the FMU outside it); degradation detected on the
+    health indicator's drift and the inputs' slopes against normal ageing, then attributed
+    to components with probabilities; a unit whose trend the history does not follow, or
+    whose twin misses the plant, is marked unreliable with the reason.
     """
     from ..forecast import forecast as run
     refuse_overwrite({"-o": output}, {"--posterior": posterior, "--surrogate": surrogate,
