@@ -379,3 +379,41 @@ def test_detectable_size_when_the_normal_band_is_tiny_beside_the_slope_error():
         crit = t_isf(level, dof) * drift.slope_se
         assert np.all(np.isfinite(m))
         assert np.allclose(m * drift.normal_halfwidth, crit, rtol=1e-6)
+
+
+def test_year_ranges_write_runs_of_years():
+    from twinmon.forecast.judge import year_ranges
+    assert year_ranges([1, 2, 3, 5, 7, 8]) == "1-3, 5, 7-8"
+    assert year_ranges([4]) == "4"
+    assert year_ranges([]) == ""
+
+
+@pytest.mark.parametrize("chains", [False, True])
+def test_an_unconverged_unit_is_unreliable_with_the_figures_of_its_draws(chains):
+    """Weighted draws (no chains) are judged by their effective number; chains by R-hat and
+    ESS: the reason names the years as runs and the figures against their thresholds."""
+    from types import SimpleNamespace
+
+    from twinmon.config import load_config
+    from twinmon.forecast.judge import prognosis_status
+
+    from ..conftest import CONFIGS
+    cfg = load_config(CONFIGS / "dcdrive.yaml")
+    years = np.arange(1, 9)
+    status = np.array(["ok", "ok", "unconverged", "unconverged", "unconverged", "ok",
+                       "unconverged", "unconverged"])
+    ess = np.full((8, 2), 900.0)
+    ess[2:5], ess[6:] = 37.0, 120.0
+    rhat = np.full((8, 2), 1.001)
+    rhat[3, 1] = 1.2
+    acc = np.full((8, 4), 0.3) if chains else np.full((8, 4), np.nan)
+    up = SimpleNamespace(status=status, years=years, ess=ess, rhat=rhat, acceptance=acc,
+                         fit={"extensions": np.full(8, 2)})
+    st, why = prognosis_status(up, cfg, [])
+    assert st == "unreliable"
+    assert "year(s) 3-5, 7-8" in why
+    if chains:
+        assert "longer chains" in why and "R-hat up to 1.200" in why and "ESS down to 37" in why
+    else:
+        assert "rests on 37 effective draws" in why and "doubled 2 time(s)" in why
+        assert "chains" not in why

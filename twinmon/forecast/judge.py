@@ -83,10 +83,46 @@ def prognosis_status(up, cfg: Config, windows: list) -> tuple[str, str]:
             f"model.inputs.{name} or run 'twinmon diagnose'")
     unconv = np.flatnonzero(st == STATUS_UNCONVERGED)
     if unconv.size:
-        yrs = ", ".join(str(int(up.years[k])) for k in unconv)
-        return STATUS_UNRELIABLE, (f"prognosis unreliable: the posterior of year(s) {yrs} did "
-                                   "not converge even with longer chains")
+        return STATUS_UNRELIABLE, _unconverged(up, cfg, unconv)
     return STATUS_OK, ""
+
+
+def year_ranges(years) -> str:
+    """Years as runs: ``[1, 2, 3, 5, 7, 8]`` -> ``"1-3, 5, 7-8"``."""
+    out, run = [], []
+    for y in (int(v) for v in years):
+        if run and y != run[-1] + 1:
+            out.append(run)
+            run = []
+        run.append(y)
+    if run:
+        out.append(run)
+    return ", ".join(str(r[0]) if len(r) == 1 else f"{r[0]}-{r[-1]}" for r in out)
+
+
+def _unconverged(up, cfg: Config, unconv: np.ndarray) -> str:
+    """Why the years ``unconv`` (indices) are unreliable, with the figures that say so.
+
+    Draws made without a chain (the laplace method: no acceptance rates) are the Gaussian
+    model's weighted to the exact likelihood; too few effective draws mean the likelihood
+    is far from any Gaussian, which longer chains have nothing to do with."""
+    cc = cfg.calibrate
+    yrs = year_ranges(np.asarray(up.years)[unconv])
+    ess = np.asarray(up.ess, float)[unconv]
+    ext = np.asarray((up.fit or {}).get("extensions", [0]))
+    more = int(ext[unconv].max()) if ext.size == len(up.years) else 0
+    lowest = float(np.nanmin(ess)) if np.isfinite(ess).any() else float("nan")
+    if np.isnan(np.asarray(up.acceptance, float)).all():
+        return (f"prognosis unreliable: the posterior of year(s) {yrs} rests on {lowest:.0f} "
+                f"effective draws (calibrate.ess_warn {cc.ess_warn:g}) even with the draws "
+                f"doubled {more} time(s): the likelihood is far from Gaussian (inputs the "
+                "recorded channels hardly tell apart, or estimates against the design "
+                "box's edge)")
+    rhat = np.asarray(up.rhat, float)[unconv]
+    worst = float(np.nanmax(rhat)) if np.isfinite(rhat).any() else float("nan")
+    return (f"prognosis unreliable: the posterior of year(s) {yrs} did not converge even "
+            f"with longer chains (R-hat up to {worst:.3f}, ESS down to {lowest:.0f}; "
+            f"calibrate.rhat_warn {cc.rhat_warn:g}, ess_warn {cc.ess_warn:g})")
 
 
 def describe_blind(cfg: Config, drift: IndicatorDrift, years: np.ndarray) -> str:
