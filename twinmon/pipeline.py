@@ -1,8 +1,10 @@
 """``twinmon run``: every stage in order, skipping those whose output is up to date.
 
 A stage is up to date when its artifact exists, has the right schema, and records the same
-config sections and the same input hashes as this run would use (DVC-style provenance; no
-timestamps involved, so a fresh clone or a touched file does not trigger needless work).
+config sections, the same input hashes and the same twinmon version as this run would use
+(DVC-style provenance; no timestamps involved, so a fresh clone or a touched file does not
+trigger needless work, while an upgrade of twinmon makes every stage again; ``--force``
+does too).
 """
 from __future__ import annotations
 

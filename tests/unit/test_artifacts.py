@@ -65,6 +65,19 @@ def test_up_to_date_follows_config_and_input_hashes(tmp_path):
     assert not artifacts.is_up_to_date(out, "gap", "c", [src])
 
 
+def test_an_artifact_of_another_twinmon_version_is_not_up_to_date(tmp_path):
+    import h5py
+    src = tmp_path / "in.txt"
+    src.write_text("a")
+    out = tmp_path / "o.h5"
+    with artifacts.write_artifact(out, "gap", config="c", inputs=[src]):
+        pass
+    assert artifacts.is_up_to_date(out, "gap", "c", [src])
+    with h5py.File(out, "r+") as f:
+        f.attrs["twinmon_version"] = "0.0.1"
+    assert not artifacts.is_up_to_date(out, "gap", "c", [src])
+
+
 def _hold_lock(path, ready, release):
     with artifacts.output_lock(path, "twinmon test"):
         ready.set()

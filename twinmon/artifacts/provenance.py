@@ -82,15 +82,18 @@ def read_provenance(path: str | os.PathLike) -> dict:
 
 def is_up_to_date(output: str | os.PathLike, kind: str, config: str,
                   inputs: Sequence[str | os.PathLike]) -> bool:
-    """True when ``output`` exists, has the right schema, was made from the same config
-    section and from inputs with the same hashes. Used by ``twinmon run`` to skip stages."""
+    """True when ``output`` exists, has the right schema, was made by this version of
+    twinmon from the same config section and from inputs with the same hashes. Used by
+    ``twinmon run`` to skip stages: an artifact of another version is made again, since
+    what a stage computes may have changed with it."""
     output = Path(output)
     if not output.exists():
         return False
     if not _readable_hdf5(output):
         return False                    # damaged: the stage makes it again
     prov = read_provenance(output)
-    if prov.get("schema") != schema_name(kind) or prov.get("config") != config:
+    if prov.get("schema") != schema_name(kind) or prov.get("config") != config \
+            or prov.get("twinmon_version") != _version():
         return False
     try:
         want = input_records(inputs)
