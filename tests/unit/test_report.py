@@ -460,3 +460,18 @@ def test_a_narrow_figure_wraps_its_title_inside_the_figure(tmp_path):
     box = fig._suptitle.get_window_extent(renderer)
     assert box.x0 >= 0 and box.x1 <= fig.bbox.width, (box, fig.bbox)
     assert "units with a detected fault" in fig._suptitle.get_text().replace("\n", " ")
+
+
+def test_candidates_hidden_alike_on_every_unit_are_said_once():
+    from twinmon.report.summary import diagnose_lines, shared_hidden
+    h = {"tacho.gain": {"value": 1.05, "gap": 0.4, "visible": False, "channel": "armature.i",
+                        "channel_score": 9.0}}
+    other = {"load.extra": {"value": 0.2, "gap": 0.3, "visible": False, "channel": None,
+                            "channel_score": 0.0}}
+    same = [{"hidden": h, "groups": []}, {"hidden": dict(h), "groups": []}]
+    assert shared_hidden(same) == h
+    assert diagnose_lines(same[0], hidden=False) == []
+    assert any("tacho.gain" in x for x in diagnose_lines(same[0]))
+    assert shared_hidden([same[0], {"hidden": other, "groups": []}]) == {}
+    assert shared_hidden([same[0], None]) == {}
+    assert shared_hidden(same[:1]) == {}

@@ -88,10 +88,16 @@ class ReportSummary:
             h = max(len(s.short_health) for s in self.units.values())
             t = max(len(s.time_to_failure) for s in self.units.values())
             lines = []
+            # Candidates hidden alike on every unit (a fleet recording the same channels)
+            # are said once, after the units, as twinmon diagnose says them.
+            shared = shared_hidden([s.diagnose for s in self.units.values()])
             for u, s in self.units.items():
                 lines.append(f"{u:<{w}}  {s.short_health:<{h}}  {s.time_to_failure:<{t}}"
                              + (f"  -> {s.action}" if s.action else ""))
-                lines += diagnose_lines(s.diagnose)
+                lines += diagnose_lines(s.diagnose, hidden=not shared)
+            if shared:
+                from ..diagnose.text import hidden_line
+                lines.append(f"every unit: {hidden_line(shared)}")
         sur = self.surrogate or {}
         if sur.get("max_range_error") is not None:
             n = f" on {sur['n_test']} test runs" if sur.get("n_test") else ""
@@ -104,17 +110,29 @@ class ReportSummary:
         return "\n".join(lines)
 
 
-def diagnose_lines(d: Optional[dict]) -> list[str]:
+def diagnose_lines(d: Optional[dict], hidden: bool = True) -> list[str]:
     """Under a unit's line: each named effect's group of more than one member (posterior
     weights, separating channel, failure-year spread) and the candidates the recorded
-    channels cannot see, as ``twinmon diagnose`` words them; none without either."""
-    if not d or not (d.get("hidden") or any(len(g["members"]) > 1 for g in d["groups"])):
+    channels cannot see (left out with ``hidden=False``), as ``twinmon diagnose`` words
+    them; none without either."""
+    show = hidden and bool(d and d.get("hidden"))
+    if not d or not (show or any(len(g["members"]) > 1 for g in d["groups"])):
         return []
     from ..diagnose.text import INDENT, group_line, hidden_line
     lines = [INDENT + group_line(g) for g in d["groups"] if len(g["members"]) > 1]
-    if d.get("hidden"):
+    if show:
         lines.append(INDENT + hidden_line(d["hidden"]))
     return lines
+
+
+def shared_hidden(diagnoses: list) -> dict:
+    """The hidden candidates' record every unit shares (``{}`` unless there are several
+    units, all diagnosed, whose recorded channels hide the same candidates alike)."""
+    from ..diagnose.text import hidden_line
+    if len(diagnoses) < 2 or not all(d and d.get("hidden") for d in diagnoses):
+        return {}
+    lines = {hidden_line(d["hidden"]) for d in diagnoses}
+    return diagnoses[0]["hidden"] if len(lines) == 1 else {}
 
 
 def words_dict(inp: Inputs) -> tuple[dict, dict]:
