@@ -95,6 +95,19 @@ def test_truth_is_the_recorded_future(fleet):
     assert old.truth_source == "trend line"
     slope, icpt = np.polyfit(truth.years["Colt"], truth.inputs["Colt"]["pump_coef"], 1)
     assert np.allclose(old.true_inputs["pump_coef"], icpt + slope * old.years_future)
+    # A forecast made from the first years of the record (a backtest's cut): its future
+    # is the truth's recorded years, then its recorded future.
+    cut = copy.copy(s.units["Colt"])
+    ty = np.asarray(truth.years["Colt"])
+    cut.years_future = np.arange(ty[-1] - 1, ty[-1] + 4)
+    _add_truth(cfg, cut, "Colt", (ty, truth.inputs["Colt"], truth.future_years["Colt"],
+                                  truth.future_inputs["Colt"]), tmp / "truth.h5",
+               spec_for(cfg), None)
+    assert cut.truth_source == "recorded future"
+    for n in cfg.model.input_names:
+        want = np.concatenate([np.asarray(truth.inputs["Colt"][n])[-2:],
+                               np.asarray(truth.future_inputs["Colt"][n])[:3]])
+        assert np.array_equal(cut.true_inputs[n], want)
 
 
 def test_unsafe_probability_rises_towards_failure(fleet):

@@ -348,24 +348,32 @@ def _add_truth(cfg: Config, uf: UnitForecast, unit: str, truth_unit, truth_path,
 
     ``truth_unit``: the unit's years [n_y], inputs {name: [n_y]}, and the truth file's
     future years [h] and inputs {name: [h]} or None. The future is the truth file's where it
-    covers the forecast's years (what the unit will really be, year-to-year jitter
-    included); otherwise (truth files written before it was recorded, a longer horizon) each
-    true trajectory's fitted line extended. ``uf.truth_source`` says which."""
+    covers the forecast's years -- its recorded years (a forecast made from the first years
+    of the record, as a backtest makes it) and its recorded future: what the unit will
+    really be, year-to-year jitter included; otherwise (truth files written before the
+    future was recorded, a longer horizon) each true trajectory's fitted line extended.
+    ``uf.truth_source`` says which."""
     from ..safety import Indicator, is_unsafe
     from ..simulate import as_parameters, run_batch
     ty, inputs, fy, finputs = truth_unit
     names = cfg.model.input_names
-    realised = False
-    if fy is not None and all(n in finputs for n in names):
-        fy = np.asarray(fy)
-        pos = np.searchsorted(fy, uf.years_future)
-        realised = bool(np.all(pos < fy.size)) and np.array_equal(fy[pos], uf.years_future)
-    Xt = np.empty((uf.years_future.size, len(names)))
-    for i, name in enumerate(names):
+    for name in names:
         if name not in inputs:
             raise ArtifactError(f"{truth_path}: /units/{unit}/inputs/{name} is missing")
+    # Every true year the file holds, recorded then future (the future after the record).
+    years = np.asarray(ty)
+    values = {n: np.asarray(inputs[n], float) for n in names}
+    if fy is not None and all(n in finputs for n in names):
+        later = np.asarray(fy) > years.max()
+        years = np.concatenate([years, np.asarray(fy)[later]])
+        values = {n: np.concatenate([values[n], np.asarray(finputs[n], float)[later]])
+                  for n in names}
+    pos = np.minimum(np.searchsorted(years, uf.years_future), years.size - 1)
+    realised = bool(np.array_equal(years[pos], uf.years_future))
+    Xt = np.empty((uf.years_future.size, len(names)))
+    for i, name in enumerate(names):
         if realised:
-            Xt[:, i] = np.asarray(finputs[name], float)[pos]
+            Xt[:, i] = values[name][pos]
         else:
             slope, icpt = np.polyfit(ty, np.asarray(inputs[name], float), 1)
             Xt[:, i] = icpt + slope * uf.years_future
