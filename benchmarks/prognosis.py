@@ -486,6 +486,7 @@ def report(tag: str, r: dict) -> None:
     k, n = r["counts"]["soon_missed"]
     print(f"  failing within 3 years of the record but told ok with max P(unsafe) < 5 %: "
           f"{k} of {n} (target 0){': ' + ', '.join(r['missed_soon']) if k else ''}")
+    print("  counts (k/n): " + ", ".join(f"{key} {k}/{n}" for key, (k, n) in r["counts"].items()))
     if r["misses"]:
         print("  not right:", r["misses"])
 
