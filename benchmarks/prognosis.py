@@ -235,7 +235,11 @@ def score(cfg, summary, kinds, truth, components: list[str]) -> dict:
               "unreliable_healthy": (sum(r[3].status == "unreliable" for r in healthy),
                                      len(healthy)),
               "unreliable_faulty": (sum(r[3].status == "unreliable" for r in faulty),
-                                    len(faulty))}
+                                    len(faulty)),
+              # Withheld units (the twin misses the data, or its estimates sit on the box's
+              # edge) count among the false alarms and the wrong components above.
+              "withheld_healthy": (sum(r[2] == "withheld" for r in healthy), len(healthy)),
+              "withheld_faulty": (sum(r[2] == "withheld" for r in faulty), len(faulty))}
     # Repairs nobody recorded: found (the right year and component) on the units that had
     # one, and found where there was none.
     hidden = {u: {(int(y), c) for y, c in truth.unrecorded.get(u, ())} for u in rows}
