@@ -36,7 +36,8 @@ by 0.043; the pooled counts come with their 90 % Wilson intervals.
 pump's word) is the config's output alone; ``speed`` adds the first of ``model.channels``
 (the pump's ``motor.w``), ``all`` every one of them, and names of ``model.channels`` joined
 by ``+`` (``armature.i+shaft.torque``) those. The surrogate is reduced on every channel a set
-names, and always on the first further one.
+names, and always on the first further one, once per work folder: a set naming a channel
+the folder's surrogate lacks needs a new folder.
 ``--reuse`` takes the posteriors already in ``--workdir`` (to measure a change of
 ``forecast`` without calibrating again).
 
@@ -391,6 +392,8 @@ def run_fleet(a, seed: int, work: Path) -> dict:
             else:
                 cal = calibrate(c, work / "sur.h5", obs, post, truth_path=tru)
                 t_cal = time.perf_counter() - t1
+                for w in cal.warnings:
+                    print(f"calibrate {tag}: {w}")
             r = forecast_and_score(a, c, post, work, f"{method}_{ch}", kinds, truth, sur)
             r["t_cal"] = t_cal
             r["truth_check"] = cal.truth_check if cal is not None else None
@@ -431,6 +434,8 @@ def forecast_and_score(a, c, post: Path, work: Path, name: str, kinds, truth, su
     ``--no-alpha-lambda``."""
     tru = work / "truth.h5"
     s = forecast(c, post, work / "sur.h5", work / f"fc_{name}.h5", truth_path=tru)
+    for w in s.warnings:
+        print(f"forecast {name}: {w}")
     r = score(c, s, kinds, truth, a.model.components)
     if not a.no_alpha_lambda:
         p = read_posterior(post)
