@@ -25,12 +25,12 @@ forecast); "fail+-1" and "a-l" are the first, "fail50" and "a-l50" the second.
 
 Usage: ``python benchmarks/prognosis.py [--config configs/dcdrive.yaml] [--seed 11 [12 ...]]
 [--methods sequential,joint] [--channels flow,speed] [--workdir DIR] [--reuse]``; about 2
-minutes per seed and
-configuration with the sequential method on 2 cores (the joint method: about 10, its
-alpha-lambda cuts calibrated again). Several seeds
-are pooled: a pump seed has 12 healthy units and 23 faulty ones with an excess of at least
-twice the tolerance, so one unit moves a seed's false-alarm rate by 0.083 and its detection
-by 0.043; the pooled counts come with their 90 % Wilson intervals.
+minutes per seed and configuration with the sequential method on 2 cores (the joint method:
+about 10, its alpha-lambda cuts calibrated again; the laplace method without alpha-lambda
+10-25 s, the pump's fleet or the DC drive's). Several seeds are pooled: a pump seed has 12
+healthy units and 23 faulty ones with an excess of at least twice the tolerance, so one unit
+moves a seed's false-alarm rate by 0.083 and its detection by 0.043; the pooled counts come
+with their 90 % Wilson intervals.
 
 ``--channels`` lists channel sets, each calibrated on its own: ``output`` (or ``flow``, the
 pump's word) is the config's output alone; ``speed`` adds the first of ``model.channels``
@@ -73,7 +73,7 @@ from twinmon.observations import read_observations  # noqa: E402
 from twinmon.reduce import read_surrogate, reduce  # noqa: E402
 from twinmon.simulate import simulate  # noqa: E402
 
-from families import FAMILIES, FleetModel, fleet  # noqa: E402
+from families import FAMILIES, PUMP, FleetModel, fleet  # noqa: E402
 
 
 def channel_sets(cfg, names: str) -> dict[str, list[str]]:
@@ -101,7 +101,6 @@ def output_noise(cfg, model: FleetModel) -> float:
     """The output's noise sd: the pump's 4 kg/s (1 % of its 400 kg/s nominal flow); for
     another model 1 % of the healthy unit's (every input at nominal) largest output, to
     two significant digits."""
-    from families import PUMP
     if model is PUMP:
         return 4.0
     from twinmon.simulate import run_batch, spec_for
@@ -112,6 +111,8 @@ def output_noise(cfg, model: FleetModel) -> float:
         raise SystemExit(f"{cfg.source}: the healthy unit failed to simulate: "
                          f"{run.messages[0]}")
     return float(f"{0.01 * float(np.max(np.abs(run.outputs[out][0]))):.2g}")
+
+
 #: Cut years of the alpha-lambda scores: from the fifth year to the tenth, the whole recorded
 #: history. ``twinmon backtest`` stops at the last year but one, because it scores against
 #: later recordings. Here the truth knows the years after the tenth, so the forecast made in
@@ -289,9 +290,9 @@ def main() -> int:
                          "(tag oracle/CHANNELS)")
     a = ap.parse_args()
     a.config = a.config.resolve()
-    base = load_config(a.config)
-    a.model = FleetModel.from_config(base)
-    a.sets = channel_sets(base, a.channels)
+    a.base = load_config(a.config)
+    a.model = FleetModel.from_config(a.base)
+    a.sets = channel_sets(a.base, a.channels)
     root = Path(a.workdir or tempfile.mkdtemp(prefix="twinmon-prognosis-"))
     per_seed = {}
     for seed in a.seed:
@@ -341,11 +342,10 @@ def run_fleet(a, seed: int, work: Path) -> dict:
     configuration; print each one's confusion matrix. Returns tag -> scores."""
     global truth_time
     work.mkdir(parents=True, exist_ok=True)
-    from families import PUMP
     units, kinds = (fleet(seed, a.family, model=a.model) if a.healthy_only is None
                     else fleet(seed, a.family, n_healthy=a.healthy_only, faulty=False,
                                model=a.model))
-    base = load_config(a.config)
+    base = a.base
     # The surrogate learns every further channel a set calibrates on, and the first one
     # always (the pump's motor speed: its surrogates stay what they were).
     reduced = list(dict.fromkeys([*list(base.model.channels)[:1],
