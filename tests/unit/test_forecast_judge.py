@@ -417,3 +417,25 @@ def test_an_unconverged_unit_is_unreliable_with_the_figures_of_its_draws(chains)
     else:
         assert "rests on 37 effective draws" in why and "doubled 2 time(s)" in why
         assert "chains" not in why
+
+
+def test_a_unit_on_the_box_edge_is_withheld_naming_the_bound_it_leans_on():
+    from types import SimpleNamespace
+
+    from twinmon.config import load_config
+    from twinmon.forecast.judge import prognosis_status
+
+    from ..conftest import CONFIGS
+    cfg = load_config(CONFIGS / "dcdrive.yaml")
+    years = np.arange(1, 6)
+    status = np.array(["ok", "ok", "ok", "edge", "edge"])
+    share = np.zeros((5, 2))
+    share[3:, 0] = [0.4, 0.9]
+    mean = np.tile([0.00052, 1.0], (5, 1))
+    up = SimpleNamespace(status=status, years=years, mean=mean,
+                         fit={"edge_share": share, "window_rms": np.zeros(5)})
+    st, why = prognosis_status(up, cfg, [])
+    assert st == "withheld"
+    assert "bearing_friction sit on the design box's low edge" in why
+    assert "90 % of the posterior in year 5" in why and "of 0.0005 N.m.s/rad" in why
+    assert "widen model.inputs.bearing_friction.low" in why

@@ -76,11 +76,21 @@ def prognosis_status(up, cfg: Config, windows: list) -> tuple[str, str]:
         k = int(bad[-1])
         j = int(np.argmax(f["edge_share"][k]))
         name = cfg.model.input_names[j]
+        spec = cfg.model.inputs[name]
+        # The bound the year's estimates lean on. The draws pile up there when the plant
+        # needs a value beyond it, and also when its true value lies just inside: either
+        # way the box does not leave the estimate room, and widening it tells which.
+        side = "low" if float(np.asarray(up.mean)[k, j]) < 0.5 * (spec.low + spec.high) \
+            else "high"
+        bound = spec.low if side == "low" else spec.high
+        unit = f" {spec.units}" if spec.units not in ("", "1") else ""
         return STATUS_WITHHELD, (
-            f"prognosis withheld: the estimates of {name} sit on the design box's edge "
-            f"({100 * f['edge_share'][k][j]:.0f} % of the posterior in year {int(up.years[k])}) "
-            f"from year {first}: the plant needs inputs outside the twin's box; widen "
-            f"model.inputs.{name} or run 'twinmon diagnose'")
+            f"prognosis withheld: the estimates of {name} sit on the design box's {side} "
+            f"edge ({100 * f['edge_share'][k][j]:.0f} % of the posterior in year "
+            f"{int(up.years[k])} within {100 * cfg.calibrate.edge_margin:g} % of the range "
+            f"of {bound:g}{unit}) from year {first}: the plant needs, or nearly "
+            f"needs, inputs beyond the twin's box; widen model.inputs.{name}.{side} or run "
+            "'twinmon diagnose'")
     unconv = np.flatnonzero(st == STATUS_UNCONVERGED)
     if unconv.size:
         return STATUS_UNRELIABLE, _unconverged(up, cfg, unconv)
