@@ -135,11 +135,14 @@ def true_end_of_life(cfg, uf, truth, unit) -> int | None:
 
 
 def alpha_lambda(cfg, post, sur, truth_eol: dict, cuts, work: Path | None = None,
-                 name: str = "") -> tuple[dict, dict]:
+                 name: str = "", truth=None) -> tuple[dict, dict, dict]:
     """Per unit failing after the first cut: TTF scores of forecasts made at each cut, of the
-    failure year and of the median failure year. Only those units are forecast (a unit's
-    forecast does not depend on the others but through the fleet's priors of a trend
-    posterior, its sigma and its trend shapes).
+    failure year and of the median failure year; and per cut, the coverage of the true
+    future indicator by the 90 % intervals of every unit's forecast made there ((hits, n):
+    the record's last cut is the forecast the other scores read; earlier cuts are shorter
+    records, where the trend's shape is less known). A unit's forecast does not depend on
+    the others but through the fleet's priors of a trend posterior, its sigma and its
+    trend shapes.
 
     The sequential posterior truncated at a cut is what calibrating the years up to the cut
     gives. A joint or laplace posterior's years were estimated knowing the later ones, so
@@ -149,19 +152,28 @@ def alpha_lambda(cfg, post, sur, truth_eol: dict, cuts, work: Path | None = None
     fleet's prior of the trend shapes would learn that every unit wears as they do."""
     scored = [u for u, eol in truth_eol.items() if eol is not None and eol > min(cuts)]
     preds = {u: {} for u in scored}
+    coverage = {}
     for k in cuts:
         fleet = None
-        if cfg.calibrate.method in ("joint", "laplace") and scored:
+        if cfg.calibrate.method in ("joint", "laplace"):
             cut = recalibrate_cut(cfg, work, list(post.units), k, name)
-            sub = {u: cut[u] for u in scored}
+            sub = dict(cut)
             fleet = Posterior(post.input_names, cut, post.path, post.fit_windows)
         else:
-            sub = {u: truncate(post.units[u], k) for u in scored}
+            sub = {u: truncate(post.units[u], k) for u in post.units}
         res, _, _ = forecast_units(cfg, Posterior(post.input_names, sub, post.path,
-                                                  post.fit_windows), sur, pool_over=fleet)
+                                                  post.fit_windows), sur, pool_over=fleet,
+                                   truth=truth, truth_path=work / "truth.h5")
+        hits = []
         for u, uf in res.items():
-            preds[u][k] = tuple(-1 if y is None else int(y)
-                                for y in (uf.failure_year, uf.median_failure_year))
+            if u in preds:
+                preds[u][k] = tuple(-1 if y is None else int(y)
+                                    for y in (uf.failure_year, uf.median_failure_year))
+            if uf.true_indicator is not None:
+                q05, _, q95 = uf.indicator_quantiles((0.05, 0.5, 0.95))
+                ti = np.asarray(uf.true_indicator, float)
+                hits += list((q05 <= ti) & (ti <= q95))
+        coverage[k] = (int(np.sum(hits)), len(hits))
     out = ({}, {})
     for u in scored:
         ks = np.array(sorted(preds[u]))
@@ -170,7 +182,7 @@ def alpha_lambda(cfg, post, sur, truth_eol: dict, cuts, work: Path | None = None
                            cfg.forecast.horizon, cfg.backtest.alpha, cfg.backtest.lambda_value)
             if s is not None:
                 out[j][u] = s
-    return out
+    return (*out, coverage)
 
 
 def recalibrate_cut(cfg, work: Path, units: list, k: int, name: str) -> dict:
@@ -439,13 +451,18 @@ def forecast_and_score(a, c, post: Path, work: Path, name: str, kinds, truth, su
     r = score(c, s, kinds, truth, a.model.components)
     if not a.no_alpha_lambda:
         p = read_posterior(post)
-        al, al50 = alpha_lambda(c, p, sur, r["eol"], cuts=ALPHA_LAMBDA_CUTS, work=work,
-                                name=name)
+        al, al50, cov = alpha_lambda(c, p, sur, r["eol"], cuts=ALPHA_LAMBDA_CUTS, work=work,
+                                     name=name, truth=truth)
         for key, sc in (("alpha_lambda", al), ("alpha_lambda50", al50)):
             r[key] = float(np.mean([v.alpha_lambda for v in sc.values()])) \
                 if sc else float("nan")
             r["counts"][key] = (sum(v.alpha_lambda for v in sc.values()), len(sc))
         r["n_al"] = len(al)
+        for k, hn in cov.items():
+            r["counts"][f"cover_indicator_cut{k}"] = hn
+        print(f"{name}: 90 % intervals of the true indicator, forecasts made at each cut "
+              "(years of record): " + ", ".join(f"{k}: {h}/{n} = {h / n:.3f}" if n else
+                                                f"{k}: -" for k, (h, n) in cov.items()))
     return r
 
 
