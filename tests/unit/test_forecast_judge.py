@@ -417,6 +417,8 @@ def test_an_unconverged_unit_is_unreliable_with_the_figures_of_its_draws(chains)
     else:
         assert "rests on 37 effective draws" in why and "doubled 2 time(s)" in why
         assert "chains" not in why
+        up.fit = {"extensions": np.zeros(8)}
+        assert "doubled" not in prognosis_status(up, cfg, [])[1]
 
 
 def test_a_unit_on_the_box_edge_is_withheld_naming_the_bound_it_leans_on():

@@ -123,11 +123,11 @@ def _unconverged(up, cfg: Config, unconv: np.ndarray) -> str:
     more = int(ext[unconv].max()) if ext.size == len(up.years) else 0
     lowest = float(np.nanmin(ess)) if np.isfinite(ess).any() else float("nan")
     if np.isnan(np.asarray(up.acceptance, float)).all():
+        doubled = f" even with the draws doubled {more} time(s)" if more else ""
         return (f"prognosis unreliable: the posterior of year(s) {yrs} rests on {lowest:.0f} "
-                f"effective draws (calibrate.ess_warn {cc.ess_warn:g}) even with the draws "
-                f"doubled {more} time(s): the likelihood is far from Gaussian (inputs the "
-                "recorded channels hardly tell apart, or estimates against the design "
-                "box's edge)")
+                f"effective draws (calibrate.ess_warn {cc.ess_warn:g}){doubled}: the "
+                "likelihood is far from Gaussian (inputs the recorded channels hardly tell "
+                "apart, or estimates against the design box's edge)")
     rhat = np.asarray(up.rhat, float)[unconv]
     worst = float(np.nanmax(rhat)) if np.isfinite(rhat).any() else float("nan")
     return (f"prognosis unreliable: the posterior of year(s) {yrs} did not converge even "
