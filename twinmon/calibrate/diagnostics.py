@@ -5,10 +5,12 @@ import numpy as np
 
 
 def _split(chains: np.ndarray) -> np.ndarray:
-    """[m, n] -> [2m, n//2]: each chain cut in halves, so drifts within a chain show."""
+    """[..., m, n] -> [..., 2m, n//2]: each chain cut in halves, so drifts within a chain
+    show."""
     chains = np.atleast_2d(np.asarray(chains, float))
-    half = chains.shape[1] // 2
-    return np.vstack([chains[:, :half], chains[:, -half:]])
+    n = chains.shape[-1]
+    half = n // 2
+    return np.concatenate([chains[..., :half], chains[..., n - half:]], axis=-2)
 
 
 def _average_ranks(x: np.ndarray) -> np.ndarray:
@@ -126,17 +128,12 @@ def split_rhat_many(chains: np.ndarray) -> np.ndarray:
     if not live.any():
         return out.reshape(lead)
     x = x[live]
-    half = n // 2
-
-    def split(c):
-        return np.concatenate([c[:, :, :half], c[:, :, n - half:]], axis=1)
-
-    bulk = _rhat_rows(_z_scale_rows(split(x)))
+    bulk = _rhat_rows(_z_scale_rows(_split(x)))
     folded = np.abs(x - np.median(x.reshape(len(x), -1), axis=1)[:, None, None])
     spread = np.ptp(folded.reshape(len(x), -1), axis=1) > 0
     tail = bulk.copy()
     if spread.any():
-        tail[spread] = _rhat_rows(_z_scale_rows(split(folded[spread])))
+        tail[spread] = _rhat_rows(_z_scale_rows(_split(folded[spread])))
     # max() of two floats as split_rhat takes it: a NaN bulk gives NaN, a NaN tail the bulk.
     out[live] = np.where(np.isnan(bulk) | ~(tail > bulk), bulk, tail)
     return out.reshape(lead)

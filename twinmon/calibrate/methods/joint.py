@@ -64,7 +64,7 @@ from ...config import Config
 from ...errors import CalibrationError
 from ..base import Method
 from ..density import Prior, find_map, make_log_density
-from ..diagnostics import ess, split_rhat
+from ..diagnostics import ess, split_rhat_many
 from ..fit import years_fit
 from ..posterior import UnitPosterior, draw_statistics
 from ..samplers.gpbatch import make_predictor
@@ -377,7 +377,7 @@ class JointRun:
         K, d = lay.K, lay.d
         n_c, n_s = z.shape[:2]
         theta = trend_theta(z, lay, self.M)                     # [chains, samples, K, d]
-        rhat = np.array([[split_rhat(theta[:, :, k, j]) for j in range(d)] for k in range(K)])
+        rhat = split_rhat_many(np.moveaxis(theta, (2, 3), (0, 1)))              # [K, d]
         n_eff = np.array([[ess(theta[:, :, k, j], rank_normalize=True) for j in range(d)]
                           for k in range(K)])
         trend = self._trend(z, [r[2] for r in results])
@@ -418,12 +418,11 @@ class JointRun:
             a[:, :, :n, i], b[:, :, :n, i] = lines_at_start(z[:, :, lay.beta(i)],
                                                             self.starts[i], self.centres[i])
         sigma = np.abs(z[:, :, lay.s])
-        rhat, n_eff = np.empty((3, d)), np.empty((3, d))
-        for i in range(d):
-            last = len(self.starts[i]) - 1
-            for r, x in enumerate((a[:, :, last, i], b[:, :, last, i], sigma[:, :, i])):
-                rhat[r, i] = split_rhat(x)
-                n_eff[r, i] = ess(x, rank_normalize=True)
+        last = [len(st) - 1 for st in self.starts]
+        ends = np.stack([np.stack([a[:, :, last[i], i], b[:, :, last[i], i], sigma[:, :, i]])
+                         for i in range(d)], axis=1)  # [3, d, m, n]
+        rhat = split_rhat_many(ends)
+        n_eff = np.array([[ess(x, rank_normalize=True) for x in row] for row in ends])
         flat = n_c * n_s
         return {"start": start, "intercept": a.reshape(flat, S, d),
                 "slope": b.reshape(flat, S, d), "sigma": sigma.reshape(flat, d),

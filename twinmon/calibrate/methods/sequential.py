@@ -13,7 +13,7 @@ import numpy as np
 from ...config import Config
 from ..base import Method
 from ..density import LogDensity, find_map, make_log_density
-from ..diagnostics import ess, split_rhat
+from ..diagnostics import ess, split_rhat_many
 from ..fit import FIT_FIELDS, STATUS_OK, STATUS_UNCONVERGED, year_fit
 from ..posterior import UnitPosterior, thin_indices
 from ..samplers.openturns import OpenTurnsSampler
@@ -199,7 +199,7 @@ class SequentialRun:
         cc, k = self.cfg.calibrate, self.k
         draws = np.array([r[0] for r in results])          # [chains, samples, d]
         d = draws.shape[2]
-        rhat = np.array([split_rhat(draws[:, :, j]) for j in range(d)])
+        rhat = split_rhat_many(np.moveaxis(draws, 2, 0))                    # [d]
         n_eff = np.array([ess(draws[:, :, j], rank_normalize=True) for j in range(d)])
         converged = bool(np.all(rhat <= cc.rhat_warn) and np.all(n_eff >= cc.ess_warn))
         if not converged and self.ext < cc.max_extensions:

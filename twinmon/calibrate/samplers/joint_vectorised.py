@@ -12,7 +12,8 @@ chain per task: the reference); what changes is how they are run:
 * **Batched surrogate.** Every block's proposals of a sweep, for all chains of all units in
   the batch, go through :class:`.gpbatch.GPBatch` (the Karhunen-Loeve + Gaussian-process
   prediction as array arithmetic, tabulated by :class:`.gpbatch.GPTable`) in one call,
-  instead of one OpenTURNS call per chain and block through a Python callback. A trend move evaluates the K years of every chain at once.
+  instead of one OpenTURNS call per chain and block through a Python callback. A trend
+  move evaluates the K years of every chain at once.
 * **Adaptation as OpenTURNS'.** During the burn-in each block's proposal scale is adapted
   every :data:`~twinmon.calibrate.shared.ADAPT_PERIOD` of its moves on its acceptance rate
   (range and factors of OpenTURNS' random walk); the ``joint_trend_moves`` trend moves of a
