@@ -87,15 +87,14 @@ def test_cut_years_need_three_years_of_the_segment_in_force():
 
 
 def test_the_years_weights_before_a_cut_are_a_slice_of_the_units():
-    from twinmon.calibrate.gaussian_trend import year_weight_table, year_weights
-    from twinmon.forecast.trendfit import _weights_before
+    from twinmon.calibrate.gaussian_trend import weights_of, year_weight_table, year_weights
     rng = np.random.default_rng(5)
     A = rng.standard_normal((10, 2, 3))
     cov = A @ np.swapaxes(A, 1, 2)
     sigma = np.exp(rng.standard_normal((16, 2)))
     table = year_weight_table(cov, sigma)
     for k in (3, 7, 10):
-        for a, b in zip(_weights_before(table, k), year_weights(cov[:k], sigma)):
+        for a, b in zip(weights_of(table, k), year_weights(cov[:k], sigma)):
             np.testing.assert_allclose(a, b, rtol=1e-14, atol=0)
 
 

@@ -60,8 +60,15 @@ def year_weights(cov: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.nda
     """Each year's weight ``(C_k + diag(sigma^2))^-1`` at sigma points ``sigma`` [P, d], the
     sites' covariances ``cov`` [K, d, d]: flattened, [P, K d d], and the log-determinant of
     the years' covariances summed, [P] (:func:`year_weight_table`, summed over the years)."""
-    W, logdet = year_weight_table(cov, sigma)
-    return W.reshape(len(W), -1), logdet.sum(axis=1)
+    return weights_of(year_weight_table(cov, sigma))
+
+
+def weights_of(table: tuple, k: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`year_weights` of the years ``[0, k)`` (all: None) from their
+    :func:`year_weight_table` ``(W [P, K, d, d], logdet [P, K])``: ``(Wf [P, k d d],
+    logdet_v [P])``."""
+    W, logdet = table
+    return W[:, :k].reshape(len(W), -1), logdet[:, :k].sum(axis=1)
 
 
 def linear_gaussian(Wf: np.ndarray, logdet_v: np.ndarray, Mk: np.ndarray, x: np.ndarray,
@@ -278,11 +285,13 @@ class GaussianTrend(SiteModel):
         self._log_norm = 0.5 * (np.linalg.slogdet(self.prior_P[np.ix_(proper, proper)])[1]
                                 - m0 @ self.prior_P @ m0)
 
-    def _conditional(self, sigma: np.ndarray, want_mean: bool = True):
+    def _conditional(self, sigma: np.ndarray, want_mean: bool = True,
+                     weights: tuple | None = None):
         """beta's Gaussian conditional and sigma's log marginal likelihood at sigma points
         ``sigma`` [P, d]: (precision [P, nb, nb], its Cholesky factor, mean [P, nb] or None,
-        log-likelihood [P]) (:func:`linear_gaussian`)."""
-        Wf, logdet_v = year_weights(self.cov, sigma)
+        log-likelihood [P]) (:func:`linear_gaussian`). ``weights``: the years'
+        :func:`year_weights` at ``sigma`` when already computed."""
+        Wf, logdet_v = year_weights(self.cov, sigma) if weights is None else weights
         out = linear_gaussian(Wf, logdet_v, self.Mk[None], self.x, self.prior_P[None],
                               np.asarray(self.prior_mean, float)[None],
                               np.array([self._log_norm]), want_mean)

@@ -165,14 +165,6 @@ def sigma_grid(cfg: Config, fleet=None, n: int = SIGMA_GRID
     return sigma, np.sum(np.log(sigma) - np.log1p((sigma / A) ** 2), axis=1)
 
 
-def _weights_before(table: tuple, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`~twinmon.calibrate.gaussian_trend.year_weights` of years ``[0, k)`` from their
-    :func:`~twinmon.calibrate.gaussian_trend.year_weight_table`: ``(Wf [P, k d d],
-    logdet_v [P])``."""
-    W, logdet = table
-    return W[:, :k].reshape(len(W), -1), logdet[:, :k].sum(axis=1)
-
-
 def _weight_tables(cov: np.ndarray, sigma: np.ndarray, A: np.ndarray, priors: dict) -> tuple:
     """:func:`~twinmon.calibrate.gaussian_trend.year_weight_table` at the grid's sigma
     ``sigma`` [P, d] and at the change screen's
@@ -231,7 +223,7 @@ def predict_ahead(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarray
     S : ndarray, shape [n, d, d]
         Each component's predictive mean and covariance of year ``k``'s site.
     """
-    from ..calibrate.gaussian_trend import GaussianTrend, linear_gaussian, year_weights
+    from ..calibrate.gaussian_trend import GaussianTrend, weights_of, year_weights
     from ..calibrate.methods.laplace import line_model
     from ..calibrate.shape_columns import OCCAM, line_now, shape_sets
     from ..calibrate.shape_screen import block_terms, set_loglik
@@ -248,18 +240,16 @@ def predict_ahead(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarray
     st = [s[s <= yk[-1]] for s in starts]
     _, Mk, prec, mean0, slopes, _ = line_model(cfg, yk, st)
     line = GaussianTrend(xk, ck, Mk, prec, mean0, A)
-    on_sig = _weights_before(tables[0], k)
-    # The line's posterior at the grid (GaussianTrend._conditional's, on the shared weights).
-    Pb, _, mu, ll = (a[0] for a in linear_gaussian(
-        *on_sig, Mk[None], xk, line.prior_P[None], np.asarray(mean0, float)[None],
-        np.array([line._log_norm])))
+    on_sig = weights_of(tables[0], k)
+    # The line's posterior at the grid, on the weights the cuts share.
+    Pb, _, mu, ll = line._conditional(sig, weights=on_sig)
     # The line's posterior mean of sigma on these years: the shapes' reference (as
     # calibration takes it from the line's sigma points).
     lw = log_p0 + ll
     w = np.exp(lw - lw.max())
     s_ref = (w / w.sum()) @ sig
     sets = shape_sets(line, yk, np.array([s[-1] for s in st]), priors, s_ref,
-                      None if tables[1] is None else _weights_before(tables[1], k))
+                      None if tables[1] is None else weights_of(tables[1], k))
     u = [float(years[k] - yk[-1])]
     # Each coefficient's map to the trend one year on (the ``now`` rows extended; extend()
     # is linear in them, so applied to each column's rows it gives the map's columns).
@@ -278,19 +268,17 @@ def predict_ahead(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarray
         # more than the grid rows of the sets the window drops (on 60 units of a fleet it
         # dropped none).
         ref_w = year_weights(ck, s_ref[None])
-        Pr, _, mr, lr = linear_gaussian(*ref_w, Mk[None], xk, line.prior_P[None],
-                                        np.asarray(mean0, float)[None],
-                                        np.array([line._log_norm]))
+        Pr, _, mr, lr = line._conditional(s_ref[None], weights=ref_w)
         bt = block_terms(line, sets.E, np.vstack([sig, s_ref[None]]),
-                         (np.concatenate([Pb, Pr[0]]), np.concatenate([mu, mr[0]]),
-                          np.concatenate([ll, lr[0]])),
+                         (np.concatenate([Pb, Pr]), np.concatenate([mu, mr]),
+                          np.concatenate([ll, lr])),
                          tuple(np.concatenate(p) for p in zip(on_sig, ref_w)))
         terms = {size: set_loglik(bt, sets.S, np.array([comps[j][0] for j in of]))
                  for size, of in groups if size}
         quick = np.empty(len(comps))
         for size, of in groups:
             quick[of] = [comps[j][1] for j in of] + (
-                terms[size][0][:, -1] if size else lr[0, 0])
+                terms[size][0][:, -1] if size else lr[0])
         ok = quick >= quick.max() + np.log(OCCAM)
         # G's line part, H_b Pb^-1 B, at every grid point [P, d, n_x].
         HPiB = np.einsum("da,pac->pdc", Hb, bt.PiB[:-1])
