@@ -349,6 +349,29 @@ def test_detectable_multiples_say_what_fault_a_record_would_show_half_the_time()
     assert describe_blind(off, drift, YEARS[:3]) == ""
 
 
+def test_a_healthy_verdict_says_how_large_a_fault_its_record_shows():
+    """describe_power names each input's fault the record shows half the time (any size
+    where nothing bounds it; none for an input without a tolerance), and says nothing for a
+    forecast that did not record them."""
+    from twinmon.config import load_config
+    from twinmon.forecast.judge import describe_power
+
+    from ..conftest import CONFIGS
+    cfg = load_config(CONFIGS / "pump.yaml")
+    a, b = cfg.model.input_names
+    drift = indicator_drift(YEARS, _indicator(0.08, 0.1, np.random.default_rng(5)), GRAD,
+                            RATE, TOL, +1, 0.01)
+    drift.detectable = np.array([1.43, 2.91])
+    why = describe_power(cfg, drift)
+    assert f"half the time from {a} 1.4x, {b} 2.9x the input's normal-ageing tolerance" in why
+    assert why.endswith("a smaller one may go unseen")
+    drift.detectable = np.array([np.inf, np.nan])
+    why = describe_power(cfg, drift)
+    assert f"from {a} of any size the" in why and b not in why
+    drift.detectable = np.zeros(0)
+    assert describe_power(cfg, drift) == "" and describe_power(cfg, None) == ""
+
+
 def test_t_tail_is_students_and_the_normals_from_a_posteriors_dof():
     """t_sf is scipy's Student t tail; from NORMAL_DOF on, the normal's, within 1e-5."""
     from scipy import stats

@@ -154,6 +154,9 @@ def test_summary_json_is_derived_from_the_artifacts(pipeline, full):
         for u, f in fc.units.items():
             s = data["units"][u]
             assert s["root_cause"] == f.root_cause and s["failure_year"] == f.failure_year
+            if f.root_cause == "healthy" and f.status == "ok":
+                # How large a fault the healthy verdict rules out.
+                assert "a fault shows in this record half the time from" in s["confidence"]
             assert s["plan"] == f.plan
             if f.failure_year is not None:
                 k = int(np.flatnonzero(f.years_future == f.failure_year)[0])

@@ -151,6 +151,24 @@ def describe_blind(cfg: Config, drift: IndicatorDrift, years: np.ndarray) -> str
             "rule it out")
 
 
+def describe_power(cfg: Config, drift: IndicatorDrift | None) -> str:
+    """What a healthy verdict rules out: per input, the fault (in multiples of its
+    normal-ageing tolerance) this record shows half the time (:func:`describe_blind` says
+    when that is too large to trust the verdict). "" when the forecast did not record it.
+
+    A repaired pump with four to six years since the repair, or a record of three or four
+    years, shows a fault of two or three tolerances only about half the time on the flow
+    alone; "healthy" with no figure would read as "no fault", which it is not."""
+    m = np.asarray(getattr(drift, "detectable", ()), float)
+    names = cfg.model.input_names
+    if m.size != len(names) or np.all(np.isnan(m)):
+        return ""
+    parts = [f"{n} {v:.1f}x" if np.isfinite(v) else f"{n} of any size"
+             for n, v in zip(names, m) if not np.isnan(v)]
+    return (f"a fault shows in this record half the time from {', '.join(parts)} the "
+            "input's normal-ageing tolerance; a smaller one may go unseen")
+
+
 def history_slope_draws(trend: dict) -> Optional[np.ndarray]:
     """Draws [n, d] of each input's wear rate pooled over its trend's segments, or None when
     no input has more than one (no repair restarted a trend).

@@ -8,6 +8,7 @@ from typing import Optional
 import numpy as np
 
 from ..config import Config
+from ..forecast.judge import describe_power
 from ..repairs import FoundRepair
 from .common import plain
 from .fleet import FleetView, overview_lines
@@ -278,6 +279,12 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
             pmin = min(t.p_value for t in uf.trends.values())
             why.append(f"every input drifts within normal ageing (tests of the slopes, all "
                        f"p >= {np.floor(pmin * 100) / 100:.2f})")
+            if uf.status == "ok":
+                # How large a fault 'healthy' rules out (an unreliable unit's reason says
+                # it already when that is too large).
+                power = describe_power(cfg, uf.drift)
+                if power:
+                    why.append(power)
         why.append(f"P(unsafe) from {uf.n_samples} Monte Carlo draws of the {ind.name} "
                    f"per year through the twin; failure = first year above {100 * limit:g} %")
     elif post is not None:
