@@ -93,6 +93,14 @@ class UnitBacktest:
                 if y <= last and y in self.years:
                     yield c, j, y
 
+    def scored(self):
+        """(years recorded up to the cut, observation inside the interval) of every pair of
+        :meth:`pairs`."""
+        for c, j, y in self.pairs():
+            o = self.observed[np.flatnonzero(self.years == y)[0]]
+            yield (int(np.sum(self.years <= self.cuts[c])),
+                   bool(self.pred_lo[c, j] <= o <= self.pred_hi[c, j]))
+
 
 @dataclass
 class TTFScore:
@@ -163,6 +171,15 @@ class BacktestSummary:
     #: (:func:`coverage_verdict`; the warning is among ``warnings``).
     coverage_in_band: bool = True
     coverage_band: tuple = (float("nan"), float("nan"))
+    #: The coverage of the forecasts made from each number of recorded years (at the cut):
+    #: ``{n: {"coverage", "pairs", "in_band"}}`` (:func:`coverage_by_record`). Wear whose shape
+    #: a short record cannot show misses there while the pooled coverage may still hold.
+    by_record: dict = field(default_factory=dict)
+
+    @property
+    def all_in_band(self) -> bool:
+        """The pooled coverage and that of every record length in their band."""
+        return self.coverage_in_band and all(v["in_band"] for v in self.by_record.values())
 
     @property
     def alpha_lambda(self) -> float:
@@ -176,6 +193,9 @@ class BacktestSummary:
             "coverage_in_band": self.coverage_in_band,
             "coverage_band": [f(b) for b in self.coverage_band],
             "pairs": self.n_pairs, "indicator_mae": f(self.indicator_mae),
+            "coverage_by_record": {str(n): {"coverage": f(v["coverage"]), "pairs": v["pairs"],
+                                            "in_band": v["in_band"]}
+                                   for n, v in self.by_record.items()},
             "alpha_lambda_accuracy": f(self.alpha_lambda),
             "units_reaching_unsafe": len(self.ttf),
             "ttf": {u: {"end_of_life": s.end_of_life, "cut_lambda": s.cut_lambda,
@@ -238,6 +258,49 @@ def coverage_verdict(coverage: float, n_pairs: int, confidence: float,
                        f"the {100 * confidence:.0f} % forecast intervals were wider than this "
                        "history needed; failure years come early")
     return True, ""
+
+
+def coverage_by_record(units: dict, confidence: float, band: float) -> tuple[dict, list]:
+    """The coverage of the forecasts made from each number of recorded years.
+
+    Forecasts from five or six years of accelerating wear cover far less than those from
+    ten (the record cannot show the shape yet), and a pooled coverage can hide it: each
+    record length is judged against the band on its own (:func:`coverage_verdict`).
+
+    Parameters
+    ----------
+    units : dict unit -> UnitBacktest
+    confidence, band : float
+        As :func:`coverage_verdict`'s.
+
+    Returns
+    -------
+    by_record : dict int -> dict
+        ``{"coverage", "pairs", "in_band"}`` per number of years recorded up to the cut.
+    warnings : list of str
+        One per record length outside the band.
+    """
+    groups: dict = {}
+    for b in units.values():
+        for n, inside in b.scored():
+            groups.setdefault(n, []).append(inside)
+    out, warnings = {}, []
+    for n in sorted(groups):
+        cov, m = float(np.mean(groups[n])), len(groups[n])
+        in_band = coverage_verdict(cov, m, confidence, band)[0]
+        out[n] = {"coverage": cov, "pairs": m, "in_band": in_band}
+        if not in_band:
+            lo, hi = wilson_interval(cov, m)
+            low = cov < confidence
+            warnings.append(
+                f"back-test: the forecasts made from {n} recorded year(s) covered {cov:.2f} of "
+                f"{m} later observations (90 % interval {lo:.2f}-{hi:.2f}), "
+                f"{'below' if low else 'above'} {confidence - band:.2f}-{confidence + band:.2f}: "
+                + ("from so few years the intervals were too narrow on this history (a shape "
+                   "of wear the record could not show yet); trust a forecast from a record "
+                   "that short less" if low else
+                   "from so few years the intervals were wider than this history needed"))
+    return out, warnings
 
 
 def truncate(up, last_year: int):
@@ -423,9 +486,9 @@ def backtest(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
         fp = np.array([preds[u][k][1] for k in cuts], int)
         b = UnitBacktest(yrs, obs, unsafe, cuts, lo, med, hi, fp, eol, h)
         units[u] = b
+        pairs_in += [inside for _, inside in b.scored()]
         for ci, j, y in b.pairs():
             o = obs[np.flatnonzero(yrs == y)[0]]
-            pairs_in.append(lo[ci, j] <= o <= hi[ci, j])
             if np.isfinite(o) and np.isfinite(med[ci, j]):
                 errs.append(abs(med[ci, j] - o))
         if eol is not None and cuts.size:
@@ -436,12 +499,15 @@ def backtest(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
     in_band, message = coverage_verdict(coverage, len(pairs_in), c, bt.coverage_band)
     if not in_band:
         warnings.append(message)
+    by_record, more = coverage_by_record(units, c, bt.coverage_band)
+    warnings += more
     summary = BacktestSummary(units, coverage,
                               len(pairs_in), float(np.median(errs)) if errs else float("nan"),
                               ttf, str(output or ""), c, warnings,
                               "recalibrated" if recalibrate else "truncated",
                               coverage_in_band=in_band,
-                              coverage_band=(c - bt.coverage_band, c + bt.coverage_band))
+                              coverage_band=(c - bt.coverage_band, c + bt.coverage_band),
+                              by_record=by_record)
     if output is not None:
         write_backtest(output, cfg, summary, ind, [posterior_path, surrogate_path] +
                        ([observations_path] if recalibrate else []))
@@ -505,11 +571,15 @@ def read_backtest(path: str | os.PathLike) -> BacktestSummary:
                 if sc is not None:
                     ttf[u] = sc
         warnings = json.loads(f.attrs["warnings"]) if "warnings" in f.attrs else []
-        return BacktestSummary(units, float(f.attrs["coverage"]), 0,
+        band = tuple(float(b) for b in f.attrs.get("coverage_band", (np.nan, np.nan)))
+        confidence = float(f.attrs["confidence"])
+        # Recomputed from the stored intervals and observations (the same numbers).
+        by_record = (coverage_by_record(units, confidence, 0.5 * (band[1] - band[0]))[0]
+                     if np.all(np.isfinite(band)) else {})
+        n_pairs = sum(1 for b in units.values() for _ in b.pairs())
+        return BacktestSummary(units, float(f.attrs["coverage"]), n_pairs,
                                float(f.attrs["indicator_mae"]), ttf, str(path),
                                float(f.attrs["confidence"]), warnings,
                                str(f.attrs.get("cut_posteriors", "truncated")),
                                coverage_in_band=bool(f.attrs.get("coverage_in_band", True)),
-                               coverage_band=tuple(float(b) for b in
-                                                   f.attrs.get("coverage_band",
-                                                               (np.nan, np.nan))))
+                               coverage_band=band, by_record=by_record)

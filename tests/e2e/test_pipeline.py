@@ -70,6 +70,13 @@ def test_stages_chain_through_the_cli(small):
     assert bt["coverage_band"] == [0.85, 0.95]
     assert bt["coverage_in_band"] == coverage_verdict(bt["coverage"], 9, 0.9, 0.05)[0]
     assert read_backtest(tmp / "backtest.h5").coverage_in_band == bt["coverage_in_band"]
+    # ... and per record length: cut 3 (3 recorded years) has 2 later years a unit, cut 4 one.
+    by = bt["coverage_by_record"]
+    assert set(by) == {"3", "4"} and by["3"]["pairs"] == 6 and by["4"]["pairs"] == 3
+    back = read_backtest(tmp / "backtest.h5")
+    assert back.n_pairs == 9
+    assert {str(n): v["pairs"] for n, v in back.by_record.items()} == {"3": 6, "4": 3}
+    assert all(back.by_record[int(n)]["in_band"] == v["in_band"] for n, v in by.items())
     gap = run_json("diagnose", "-c", cfg, "--observations", obs, "-o", tmp / "gap.h5")
     assert {u["verdict"] for u in gap["units"].values()} <= {"none", "effect", "unexplained"}
     rep = twinmon("report", "-c", cfg, "--workdir", tmp, "--observations", obs,

@@ -25,3 +25,44 @@ def test_coverage_outside_the_band_is_flagged_beyond_its_sampling_error(coverage
 
 def test_no_pairs_is_not_a_verdict():
     assert coverage_verdict(float("nan"), 0, 0.9, 0.05) == (True, "")
+
+
+def _unit(years, cuts, lo, hi, observed, horizon=3):
+    import numpy as np
+
+    from twinmon.backtest import UnitBacktest
+    years = np.asarray(years)
+    n_c = len(cuts)
+    return UnitBacktest(years, np.asarray(observed, float), np.zeros(len(years), bool),
+                        np.asarray(cuts), np.full((n_c, horizon), lo), np.zeros((n_c, horizon)),
+                        np.full((n_c, horizon), hi), np.full(n_c, -1), None, horizon)
+
+
+def test_coverage_is_also_judged_per_record_length():
+    """Each later observation counts under the years recorded up to its cut (a missing year
+    is not counted); a record length whose forecasts miss is flagged on its own, though the
+    pooled coverage may hold, and the same numbers come back from the artifact's arrays."""
+    from twinmon.backtest import coverage_by_record
+    # Year 4 missing: the cut at year 5 has 4 recorded years, the cut at 6 has 5.
+    years = [1, 2, 3, 5, 6, 7, 8, 9]
+    # Every later observation at 1.0; the intervals [0, 2] hold it, [0, 0.5] do not.
+    good = _unit(years, [6], 0.0, 2.0, [1.0] * 8)
+    pairs = [(c, j, y) for c, j, y in good.pairs()]
+    assert pairs == [(0, 0, 7), (0, 1, 8), (0, 2, 9)]
+    assert [n for n, _ in good.scored()] == [5, 5, 5]
+    bad = _unit(years, [5], 0.0, 0.5, [1.0] * 8)
+    assert list(bad.scored()) == [(4, False)] * 3             # years 6, 7, 8
+    units = {f"G{i}": _unit(years, [6], 0.0, 2.0, [1.0] * 8) for i in range(60)}
+    units.update({f"B{i}": _unit(years, [5], 0.0, 0.5, [1.0] * 8) for i in range(60)})
+    by, warnings = coverage_by_record(units, 0.9, 0.05)
+    assert by[5] == {"coverage": 1.0, "pairs": 180, "in_band": False}      # too wide
+    assert by[4] == {"coverage": 0.0, "pairs": 180, "in_band": False}
+    assert len(warnings) == 2
+    assert "made from 4 recorded year(s) covered 0.00 of 180 later observations" in warnings[0]
+    assert "too narrow" in warnings[0] and "wider" in warnings[1]
+    assert "below 0.85-0.95" in warnings[0] and "above 0.85-0.95" in warnings[1]
+    # Few pairs: 2 of 3 inside is not a verdict.
+    few = _unit(years, [5], 0.0, 2.0, [1.0] * 6 + [5.0, 1.0])
+    by, warnings = coverage_by_record({"F": few}, 0.9, 0.05)
+    assert by[4]["pairs"] == 3 and by[4]["coverage"] == pytest.approx(2 / 3)
+    assert by[4]["in_band"] and warnings == []

@@ -67,6 +67,11 @@ def fig_backtest(figs: Figures, inp: Inputs, colours: dict) -> None:
         cover = (f"Only {cover}" if bt.coverage < lo else cover) + (
             f" (outside {100 * lo:.0f}-{100 * hi:.0f} %: the forecast's intervals do not hold "
             "on this history, so its failure years should not be relied on)")
+    short = [f"{100 * v['coverage']:.0f} % from {n} years" for n, v in bt.by_record.items()
+             if not v["in_band"]]
+    # A pooled coverage can hold while the forecasts from the shortest records miss.
+    short = (" Outside the band by the years recorded when the forecast was made: "
+             f"{', '.join(short)}." if short else "")
     al = (f"; alpha-lambda accuracy {100 * bt.alpha_lambda:.0f} % over {len(bt.ttf)} unit(s) "
           "that reached unsafe" if bt.ttf else "; no unit reached unsafe in its history")
     figs.save(fig, "fig_backtest", "backtest", f"Past forecasts of {ind.name} vs what came",
@@ -74,6 +79,6 @@ def fig_backtest(figs: Figures, inp: Inputs, colours: dict) -> None:
               f"year; black is the {ind.name} later observed (calibrated twin, posterior "
               f"median). {cover} of the later observations fell inside the "
               f"{100 * bt.confidence:.0f} % intervals (median absolute error "
-              f"{with_units(f'{bt.indicator_mae:.3g}', ind.units)}){al}. Units shown: up to "
+              f"{with_units(f'{bt.indicator_mae:.3g}', ind.units)}){al}.{short} Units shown: up to "
               f"{MAX_UNITS}, "
               "those that reached unsafe first, then the largest misses.")

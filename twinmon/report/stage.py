@@ -250,11 +250,11 @@ def _render(cfg: Config, inp: Inputs, tmp: Path, out: Path, provenance: dict,
     if inp.backtest is not None:
         fig_backtest(figs, inp, colours)
         sections["backtest"] = "rendered"
-        if not inp.backtest.coverage_in_band:
+        if not inp.backtest.all_in_band:
             # The forecast's own check on this history failed: said at the top, not only
             # under a figure.
             notes += [w[0].upper() + w[1:] + "." for w in inp.backtest.warnings
-                      if w.startswith("back-test coverage")]
+                      if w.startswith("back-test")]
     else:
         sections["backtest"] = f"skipped: {SKIP_HINTS['backtest']}"
 
