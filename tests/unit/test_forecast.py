@@ -514,19 +514,79 @@ def test_posterior_for_other_inputs_is_an_artifact_error(setup, tmp_path):
     assert "posterior_other_inputs.h5" in res.stderr
 
 
-def test_posterior_with_two_years_is_a_calibration_error(setup, tmp_path):
-    cfg, _, tmp, _ = setup
-    path = write_synthetic_posterior(tmp_path / "posterior_two_years.h5", cfg, {"U": HEALTHY})
+def _keep_first_years(path, unit: str, n: int) -> None:
+    """Cut a written posterior's unit to its first ``n`` years (every per-year dataset)."""
     with h5py.File(path, "r+") as f:
-        g = f["units/U"]
+        g = f["units"][unit]
         for name in list(g):
             data = g[name][()]
             attrs = dict(g[name].attrs)
             del g[name]
-            g.create_dataset(name, data=data[:2])
+            g.create_dataset(name, data=data[:n])
             g[name].attrs.update(attrs)
+
+
+def test_posterior_with_two_years_is_a_calibration_error(setup, tmp_path):
+    cfg, _, tmp, _ = setup
+    path = write_synthetic_posterior(tmp_path / "posterior_two_years.h5", cfg, {"U": HEALTHY})
+    _keep_first_years(path, "U", 2)
     with pytest.raises(CalibrationError, match="at least 3"):
         forecast(cfg, path, tmp / "sur.h5", tmp_path / "fc.h5")
+
+
+def test_a_unit_with_too_few_years_is_left_out_and_the_others_forecast(setup, tmp_path):
+    """A fleet's unit new in service (2 years) does not stop the others' forecast: it is
+    left out with a warning, named in the artifact and in --json, and the report says why
+    it has no prognosis."""
+    cfg, _, tmp, _ = setup
+    path = write_synthetic_posterior(tmp_path / "posterior_new_unit.h5", cfg,
+                                     {"Old": HEALTHY, "New": HEALTHY})
+    _keep_first_years(path, "New", 2)
+    s = forecast(cfg, path, tmp / "sur.h5", tmp_path / "fc.h5")
+    assert set(s.units) == {"Old"} and s.too_few_years == {"New": 2}
+    assert any("New (2)" in w and "too few for a trend" in w for w in s.warnings)
+    assert s.as_dict()["too_few_years"] == {"New": 2}
+    back = read_forecast(tmp_path / "fc.h5")
+    assert list(back.units) == ["Old"] and back.too_few_years == {"New": 2}
+    from twinmon.calibrate import read_posterior
+    from twinmon.report.common import Words
+    from twinmon.report.load import Inputs
+    from twinmon.report.summary import unit_summary
+    inp = Inputs(cfg=cfg, words=Words.from_config(cfg), posterior=read_posterior(path),
+                 forecast=back)
+    u = unit_summary("New", inp, {})
+    assert u.short_health == "not judged (too few years)"
+    assert u.action.startswith("no prognosis yet: 2 calibrated year(s), a trend needs 3")
+
+
+def test_a_part_replaced_in_the_last_years_makes_the_prognosis_unreliable(setup, tmp_path):
+    """A motor replaced (recorded) in the last year: its trend restarted one year ago, too
+    few to show the new part's rate; the unit's prognosis says so. Replaced three years
+    before the end, the new part's own years carry its trend."""
+    cfg, _, tmp, _ = setup
+    # The motor's losses rise 1.0 a year, and the last year's new motor is back at 10.
+    late = np.column_stack([9.0 + YEARS, 3.7 - 0.02 * YEARS])
+    late[-1, 0] = 10.0
+    path = write_synthetic_posterior(tmp_path / "posterior_replaced.h5", cfg,
+                                     {"Late": late, "Early": MOTOR})
+    last = int(YEARS[-1])
+    with h5py.File(path, "r+") as f:
+        f["units/Late"].attrs["events"] = json.dumps([[last, "motor", "replaced"]])
+        f["units/Early"].attrs["events"] = json.dumps([[last - 2, "motor", "replaced"]])
+    s = forecast(cfg, path, tmp / "sur.h5", tmp_path / "fc.h5")
+    late, early = s.units["Late"], s.units["Early"]
+    assert late.status == "unreliable"
+    assert late.status_reason.startswith("prognosis unreliable: the trend restarted after a "
+                                         f"repair, of motor_damping in year {last} (1 "
+                                         "recorded year(s) since)")
+    assert "restarted after a repair" not in early.status_reason
+    # The new motor ages normally from its level: finite intervals around it, and no
+    # failure (a one-year line has no spread of its own; taking the state's from it gave
+    # NaN draws, counted unsafe: "fails next year" at 100 %).
+    for name in late.trends:
+        assert np.all(np.isfinite(late.pred_lo[name])) and np.all(np.isfinite(late.pred_hi[name]))
+    assert late.pred_lo["motor_damping"][0] < 10.5 < late.pred_hi["motor_damping"][0] + 1
+    assert late.failure_year is None and float(np.max(late.p_unsafe)) < 0.05
 
 
 def test_wrong_kind_of_file_names_it(setup, tmp_path):

@@ -464,3 +464,34 @@ def test_a_unit_on_the_box_edge_is_withheld_naming_the_bound_it_leans_on():
     assert "bearing_friction sit on the design box's low edge" in why
     assert "90 % of the posterior in year 5" in why and "of 0.0005 N.m.s/rad" in why
     assert "widen model.inputs.bearing_friction.low" in why
+
+
+def test_a_new_part_is_extended_at_the_rate_its_predecessor_wore():
+    """An input replaced one year before the record's end: each draw's future rate is its
+    segments' rates pooled by their precision (the new segment's weak prior weighs almost
+    nothing), its curvature and growth dropped; an input with one segment, and a part of
+    three years, keep their own."""
+    from twinmon.forecast.chunk import new_parts_as_before
+    from twinmon.forecast.judge import history_slope_draws
+    rng = np.random.default_rng(3)
+    n = 400
+    years = np.arange(1, 11)
+    start = np.array([[1, 1], [10, -1]])
+    slope = np.stack([np.column_stack([rng.normal(0.9, 0.05, n), rng.normal(-0.02, 0.01, n)]),
+                      np.column_stack([rng.normal(0.0, 3.0, n), np.full(n, np.nan)])], axis=1)
+    now = rng.normal(1.0, 0.1, (n, 4, 2))
+    trend = {"start": start, "slope": slope, "intercept": np.zeros_like(slope), "now": now}
+    out = new_parts_as_before(trend, {"a": 10, "b": 1}, years, ["a", "b"])
+    hist = history_slope_draws(trend)
+    assert np.array_equal(out["now"][:, 1, 0], hist[:, 0])
+    assert np.all(out["now"][:, 2:, 0] == 0.0)
+    assert np.array_equal(out["now"][:, :, 1], now[:, :, 1])
+    assert abs(float(np.mean(out["now"][:, 1, 0])) - 0.9) < 0.05
+    assert trend["now"] is now and np.array_equal(now, trend["now"])       # not modified
+    # The joint method's segments: the last one's slope replaced.
+    joint = {k: v for k, v in trend.items() if k != "now"}
+    out = new_parts_as_before(joint, {"a": 10, "b": 1}, years, ["a", "b"])
+    assert np.array_equal(out["slope"][:, 1, 0], hist[:, 0])
+    assert np.array_equal(out["slope"][:, 0, 0], slope[:, 0, 0])
+    # Three years of the new part: its own trend.
+    assert new_parts_as_before(trend, {"a": 8, "b": 1}, years, ["a", "b"]) is trend

@@ -10,7 +10,8 @@ import pytest
 from scipy import stats
 
 from twinmon.config import load_config
-from twinmon.forecast.trendfit import (check_trend_fit, cut_indices, describe_miss,
+from twinmon.forecast.trendfit import (check_trend_fit, cut_indices, describe_latest,
+                                       describe_miss,
                                        standardise)
 
 from ..conftest import CONFIGS, write_yaml
@@ -130,6 +131,29 @@ def test_a_straight_line_passes_and_an_outlying_year_fails(configs):
     reason = describe_miss(cfg, fit, 0.01)
     assert reason.startswith("prognosis unreliable: the trend missed year(s) 6")
     assert "motor_damping" in reason and "above the forecast" in reason
+
+
+def test_a_surprising_latest_year_alone_is_named(configs):
+    """The latest year off the trend of the years before, by less than the whole history's
+    check needs (it corrects for the years' number) but beyond alpha alone: named, since
+    the forecast starts from it; the same offset in an earlier year is not; a line, not."""
+    cfg = configs[2]
+    x, cov = _history(cfg, np.random.default_rng(1))
+    assert describe_latest(cfg, _check(cfg, x, cov), 10, 0.01) == ""
+    found = {}
+    for k in (9, 6):
+        y = x.copy()
+        y[k, 1] -= 4.5 * SITE_SD["pump_coef"]
+        fit = _check(cfg, y, cov)
+        found[k] = (fit, describe_latest(cfg, fit, 10, 0.01))
+    fit, why = found[9]
+    assert fit.year_p[-1] < 0.01 <= fit.p_value, (fit.year_p, fit.p_value)
+    assert why.startswith("prognosis unreliable: the latest year, 10, is not where the trend "
+                          f"of the years before put it (p = {fit.year_p[-1]:.2g}; pump_coef lay")
+    assert "below that forecast" in why
+    assert found[6][1] == ""
+    # A record whose last year the check did not predict says nothing.
+    assert describe_latest(cfg, fit, 11, 0.01) == "" and describe_latest(cfg, None, 10, 0.01) == ""
 
 
 def test_accelerating_wear_passes_when_the_shapes_include_it(configs):

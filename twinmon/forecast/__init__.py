@@ -70,14 +70,14 @@ from typing import Callable, Optional
 
 from .. import artifacts
 from ..config import Config
-from ..errors import ArtifactError
+from ..errors import ArtifactError, CalibrationError
 from .artifact import SECTIONS, Forecast, _open_forecast, _write_unit, read_forecast
 from .attribution import AMBIGUOUS, HEALTHY, SEVERAL, Attribution, attribute
 from .covariance import estimate_error_covariance, filter_error_covariance, slope_covariance
 from .detection import IndicatorDrift, box_test_uniform, indicator_drift
 from .directions import Direction, degrading_directions, indicator_noise
-from .judge import (STATUS_OK, STATUS_UNRELIABLE, STATUS_WITHHELD, judge, prognosis_status,
-                    verdict)
+from .judge import (MIN_TREND_YEARS, STATUS_OK, STATUS_UNRELIABLE, STATUS_WITHHELD, judge,
+                    prognosis_status, verdict)
 from .plan import maintenance_plan
 from .pooling import (POOL_MIN_ESS, _pooling_dict, _shapes_dict, fleet_priors,
                       fleet_sigma_prior)
@@ -143,7 +143,8 @@ def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
     ArtifactError
         An input artifact is missing, of the wrong kind, or made for other inputs.
     CalibrationError
-        A unit has fewer than 3 years (no prediction interval is possible).
+        Every unit has fewer than 3 years (no prediction interval is possible); a fleet's
+        units with fewer are left out (``too_few_years``), the others forecast.
     """
     from ..calibrate import read_posterior
     from ..executors import check_workers
@@ -178,7 +179,7 @@ def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
     box_ok = box_is_physical(cfg)
     fleet, shapes = fleet_priors(cfg, post, recorded_shapes(cfg, posterior_path))
     limit_state, why = forecast_limit_state(cfg, directions, box_ok)
-    units = {}
+    units, short = {}, {}
     with _open_forecast(output, cfg, names, directions, box_ok, seed=cfg.seed + SEED_OFFSET,
                         inputs=[posterior_path, surrogate_path] +
                         ([truth_path] if truth_path else [])) as f:
@@ -189,10 +190,25 @@ def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
                                       truth=truth, truth_path=truth_path, executor=executor,
                                       workers=workers, progress=progress,
                                       directions=directions, box_ok=box_ok, fleet=fleet,
-                                      limit_state=limit_state, shapes=shapes, pack=True):
+                                      limit_state=limit_state, shapes=shapes, pack=True,
+                                      skipped=short):
             _write_unit(f, cfg, unit, uf, names)
             units[unit] = uf.slim()
+        if not units:
+            # Nothing to forecast (the artifact being written is dropped).
+            u, k = next(iter(short.items()))
+            raise CalibrationError(f"{posterior_path}: unit {u} has {k} year(s); a trend with "
+                                   f"prediction intervals needs at least {MIN_TREND_YEARS}"
+                                   + (" (and so has every other unit)" if len(short) > 1
+                                      else ""))
+        f.attrs["too_few_years"] = artifacts.json_attr(short)
     warnings = [d.note for d in directions.values() if d.note]
+    if short:
+        warnings.append(
+            f"{len(short)} unit(s) with fewer than {MIN_TREND_YEARS} calibrated years, too "
+            "few for a trend, are not forecast: "
+            + ", ".join(f"{u} ({k})" for u, k in short.items())
+            + "; each is once its record has them")
     if why:
         warnings.append(f"{why}: every Monte Carlo point outside the design box ran through "
                         "the FMU")
@@ -212,7 +228,7 @@ def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
             "calibrate.keep_draws keeps more")
     return ForecastSummary(units, str(output), _time.perf_counter() - start, box_ok,
                            warnings, _pooling_dict(fleet, names), _shapes_dict(shapes),
-                           _limit_state_dict(limit_state, why))
+                           _limit_state_dict(limit_state, why), short)
 
 
 def _limit_state_dict(model: Optional[LimitState], why: str) -> dict:
@@ -239,6 +255,7 @@ def forecast_units(cfg: Config, post, sur, *, posterior_path="<memory>", truth=N
     Returns
     -------
     units : dict unit -> UnitForecast
+        Every unit with at least ``MIN_TREND_YEARS`` calibrated years.
     directions : dict input -> Direction
     box_ok : bool
     """
@@ -250,8 +267,10 @@ def forecast_units(cfg: Config, post, sur, *, posterior_path="<memory>", truth=N
         limit_state = forecast_limit_state(cfg, directions, box_ok)[0]
     pool_over = post if pool_over is None else pool_over
     fleet, shapes = fleet_priors(cfg, pool_over, recorded_shapes(cfg, posterior_path))
+    # Units with too few years for a trend are left out, as forecast() leaves them.
     units = dict(iter_forecast(cfg, post, sur, posterior_path=posterior_path, truth=truth,
                                truth_path=truth_path, executor=executor, workers=workers,
                                progress=progress, directions=directions, box_ok=box_ok,
-                               fleet=fleet, shapes=shapes, limit_state=limit_state))
+                               fleet=fleet, shapes=shapes, limit_state=limit_state,
+                               skipped={}))
     return units, directions, box_ok

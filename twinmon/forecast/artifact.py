@@ -241,6 +241,8 @@ class Forecast:
     sigma_pooling: dict = field(default_factory=lambda: {"pooled": False})
     #: The fleet's prior of the trend forms (:func:`~.pooling._shapes_dict`).
     shape_pooling: dict = field(default_factory=lambda: {"pooled": False})
+    #: The posterior's units left out for too few calibrated years: unit -> its years.
+    too_few_years: dict = field(default_factory=dict)
 
 
 def read_forecast(path: str | os.PathLike, arrays: bool = True) -> Forecast:
@@ -266,7 +268,8 @@ def read_forecast(path: str | os.PathLike, arrays: bool = True) -> Forecast:
                        json.loads(f.attrs["directions"]),
                        json.loads(f.attrs["indicator"]) if "indicator" in f.attrs else {},
                        json.loads(f.attrs.get("sigma_pooling", '{"pooled": false}')),
-                       json.loads(f.attrs.get("shape_pooling", '{"pooled": false}')))
+                       json.loads(f.attrs.get("shape_pooling", '{"pooled": false}')),
+                       json.loads(f.attrs.get("too_few_years", "{}")))
     out.units = artifacts.LazyUnits(path, "forecast", unit_names,
                                     lambda f, unit, p: _read_unit(f, unit, p, names, arrays))
     return out

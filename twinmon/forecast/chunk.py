@@ -23,8 +23,9 @@ from ..repairs import FoundRepair, find_repairs
 from .attribution import HEALTHY
 from .covariance import estimate_error_covariance
 from .detection import gradient_from, gradient_points, mid_state
-from .judge import (STATUS_OK, STATUS_UNRELIABLE, STATUS_WITHHELD, describe_blind,
-                    history_slope_draws, judge, prognosis_status)
+from .judge import (MIN_TREND_YEARS, STATUS_OK, STATUS_UNRELIABLE, STATUS_WITHHELD,
+                    describe_blind, describe_restart, history_slope_draws, judge,
+                    prognosis_status)
 from .plan import maintenance_plan
 from .pooling import _pool_unit
 from .predictive import (residual_correlation, sample_predictive, sample_state,
@@ -32,7 +33,8 @@ from .predictive import (residual_correlation, sample_predictive, sample_state,
 from .streams import unit_rng
 from .trend import (posterior_slope_test, repair_years, segment_trend, shape_gate,
                     slope_test)
-from .trendfit import change_year, check_trend_fit, describe_miss, unit_sites
+from .trendfit import (change_year, check_trend_fit, describe_latest, describe_miss,
+                       unit_sites)
 from .twin import SOURCE_FAILED, TwinResult, evaluate_twin
 from .unit import UnitForecast
 
@@ -56,9 +58,10 @@ def _check_unit(cfg: Config, posterior_path, unit: str, up) -> None:
     years = np.asarray(up.years, int)
     mean = np.asarray(up.mean, float)
     d = len(cfg.model.input_names)
-    if years.size < 3:
+    if years.size < MIN_TREND_YEARS:
         raise CalibrationError(f"{posterior_path}: unit {unit} has {years.size} year(s); a "
-                               "trend with prediction intervals needs at least 3")
+                               f"trend with prediction intervals needs at least "
+                               f"{MIN_TREND_YEARS}")
     if mean.shape != (years.size, d) or not np.all(np.isfinite(mean)):
         raise ArtifactError(f"{posterior_path}: /units/{unit}/mean must be finite with "
                             f"shape ({years.size}, {d}), got shape {mean.shape}")
@@ -95,6 +98,8 @@ def _forecast_chunk(state: _TwinState, units: list, *, directions: dict, box_ok:
     list of (unit, UnitForecast)
     """
     cfg = state.cfg
+    if not units:
+        return []
     plans, points = [], []
     for unit, up, _ in units:
         p, pts = _plan_unit(cfg, unit, up, directions, fleet, shape_priors, shapes,
@@ -202,10 +207,14 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict, fleet=None,
         # the yearly means.
         from ..calibrate.trend import trend_predictive
         rng = unit_rng(cfg, unit, 0)
-        draws = trend_predictive(future, fut, rng)              # [n, h, d]
+        draws = trend_predictive(new_parts_as_before(future, since, years, names), fut,
+                                 rng)                          # [n, h, d]
         X = draws[rng.integers(0, draws.shape[0], fc.samples)].transpose(1, 0, 2)
         state = "trend"
-    elif fc.predictive == "state":
+    elif fc.predictive == "state" and common.sum() >= MIN_TREND_YEARS:
+        # (A part replaced in the last years: its line has no spread of its own to take
+        # the state's uncertainty from; each trend's own predictive below carries the
+        # whole history's scatter, as segment_trend's normal ageing does.)
         state = state_predictive([trends[n] for n in names], years[common], resid,
                                  post_cov[common], fut)
         X = sample_state(state, fc.samples, unit_rng(cfg, unit, 0))
@@ -236,6 +245,51 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict, fleet=None,
                 shapes="now" in trend_post and cfg.calibrate.shapes.get("accelerating", 0) > 0,
                 shape=shape_summary(future), trend_fit=trend_fit)
     return plan, [X.reshape(-1, d), Xo.reshape(-1, d), probe]
+
+
+def new_parts_as_before(trend: dict, since: dict, years: np.ndarray, names: list) -> dict:
+    """``trend`` with each input whose part is newer than :data:`MIN_TREND_YEARS` recorded
+    years extended at the rate its earlier parts wore (:func:`~.judge.history_slope_draws`,
+    each draw's), as a straight line from the new part's level.
+
+    A segment of one or two years holds no rate of its own: its slope's posterior is its
+    weak prior, and extended seven years it spreads the new part over half the box (a bearing
+    replaced in the last year was told P(unsafe) 0.35 the next year, "inspect now"). The
+    part usually wears as the one it replaced (same duty, same kind of part), as detection
+    assumes when it pools the segments' rates; the unit's status says the rate is not its
+    own (:func:`~.judge.describe_restart`). Unchanged when no input is that new.
+
+    Parameters
+    ----------
+    trend : dict
+        ``UnitPosterior.trend`` (:data:`~twinmon.calibrate.trend.TREND_FIELDS`): the laplace
+        method's ``now`` [n, 4, d] (level, rate, curvature, growth amplitude at the last
+        year), or the joint method's segments.
+    since : dict input name -> int
+        First year of each input's current part.
+    years : ndarray of int, shape [n_y]
+    names : list of str
+        The inputs, in the trend's order.
+    """
+    new = [i for i, n in enumerate(names)
+           if since[n] > years[0] and int(np.sum(years >= since[n])) < MIN_TREND_YEARS]
+    hist = history_slope_draws(trend) if new and "start" in trend else None
+    if hist is None:
+        return trend
+    out = dict(trend)
+    if "now" in trend:
+        now = np.array(trend["now"], float)
+        now[:, 1, new] = hist[:, new]
+        now[:, 2:, new] = 0.0
+        out["now"] = now
+    else:
+        start = np.asarray(trend["start"])
+        last = (start >= 0).sum(axis=0) - 1
+        slope = np.array(trend["slope"], float)
+        for i in new:
+            slope[:, last[i], i] = hist[:, i]
+        out["slope"] = slope
+    return out
 
 
 def _finish_unit(cfg: Config, unit: str, up, p: dict, twin: TwinResult,
@@ -307,6 +361,17 @@ def _finish_unit(cfg: Config, unit: str, up, p: dict, twin: TwinResult,
             # them: a failure year and intervals from it would look surer than they are.
             uf.status, uf.status_reason = STATUS_UNRELIABLE, describe_miss(
                 cfg, fit, fc.trend_fit_alpha)
+        if uf.status == STATUS_OK:
+            latest = describe_latest(cfg, fit, int(p["years"][-1]), fc.trend_fit_alpha)
+            if latest:
+                uf.status, uf.status_reason = STATUS_UNRELIABLE, latest
+    if uf.status == STATUS_OK:
+        # A part replaced lately (a recorded event, or a repair found): its trend restarted
+        # too few years ago to show the new part's rate. (After the trend-fit gate: a
+        # one-year spike whose fall back reads as a repair is named as the spike.)
+        fresh = describe_restart(p["since_by_input"], p["years"])
+        if fresh:
+            uf.status, uf.status_reason = STATUS_UNRELIABLE, fresh
     if uf.status == STATUS_OK and uf.root_cause == HEALTHY:
         # No fault seen, but a short or gappy record may not have been able to see one.
         blind = describe_blind(cfg, drift, p["years"])

@@ -36,6 +36,12 @@ from .trend import POSTERIOR_DOF, Trend
 STATUS_OK, STATUS_WITHHELD, STATUS_UNRELIABLE = "ok", "withheld", "unreliable"
 
 
+#: Fewest calibrated years a trend is forecast from (a line and its prediction interval
+#: need a degree of freedom): a unit with fewer is not forecast, and an input whose trend
+#: restarted fewer years ago makes its unit's prognosis unreliable.
+MIN_TREND_YEARS = 3
+
+
 def verdict(trends: dict[str, Trend]) -> str:
     """``healthy``, one component name, or ``both`` (several components) from the tests."""
     bad = sorted({t.component or name for name, t in trends.items() if t.rejects})
@@ -149,6 +155,36 @@ def describe_blind(cfg: Config, drift: IndicatorDrift, years: np.ndarray) -> str
     return (f"prognosis unreliable: with {len(years)} year(s) of record, a fault {what} would "
             "be missed half the time (x: its normal-ageing tolerance); 'healthy' does not "
             "rule it out")
+
+
+def describe_restart(since: dict, years: np.ndarray) -> str:
+    """Why a unit's prognosis is unreliable when an input's trend restarted (a recorded
+    replacement, or a repair found in the estimates) fewer than :data:`MIN_TREND_YEARS`
+    recorded years before the record's end, or ``""``.
+
+    The new part's rate is then assumed, not measured (:func:`~.chunk.new_parts_as_before`:
+    the rate of the part it replaced; :func:`~.trend.segment_trend`: normal ageing). Before
+    either, a motor replaced in the last year was told to be inspected "now", with P(unsafe)
+    26 % the next year, from its slope's wide prior.
+
+    Parameters
+    ----------
+    since : dict input name -> int
+        First year of each input's current part.
+    years : ndarray of int, shape [n_y]
+        The recorded years.
+    """
+    years = np.asarray(years)
+    late = {n: int(y) for n, y in since.items()
+            if y > years[0] and int(np.sum(years >= y)) < MIN_TREND_YEARS}
+    if not late:
+        return ""
+    what = ", ".join(f"{n} in year {y} ({int(np.sum(years >= y))} recorded year(s) since)"
+                     for n, y in late.items())
+    return (f"prognosis unreliable: the trend restarted after a repair, of {what}: too few "
+            f"years (a trend needs {MIN_TREND_YEARS}) to show the new part's own rate, so the "
+            "forecast assumes one (the rate of the part it replaced; normal ageing for a "
+            "unit calibrated year by year)")
 
 
 def describe_power(cfg: Config, drift: IndicatorDrift | None) -> str:

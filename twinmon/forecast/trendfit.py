@@ -488,6 +488,29 @@ def recorded_shapes(cfg: Config, posterior_path) -> dict:
     return dict(shapes) if isinstance(shapes, dict) else dict(cfg.calibrate.shapes)
 
 
+def describe_latest(cfg: Config, fit: TrendFit, last_year: int, alpha: float) -> str:
+    """The unit's status reason when its latest year alone was not what the trend of the
+    years before expected (at ``alpha``, no correction over the years: the forecast starts
+    from that year), or ``""``.
+
+    Over the whole history such a year is one among several (:func:`describe_miss` corrects
+    for their number), but the forecast extends from it: a pump coefficient stepping down
+    0.5 in the last year, then flat, was read as wear starting to accelerate, and the unit
+    told it fails three years later with probability 0.85. One year cannot tell a step, an
+    estimate off, a repair or faster wear apart; the next year's transient will."""
+    if fit is None or fit.years.size == 0 or int(fit.years[-1]) != int(last_year) or \
+            not fit.year_p[-1] < alpha:
+        return ""
+    names = cfg.model.input_names
+    i = int(np.argmax(np.abs(fit.marginal[-1])))
+    v = float(fit.marginal[-1, i])
+    return (f"prognosis unreliable: the latest year, {int(last_year)}, is not where the trend "
+            f"of the years before put it (p = {fit.year_p[-1]:.2g}; {names[i]} lay "
+            f"{abs(v):.1f} sd {'above' if v > 0 else 'below'} that forecast): the forecast "
+            "starts from that one year, which cannot tell a step, an estimate off, a repair or "
+            "faster wear apart; next year's transient will")
+
+
 def describe_miss(cfg: Config, fit: TrendFit, alpha: float) -> str:
     """The unit's status reason when the check fails: the years missed, the p-value, the
     worst input and what to do."""

@@ -245,9 +245,12 @@ class ForecastSummary:
     #: The limit-state model of the points outside the box (its runs, rounds, region), or
     #: ``used`` false with the reason.
     limit_state: dict = field(default_factory=lambda: {"used": False, "reason": ""})
+    #: Units left out for too few calibrated years: unit -> its number of years.
+    too_few_years: dict = field(default_factory=dict)
 
     def as_dict(self) -> dict:
         return {"units": {u: f.as_dict() for u, f in self.units.items()},
                 "output": self.output, "wall_time": round(self.wall_time, 3),
                 "warnings": list(self.warnings), "sigma_pooling": self.pooling,
-                "shape_pooling": self.shape_pooling, "limit_state": self.limit_state}
+                "shape_pooling": self.shape_pooling, "limit_state": self.limit_state,
+                "too_few_years": dict(self.too_few_years)}

@@ -15,7 +15,7 @@ import os
 from typing import Optional
 
 from ..config import Config
-from .chunk import _check_unit, _forecast_chunk, _truth_of, _TwinState
+from .chunk import MIN_TREND_YEARS, _check_unit, _forecast_chunk, _truth_of, _TwinState
 from .trendfit import recorded_shapes
 
 
@@ -29,7 +29,7 @@ TASKS_PER_WORKER = 2
 def iter_forecast(cfg: Config, post, sur, *, directions: dict, box_ok: bool,
                   posterior_path="<memory>", truth=None, truth_path=None, executor=None,
                   workers: Optional[int] = None, progress=None, fleet=None, shapes=None,
-                  limit_state=None, pack: bool = False):
+                  limit_state=None, pack: bool = False, skipped: Optional[dict] = None):
     """Forecast the units of ``post`` one chunk at a time; yields ``(unit, UnitForecast)`` in
     the posterior's order.
 
@@ -71,6 +71,10 @@ def iter_forecast(cfg: Config, post, sur, *, directions: dict, box_ok: bool,
         A pool's workers send each unit back slim, its Monte Carlo arrays compressed as the
         artifact stores them (:func:`~.artifact.pack_unit`), for a caller that writes them
         and keeps the figures alone (``forecast``); in this process they stay whole.
+    skipped : dict, optional
+        Given, a unit with fewer than :data:`~.chunk.MIN_TREND_YEARS` calibrated years is
+        left out and put here with its number of years, instead of failing the whole
+        fleet: a unit new in service is forecast once its record allows a trend.
 
     Raises
     ------
@@ -98,6 +102,9 @@ def iter_forecast(cfg: Config, post, sur, *, directions: dict, box_ok: bool,
         ups = []
         for u in names_:
             up = post.units[u]
+            if skipped is not None and len(up.years) < MIN_TREND_YEARS:
+                skipped[u] = len(up.years)
+                continue
             _check_unit(cfg, posterior_path, u, up)
             ups.append((u, up, _truth_of(truth, truth_path, u)))
         return ups
@@ -121,14 +128,14 @@ def iter_forecast(cfg: Config, post, sur, *, directions: dict, box_ok: bool,
                 for unit, uf in results:
                     done += 1
                     if progress:
-                        progress(done, n)
+                        progress(done + len(skipped or ()), n)
                     yield unit, uf
         finally:
             if own:
                 executor.__exit__(None, None, None)
         return
     yield from _pooled(cfg, sur, spec, chunks, chunk_of, context, n_workers, progress,
-                       limit_state, pack)
+                       limit_state, pack, skipped)
 
 
 def _chunk_size(n_units: int, n_workers: int) -> int:
@@ -138,7 +145,7 @@ def _chunk_size(n_units: int, n_workers: int) -> int:
 
 
 def _pooled(cfg, sur, spec, chunks, chunk_of, context, n_workers, progress, limit_state,
-            pack=False):
+            pack=False, skipped=None):
     """:func:`iter_forecast` on a pool: ``TASKS_PER_WORKER`` chunks in flight per worker,
     results yielded in the chunks' order."""
     from collections import deque
@@ -165,7 +172,7 @@ def _pooled(cfg, sur, spec, chunks, chunk_of, context, n_workers, progress, limi
             for unit, uf in results:
                 done += 1
                 if progress:
-                    progress(done, n)
+                    progress(done + len(skipped or ()), n)
                 yield unit, uf
 
 

@@ -287,6 +287,12 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
                     why.append(power)
         why.append(f"P(unsafe) from {uf.n_samples} Monte Carlo draws of the {ind.name} "
                    f"per year through the twin; failure = first year above {100 * limit:g} %")
+    elif post is not None and unit in getattr(inp.forecast, "too_few_years", {}):
+        # Left out of the forecast: a unit new in service.
+        k = inp.forecast.too_few_years[unit]
+        s.health = "not judged (too few years)"
+        s.action = (f"no prognosis yet: {k} calibrated year(s), a trend needs 3; re-check "
+                    "at next year's recorded transient")
     elif post is not None:
         s.action = "run `twinmon forecast` for a trend and a time to failure"
     else:

@@ -86,13 +86,15 @@ class UnitSummary:
         return {"ok": "prognosis given: the twin fits the data",
                 "withheld": ("FORCED prognosis: the twin misses the plant" if self.forced
                              else "prognosis withheld: the twin misses the plant"),
-                "unreliable": "prognosis unreliable: calibration did not converge",
+                "unreliable": "prognosis unreliable (the reason is given with the unit)",
                 "none": "no forecast"}.get(self.status, self.status)
 
     @property
     def short_health(self) -> str:
         if self.status == "withheld" and not self.forced:
             return "prognosis withheld"
+        if self.root_cause is None and self.health != "unknown":
+            return self.health              # not forecast, and why (too few years)
         words = state_words(self.root_cause)
         return f"{words} (forced)" if self.forced else \
             f"{words} (unreliable)" if self.status == "unreliable" else words
