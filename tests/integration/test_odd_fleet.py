@@ -41,6 +41,8 @@ def odd_run(tmp_path_factory, fmu_path):
             # A pump recorded as replaced in year 9 after fast wear.
             "Swapped": _unit(trajectories={"pump_coef": {"slope": -0.12}},
                              events=[{"year": 9, "component": "pump"}]),
+            # A motor worn past the design box (its damping above 30 from year 9).
+            "Beyond": _unit(trajectories={"motor_damping": {"slope": 2.5}}),
             # The pump coefficient steps down 0.5 in the last year, then stays.
             "Stepped": _unit(trajectories={"pump_coef": {
                 "changes": [{"year": 10, "size": -0.5}]}}),
@@ -60,7 +62,7 @@ def test_units_new_in_service_do_not_stop_the_fleet(odd_run):
     from twinmon.forecast import read_forecast
     fc = read_forecast(work / "forecast.h5")
     assert fc.too_few_years == {"Young": 2, "Infant": 1}
-    assert set(fc.units) == {"Steady", "Renewed", "Swapped", "Stepped"}
+    assert set(fc.units) == {"Steady", "Renewed", "Swapped", "Beyond", "Stepped"}
     for u, k in (("Young", 2), ("Infant", 1)):
         assert units[u]["health"] == "not judged (too few years)"
         assert units[u]["action"].startswith(f"no prognosis yet: {k} calibrated year(s)")
@@ -87,6 +89,16 @@ def test_a_step_in_the_last_year_is_not_a_confident_failure(odd_run):
     assert "the latest year, 10, is not where the trend" in s["status_reason"]
 
 
+def test_a_part_worn_past_the_box_is_said_to_be_past_the_box(odd_run):
+    """The twin misses the plant where the motor's estimates sit on the box's high edge: the
+    box is named, and widening it is the action (not an effect diagnose fits in its place)."""
+    units, _ = odd_run
+    s = units["Beyond"]
+    assert s["status"] == "withheld"
+    assert "motor_damping sit on the design box's high edge" in s["status_reason"]
+    assert s["action"].startswith("widen model.inputs.motor_damping.high and run again")
+
+
 def test_the_backtest_runs_on_a_fleet_with_units_new_in_service(odd_run, tmp_path):
     units, work = odd_run
     from click.testing import CliRunner
@@ -100,5 +112,5 @@ def test_the_backtest_runs_on_a_fleet_with_units_new_in_service(odd_run, tmp_pat
                                   "--set", "backtest.min_years=8", "--json"])
     assert r.exit_code == 0, r.output
     bt = json.loads(r.stdout)
-    assert set(bt["units"]) == {"Steady", "Renewed", "Swapped", "Stepped"}
+    assert set(bt["units"]) == {"Steady", "Renewed", "Swapped", "Beyond", "Stepped"}
     assert bt["units"]["Steady"]["cuts"] == [8, 9]

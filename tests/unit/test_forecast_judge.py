@@ -464,6 +464,20 @@ def test_a_unit_on_the_box_edge_is_withheld_naming_the_bound_it_leans_on():
     assert "bearing_friction sit on the design box's low edge" in why
     assert "90 % of the posterior in year 5" in why and "of 0.0005 N.m.s/rad" in why
     assert "widen model.inputs.bearing_friction.low" in why
+    from twinmon.forecast.judge import box_bound_of
+    assert box_bound_of(why) == "model.inputs.bearing_friction.low"
+    # The last year misses the plant too, its estimates on the same edge: still the box
+    # (a part worn beyond the design range), with the misfit said; a misfit off the edge is
+    # a misfit.
+    up.status = np.array(["ok", "ok", "ok", "edge", "misfit"])
+    up.fit.update(rms=np.ones(5), window=np.zeros(5, int))
+    st, why = prognosis_status(up, cfg, [])
+    assert "sit on the design box's low edge" in why
+    assert "and the twin misses the plant in year(s) 5" in why
+    up.fit["edge_share"] = np.where(np.arange(5)[:, None] == 4, 0.0, share)
+    st, why = prognosis_status(up, cfg, [])
+    assert why.startswith("prognosis withheld: the twin misses the plant by")
+    assert box_bound_of(why) is None
 
 
 def test_a_new_part_is_extended_at_the_rate_its_predecessor_wore():

@@ -54,8 +54,10 @@ def prognosis_status(up, cfg: Config, windows: list) -> tuple[str, str]:
     """Whether a unit's twin fits its data well enough for a prognosis.
 
     Withheld when at least ``forecast.withhold_years`` calibrated years (or the last one)
-    miss the plant or sit on the design box's edge (calibrate's goodness of fit); else
-    unreliable when a year did not converge; else ok.
+    miss the plant or sit on the design box's edge (calibrate's goodness of fit); the reason
+    names the box when the years that miss sit on its edge too (a part worn beyond the
+    design range cannot be followed by the twin), else the misfit; else unreliable when a
+    year did not converge; else ok.
 
     Returns
     -------
@@ -71,7 +73,12 @@ def prognosis_status(up, cfg: Config, windows: list) -> tuple[str, str]:
         f, k0 = up.fit, int(bad[0])
         first = int(up.years[k0])
         misfit = np.flatnonzero(st == STATUS_MISFIT)
-        if misfit.size:
+        edge = np.asarray(f["edge_share"], float)
+        # A misfit whose years' estimates also sit on the box's edge: the twin cannot
+        # follow the plant because the plant has left its box (a part worn beyond the
+        # design range), which the edge's message says; an effect the model lacks is the
+        # less likely reading (diagnose would name one anyway).
+        if misfit.size and not np.any(edge[misfit].max(axis=1) > cfg.calibrate.edge_share):
             k = int(misfit[np.argmax(f["window_rms"][misfit])])
             win = windows[int(f["window"][k])] if windows else "worst"
             return STATUS_WITHHELD, (
@@ -80,7 +87,7 @@ def prognosis_status(up, cfg: Config, windows: list) -> tuple[str, str]:
                 f"{int(up.years[k])}; {misfit.size} of {st.size} years miss) from year {first}; "
                 "run 'twinmon diagnose'")
         k = int(bad[-1])
-        j = int(np.argmax(f["edge_share"][k]))
+        j = int(np.argmax(edge[k]))
         name = cfg.model.input_names[j]
         spec = cfg.model.inputs[name]
         # The bound the year's estimates lean on. The draws pile up there when the plant
@@ -94,13 +101,25 @@ def prognosis_status(up, cfg: Config, windows: list) -> tuple[str, str]:
             f"prognosis withheld: the estimates of {name} sit on the design box's {side} "
             f"edge ({100 * f['edge_share'][k][j]:.0f} % of the posterior in year "
             f"{int(up.years[k])} within {100 * cfg.calibrate.edge_margin:g} % of the range "
-            f"of {bound:g}{unit}) from year {first}: the plant needs, or nearly "
-            f"needs, inputs beyond the twin's box; widen model.inputs.{name}.{side} or run "
-            "'twinmon diagnose'")
+            f"of {bound:g}{unit}) from year {first}"
+            + (f", and the twin misses the plant in year(s) "
+               f"{year_ranges(up.years[misfit])}" if misfit.size else "")
+            + ": the plant needs, or nearly needs, inputs beyond the twin's box; widen "
+            f"model.inputs.{name}.{side} or run 'twinmon diagnose'")
     unconv = np.flatnonzero(st == STATUS_UNCONVERGED)
     if unconv.size:
         return STATUS_UNRELIABLE, _unconverged(up, cfg, unconv)
     return STATUS_OK, ""
+
+
+def box_bound_of(reason: str) -> Optional[str]:
+    """The config key of the box bound a withheld unit's estimates sit on
+    (``model.inputs.<name>.<low|high>``), read from the reason :func:`prognosis_status`
+    wrote; None for any other reason."""
+    import re
+    m = re.search(r"sit on the design box's (?:low|high) edge .* widen (model\.inputs\.\S+?\."
+                  r"(?:low|high)) ", reason)
+    return m.group(1) if m else None
 
 
 def year_ranges(years) -> str:

@@ -8,7 +8,7 @@ from typing import Optional
 import numpy as np
 
 from ..config import Config
-from ..forecast.judge import describe_power
+from ..forecast.judge import box_bound_of, describe_power
 from ..repairs import FoundRepair
 from .common import plain
 from .fleet import FleetView, overview_lines
@@ -221,7 +221,11 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
         s.horizon_end = int(uf.years_future[-1])
         s.last_year = s.last_year or int(uf.years_observed[-1])
         s.plan = uf.plan
-        s.action = "run `twinmon diagnose` to find what the twin lacks; no prognosis until it fits"
+        bound = box_bound_of(uf.status_reason)
+        s.action = (f"widen {bound} and run again: the estimates sit on the twin's box, which "
+                    "the plant has left or nearly left; no prognosis until they have room"
+                    if bound else "run `twinmon diagnose` to find what the twin lacks; no "
+                    "prognosis until it fits")
         why.append(uf.status_reason)
     elif uf is not None:
         comps = faulty_components(cfg, uf)
@@ -335,7 +339,7 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
                              "q95": plain(float(v[2]))} for k, v in gap.estimate.items()},
         }
         withheld = s.status == "withheld" and not s.forced
-        if gap.verdict == "unexplained" and withheld:
+        if gap.verdict == "unexplained" and withheld and not box_bound_of(s.status_reason):
             s.action = ("revise the model: the twin misses the plant and no candidate effect of "
                         "model.effects explains the gap (diagnose)")
         elif gap.verdict == "none" and withheld:
@@ -351,7 +355,11 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
                 eff = " and ".join("(" + " or ".join(m["effect"] for m in grp["members"]) + ")"
                                    if len(grp["members"]) > 1 else grp["effect"]
                                    for grp in groups)
-            if s.status == "withheld" and not s.forced:
+            if withheld and box_bound_of(s.status_reason):
+                # The box, not an effect, is the first thing to rule out: with an input held
+                # at its bound, an effect takes up what the input cannot.
+                why.append(f"diagnose's {eff} may take up the box's limit: widen it first")
+            elif s.status == "withheld" and not s.forced:
                 s.action = (f"check {eff} (diagnose: the twin misses the plant from year "
                             f"{gap.onset}); with it in the twin, diagnose projects "
                             + (f"failure in year {gap.failure_year_after}"

@@ -114,7 +114,9 @@ class UnitSummary:
         """e.g. ``"fails in year 14 (P(unsafe) 12 % in 14; median year 15)"`` (the median
         year where it differs from the year to act by)."""
         if self.status == "withheld" and not self.forced:
-            return "withheld: the twin misses the plant"
+            from ..forecast.judge import box_bound_of
+            return ("withheld: the plant is at the twin's box" if box_bound_of(self.status_reason)
+                    else "withheld: the twin misses the plant")
         if self.root_cause is None:
             if self.last_indicator is None:
                 return "no forecast"
