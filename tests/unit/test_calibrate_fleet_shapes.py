@@ -118,3 +118,54 @@ def test_pooled_draws_follow_the_fleets_prior():
     want /= want.sum()
     assert np.abs(got - want).max() < 0.01, (got, want)
     assert 0 < ess < n and samples.shape == (3, n, 2)
+
+
+def test_units_within_normal_ageing_get_the_prior_of_units_like_them():
+    """A fleet whose worn units accelerate and whose sound units follow lines: the units
+    whose slopes stay within normal ageing are told apart by the forecast's slope test and
+    get a prior fitted on them (mostly the line), the others the whole fleet's; with fewer
+    such units than forecast.pool_min_units they take the fleet's."""
+    from types import SimpleNamespace
+
+    from twinmon.config import load_config
+    from twinmon.forecast.directions import Direction
+    from twinmon.forecast.pooling import ShapePriors, _drifts, _shapes_dict, fleet_priors
+
+    from ..conftest import CONFIGS
+    cfg = load_config(CONFIGS / "pump.yaml")
+    names = cfg.model.input_names
+    directions = {n: Direction(+1 if cfg.model.inputs[n].degrading == "up" else -1, "config")
+                  for n in names}
+    rng = np.random.default_rng(2)
+    n, years = 400, np.arange(1, 11)
+
+    def unit(worn: bool):
+        # Damping slope: 1.0 a year (4 tolerances beyond normal) or 0; the draws' forms:
+        # a worn unit's mostly exponential 0.3, a sound unit's nearly all the line.
+        slope = np.column_stack([rng.normal(1.0 if worn else 0.0, 0.05, n),
+                                 rng.normal(-0.02, 0.005, n)])[:, None, :]
+        code = rng.choice([0, 1], n, p=[0.1, 0.9] if worn else [0.98, 0.02])
+        growth = np.where(code == 1, 0.3, 0.0)
+        trend = {"sigma": np.abs(rng.normal(0.1, 0.01, (n, 2))), "shape": code,
+                 "growth": growth, "start": np.array([[1, 1]]), "slope": slope}
+        return SimpleNamespace(trend=trend, years=years)
+
+    units = {f"W{i}": unit(True) for i in range(12)}
+    units.update({f"S{i}": unit(False) for i in range(8)})
+    post = SimpleNamespace(units=units, path="<memory>")
+    shape_priors = {"line": 0.6, "accelerating": 0.2, "change": 0.2}
+    assert _drifts(cfg, units["W0"].trend, directions) and not _drifts(
+        cfg, units["S0"].trend, directions)
+    _, pri = fleet_priors(cfg, post, shape_priors, directions)
+    assert isinstance(pri, ShapePriors) and pri.steady is not None
+    assert pri.steady.n_units == 8 and pri.drifting.n_units == 20
+    assert pri.of(False) is pri.steady and pri.of(True) is pri.drifting
+    assert pri.steady.proportions[0] > 0.6 > pri.drifting.proportions[0]
+    assert _shapes_dict(pri)["steady"]["units"] == 8
+    # Without directions, or with too few sound units, one prior for all.
+    assert fleet_priors(cfg, post, shape_priors)[1].steady is None
+    few = SimpleNamespace(units={k: v for k, v in units.items() if k < "S2" or k[0] == "W"},
+                          path="<memory>")
+    _, pri = fleet_priors(cfg, few, shape_priors, directions)
+    assert pri.steady is None and pri.of(False) is pri.drifting
+    assert _shapes_dict(pri)["steady"] == {"pooled": False}

@@ -177,7 +177,7 @@ def forecast(cfg: Config, posterior_path: str | os.PathLike, surrogate_path: str
         truth = read_truth(truth_path)
     directions = degrading_directions(cfg, sur)
     box_ok = box_is_physical(cfg)
-    fleet, shapes = fleet_priors(cfg, post, recorded_shapes(cfg, posterior_path))
+    fleet, shapes = fleet_priors(cfg, post, recorded_shapes(cfg, posterior_path), directions)
     limit_state, why = forecast_limit_state(cfg, directions, box_ok)
     units, short = {}, {}
     with _open_forecast(output, cfg, names, directions, box_ok, seed=cfg.seed + SEED_OFFSET,
@@ -266,7 +266,8 @@ def forecast_units(cfg: Config, post, sur, *, posterior_path="<memory>", truth=N
     if limit_state is False:
         limit_state = forecast_limit_state(cfg, directions, box_ok)[0]
     pool_over = post if pool_over is None else pool_over
-    fleet, shapes = fleet_priors(cfg, pool_over, recorded_shapes(cfg, posterior_path))
+    fleet, shapes = fleet_priors(cfg, pool_over, recorded_shapes(cfg, posterior_path),
+                                 directions)
     # Units with too few years for a trend are left out, as forecast() leaves them.
     units = dict(iter_forecast(cfg, post, sur, posterior_path=posterior_path, truth=truth,
                                truth_path=truth_path, executor=executor, workers=workers,

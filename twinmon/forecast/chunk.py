@@ -27,7 +27,7 @@ from .judge import (MIN_TREND_YEARS, STATUS_OK, STATUS_UNRELIABLE, STATUS_WITHHE
                     describe_blind, describe_restart, history_slope_draws, judge,
                     prognosis_status)
 from .plan import maintenance_plan
-from .pooling import _pool_unit
+from .pooling import ShapePriors, _pool_unit
 from .predictive import (residual_correlation, sample_predictive, sample_state,
                          state_interval, state_predictive)
 from .streams import unit_rng
@@ -130,11 +130,13 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict, fleet=None,
     years' and the trend's, which are the same chain states -- are first resampled to its
     posterior under the fleet's prior of the year-to-year sd; its yearly estimates are then
     those draws' means. With ``shapes`` (:func:`~.pooling.fleet_shape_prior`), the same
-    resampling also takes a laplace posterior's draws to the fleet's prior of the trend
-    forms. ``shape_priors``: ``calibrate.shapes`` as the posterior recorded it
-    (:func:`~.trendfit.recorded_shapes`; default the config's). ``input_range`` [d, 2]: the
-    FMU's declared range of each input; a future draw beyond it (a trend extended to a
-    negative damping, say) is held at the bound, the nearest state the model can be in."""
+    resampling also takes a laplace posterior's future draws to the fleet's prior of the
+    trend forms: :class:`~.pooling.ShapePriors`' by whether an input's slope drifts beyond
+    normal ageing (its test rejects). ``shape_priors``: ``calibrate.shapes`` as the
+    posterior recorded it (:func:`~.trendfit.recorded_shapes`; default the config's).
+    ``input_range`` [d, 2]: the FMU's declared range of each input; a future draw beyond it
+    (a trend extended to a negative damping, say) is held at the bound, the nearest state
+    the model can be in."""
     fc = cfg.forecast
     shape_priors = dict(cfg.calibrate.shapes) if shape_priors is None else shape_priors
     names = cfg.model.input_names
@@ -150,16 +152,11 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict, fleet=None,
     # not move the judgement of how fast it went (resampled to the fleet's shapes, the
     # faults of one part were named "both" 17 times in 224 against 10 in 256:
     # benchmarks/prognosis.py, seeds 11-12, docs/forecast.md).
-    shaped = shapes is not None and "shape" in trend_post
+    calibrated, calibrated_samples = trend_post, samples_post
     future = trend_post
-    if shaped:
-        future, _, pool_ess = _pool_unit(cfg, unit, trend_post, samples_post, fleet, shapes,
-                                         stream=6)
     if fleet is not None and trend_post:
-        trend_post, pooled, ess = _pool_unit(cfg, unit, trend_post, samples_post, fleet)
-        pool_ess = min(ess, pool_ess) if np.isfinite(pool_ess) else ess
-        if not shaped:
-            future = trend_post
+        trend_post, pooled, pool_ess = _pool_unit(cfg, unit, trend_post, samples_post, fleet)
+        future = trend_post
         if pooled is not samples_post:
             samples_post, mean = pooled, pooled.mean(axis=1)
     post_cov = np.array([np.cov(samples_post[k], rowvar=False).reshape(d, d)
@@ -189,6 +186,16 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict, fleet=None,
         trends[name] = (t if t.test else
                         posterior_slope_test(t, slope_draws[:, i], *args) if trend_post
                         else slope_test(t, *args))
+    applied = None
+    if shapes is not None and "shape" in calibrated:
+        # The fleet's prior of the shapes by what the unit's slopes show (ShapePriors): a
+        # unit none of whose inputs drifts beyond normal ageing takes the prior of the units
+        # like it, not the one learnt from the wear of the others.
+        applied = shapes.of(any(t.rejects for t in trends.values())) \
+            if isinstance(shapes, ShapePriors) else shapes
+        future, _, ess = _pool_unit(cfg, unit, calibrated, calibrated_samples, fleet, applied,
+                                    stream=6)
+        pool_ess = min(ess, pool_ess) if np.isfinite(pool_ess) else ess
     # The inputs' residuals on the years every trend covers (after the latest repair).
     common = years >= max(since.values())
     resid = np.column_stack([mean[common, i] - (trends[n].intercept + trends[n].slope *
@@ -232,7 +239,7 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict, fleet=None,
         priors = shape_priors if "shape" in trend_post else {"line": 1.0}
         # The draws' share of the change against the prior they were drawn under: the
         # fleet's when it was pooled.
-        drawn = shapes.shape_priors() if shaped else priors
+        drawn = applied.shape_priors() if applied is not None else priors
         x, cov, starts = unit_sites(cfg, up, post_cov, trend_post, repairs,
                                     change_year(shape_summary(future), drawn))
         trend_fit = check_trend_fit(cfg, years, x, cov, starts, priors,

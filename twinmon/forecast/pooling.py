@@ -14,6 +14,9 @@ forecast takes from the rest of its fleet.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Optional
+
 import numpy as np
 
 from .. import artifacts
@@ -21,28 +24,91 @@ from ..config import Config
 from ..errors import ArtifactError, CalibrationError
 from .streams import unit_rng
 
+if TYPE_CHECKING:
+    from ..calibrate.fleet_shapes import FleetShapes
+
 #: Below this effective number of posterior draws after pooling, forecast warns: the unit's
 #: Monte Carlo rests on that many distinct trend states (the benchmark's seeds 11-16, 1000
 #: kept draws: 31-72 at the fewest, 154-276 the median).
 POOL_MIN_ESS = 30
 
 
-def fleet_priors(cfg: Config, post, shape_priors: dict) -> tuple:
+@dataclass(frozen=True)
+class ShapePriors:
+    """The fleet's priors of the trend forms, by what a unit's slopes show.
+
+    ``drifting`` (fitted on every unit) is a unit's whose slope drifts beyond normal ageing;
+    ``steady`` (fitted on the units none of whose slopes does, when there are at least
+    ``forecast.pool_min_units`` of them; else None, and they take ``drifting``) the others'.
+    Wear, not normal ageing, is what accelerates: given the whole fleet's prior, the healthy
+    units of a fleet of exponential wear were extended as exponentials, and 26 of 36 were
+    told a failure year within the horizon (none true; benchmarks/prognosis.py, flow, seeds
+    43, 47, 53)."""
+
+    drifting: FleetShapes
+    steady: Optional[FleetShapes] = None
+
+    def of(self, drifting: bool) -> FleetShapes:
+        """The prior a unit's future is drawn under."""
+        return self.drifting if drifting or self.steady is None else self.steady
+
+
+def fleet_priors(cfg: Config, post, shape_priors: dict, directions: dict | None = None) -> tuple:
     """Both of the fleet's priors, :func:`fleet_sigma_prior`'s and
     :func:`fleet_shape_prior`'s, from one pass over the posterior's trend draws, read before
     the first unit's forecast can start (1000 units: 2.2 s, against 3.4 s in two passes).
 
+    ``directions`` (input -> :class:`~.directions.Direction`): with them, the units whose
+    slopes stay within normal ageing (:func:`_drifts`) get a prior of their own
+    (:class:`ShapePriors`).
+
     Returns
     -------
-    (FleetPrior or None, FleetShapes or None)
+    (FleetPrior or None, ShapePriors or None)
     """
     shapes_wanted = _pools_shapes(cfg, shape_priors)
     if not cfg.forecast.pool_sigma and not shapes_wanted:
         return None, None
-    keys = ("sigma", "sigma_scale") + (("shape", "growth", "start") if shapes_wanted else ())
+    keys = ("sigma", "sigma_scale") + (("shape", "growth", "start", "slope")
+                                       if shapes_wanted else ())
     draws = list(_trend_draws(post, keys, years=shapes_wanted))
     fleet = fleet_sigma_prior(cfg, post, draws)
-    return fleet, fleet_shape_prior(cfg, post, shape_priors, fleet, draws)
+    every = fleet_shape_prior(cfg, post, shape_priors, fleet, draws)
+    if every is None:
+        return fleet, None
+    steady = None
+    if directions is not None:
+        still = [(u, t) for u, t in draws if "slope" in t
+                 and not _drifts(cfg, t, directions, fleet)]
+        steady = fleet_shape_prior(cfg, post, shape_priors, fleet, still)
+    return fleet, ShapePriors(every, steady)
+
+
+def _drifts(cfg: Config, trend: dict, directions: dict, fleet=None) -> bool:
+    """Whether some input's slope in its last segment drifts beyond normal ageing: the
+    forecast's per-input test (:func:`~.trend.slope_test` on the posterior's slope draws,
+    normal, at ``forecast.alpha``), the draws weighted to the fleet's sigma as
+    :func:`_pool_unit` resamples them."""
+    from scipy import stats
+
+    from ..calibrate.trend import last_segment
+    slope = last_segment(trend, "slope")                                  # [n, d]
+    w = (fleet.weights(np.asarray(trend["sigma"], float)) if fleet is not None
+         else np.full(len(slope), 1.0 / len(slope)))
+    b = w @ slope
+    se = np.sqrt(np.maximum(w @ (slope - b) ** 2, 0.0))
+    for i, name in enumerate(cfg.model.input_names):
+        spec = cfg.model.inputs[name]
+        sign = directions[name].sign
+        ps = []
+        for d_ in ((sign,) if sign else (1, -1)):
+            excess = d_ * b[i] - (d_ * spec.normal_rate + spec.normal_rate_tolerance)
+            ps.append(float(stats.norm.sf(excess / se[i])) if se[i] > 0 else
+                      (0.0 if excess > 0 else 1.0))
+        p = ps[0] if sign else min(1.0, 2 * min(ps))
+        if p < cfg.forecast.alpha:
+            return True
+    return False
 
 
 def fleet_sigma_prior(cfg: Config, post, draws: list | None = None):
@@ -191,13 +257,18 @@ def _pooling_dict(fleet, names: list) -> dict:
 
 def _shapes_dict(shapes) -> dict:
     """What the forecast pooled of the trend shapes: the fleet's prior of each form and the
-    calibration's."""
+    calibration's; ``steady``, the prior of the units whose slopes stay within normal
+    ageing (``{"pooled": false}`` when they take the fleet's)."""
     if shapes is None:
         return {"pooled": False}
     from ..calibrate.shapes import form_names
-    return {"pooled": True, "units": shapes.n_units, "prior_units": shapes.prior_units,
-            "fleet": dict(zip(form_names(), np.round(shapes.proportions, 4).tolist())),
-            "calibration": dict(zip(form_names(), np.round(shapes.base, 4).tolist()))}
+    one = (lambda f: {"pooled": True, "units": f.n_units, "prior_units": f.prior_units,
+                      "fleet": dict(zip(form_names(), np.round(f.proportions, 4).tolist())),
+                      "calibration": dict(zip(form_names(), np.round(f.base, 4).tolist()))})
+    if not isinstance(shapes, ShapePriors):
+        return one(shapes)
+    return {**one(shapes.drifting),
+            "steady": one(shapes.steady) if shapes.steady is not None else {"pooled": False}}
 
 
 def _pool_unit(cfg: Config, unit: str, trend: dict, samples: np.ndarray,

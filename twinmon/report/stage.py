@@ -316,10 +316,15 @@ def _render(cfg: Config, inp: Inputs, tmp: Path, out: Path, provenance: dict,
         acc = sum(v for k, v in prior.items() if k not in ("line", "change"))
         forms = ", ".join(f"{k} {v:.2f}" for k, v in prior.items()
                           if k not in ("line", "change"))
+        steady = shaped.get("steady") or {}
+        still = (f" Units whose slopes stay within normal ageing take those of the "
+                 f"{steady['units']} such units: a straight line "
+                 f"{steady['fleet']['line']:.2f}, a change {steady['fleet']['change']:.2f}."
+                 if steady.get("pooled") else "")
         notes.append(f"The trend shapes' prior probabilities were learnt from the fleet's "
                      f"{shaped['units']} units: a straight line {prior['line']:.2f}, "
                      f"accelerating {acc:.2f} ({forms}), a change {prior['change']:.2f}; "
-                     "each unit's trend and forecast weigh its shapes by them.")
+                     f"each unit's forecast weighs its shapes by them.{still}")
 
     figs.finish()
     output_words, indicator_words = words_dict(inp)
