@@ -466,14 +466,19 @@ def test_a_unit_on_the_box_edge_is_withheld_naming_the_bound_it_leans_on():
     assert "widen model.inputs.bearing_friction.low" in why
     from twinmon.forecast.judge import box_bound_of
     assert box_bound_of(why) == "model.inputs.bearing_friction.low"
-    # The last year misses the plant too, its estimates on the same edge: still the box
-    # (a part worn beyond the design range), with the misfit said; a misfit off the edge is
-    # a misfit.
+    # The last year misses the plant too. On the low edge, the side a bearing's wear does
+    # not take it (its friction degrades up), the edge makes up for something the twin
+    # lacks: the misfit is named. On the high edge, worn past the box: the box, with the
+    # misfit said. A misfit off the edge is a misfit.
     up.status = np.array(["ok", "ok", "ok", "edge", "misfit"])
     up.fit.update(rms=np.ones(5), window=np.zeros(5, int))
     st, why = prognosis_status(up, cfg, [])
-    assert "sit on the design box's low edge" in why
+    assert why.startswith("prognosis withheld: the twin misses the plant by")
+    up.mean = np.tile([0.0059, 1.0], (5, 1))
+    st, why = prognosis_status(up, cfg, [])
+    assert "bearing_friction sit on the design box's high edge" in why
     assert "and the twin misses the plant in year(s) 5" in why
+    assert box_bound_of(why) == "model.inputs.bearing_friction.high"
     up.fit["edge_share"] = np.where(np.arange(5)[:, None] == 4, 0.0, share)
     st, why = prognosis_status(up, cfg, [])
     assert why.startswith("prognosis withheld: the twin misses the plant by")

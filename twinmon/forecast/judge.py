@@ -55,9 +55,9 @@ def prognosis_status(up, cfg: Config, windows: list) -> tuple[str, str]:
 
     Withheld when at least ``forecast.withhold_years`` calibrated years (or the last one)
     miss the plant or sit on the design box's edge (calibrate's goodness of fit); the reason
-    names the box when the years that miss sit on its edge too (a part worn beyond the
-    design range cannot be followed by the twin), else the misfit; else unreliable when a
-    year did not converge; else ok.
+    names the box when the years that miss sit on its edge on an input's degrading side too
+    (a part worn beyond the design range cannot be followed by the twin), else the misfit;
+    else unreliable when a year did not converge; else ok.
 
     Returns
     -------
@@ -74,11 +74,13 @@ def prognosis_status(up, cfg: Config, windows: list) -> tuple[str, str]:
         first = int(up.years[k0])
         misfit = np.flatnonzero(st == STATUS_MISFIT)
         edge = np.asarray(f["edge_share"], float)
-        # A misfit whose years' estimates also sit on the box's edge: the twin cannot
-        # follow the plant because the plant has left its box (a part worn beyond the
-        # design range), which the edge's message says; an effect the model lacks is the
-        # less likely reading (diagnose would name one anyway).
-        if misfit.size and not np.any(edge[misfit].max(axis=1) > cfg.calibrate.edge_share):
+        # A misfit whose years' estimates also sit on the box's edge where wear takes the
+        # input (its degrading side): the twin cannot follow the plant because a part has
+        # worn past the design range, which the edge's message says. On the other side, or
+        # for an input whose degrading direction is not declared, the edge is the
+        # calibration's way of making up for a structure the twin lacks (a delayed start
+        # pinned the pump coefficient to its high bound in every year): the misfit's.
+        if misfit.size and not any(_worn_past_box(cfg, up, edge, k) for k in misfit):
             k = int(misfit[np.argmax(f["window_rms"][misfit])])
             win = windows[int(f["window"][k])] if windows else "worst"
             return STATUS_WITHHELD, (
@@ -110,6 +112,17 @@ def prognosis_status(up, cfg: Config, windows: list) -> tuple[str, str]:
     if unconv.size:
         return STATUS_UNRELIABLE, _unconverged(up, cfg, unconv)
     return STATUS_OK, ""
+
+
+def _worn_past_box(cfg: Config, up, edge: np.ndarray, k: int) -> bool:
+    """Whether year ``k``'s estimates sit on the box's edge (``calibrate.edge_share``) on
+    the degrading side of the input leaning on it."""
+    j = int(np.argmax(edge[k]))
+    if not edge[k, j] > cfg.calibrate.edge_share:
+        return False
+    spec = cfg.model.inputs[cfg.model.input_names[j]]
+    high = float(np.asarray(up.mean)[k, j]) >= 0.5 * (spec.low + spec.high)
+    return (spec.degrading == "up" and high) or (spec.degrading == "down" and not high)
 
 
 def box_bound_of(reason: str) -> Optional[str]:
