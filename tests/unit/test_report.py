@@ -478,3 +478,14 @@ def test_candidates_hidden_alike_on_every_unit_are_said_once():
     assert shared_hidden([same[0], {"hidden": other, "groups": []}]) == {}
     assert shared_hidden([same[0], None]) == {}
     assert shared_hidden(same[:1]) == {}
+
+
+def test_a_healthy_units_failure_year_says_whether_its_centre_or_its_spread_reaches_it():
+    from types import SimpleNamespace
+
+    from twinmon.report.summary import healthy_due
+    assert healthy_due(SimpleNamespace(median_failure_year=15), 0.05) == \
+        "normal ageing reaches the limit"
+    why = healthy_due(SimpleNamespace(median_failure_year=None), 0.05)
+    assert why.startswith("no fault is seen, but the forecast's spread reaches the limit")
+    assert "P(unsafe) above 5 %" in why
