@@ -37,9 +37,10 @@ POOL_MIN_ESS = 30
 class ShapePriors:
     """The fleet's priors of the trend forms, by what a unit's slopes show.
 
-    ``drifting`` (fitted on every unit) is a unit's whose slope drifts beyond normal ageing;
-    ``steady`` (fitted on the units none of whose slopes does, when there are at least
-    ``forecast.pool_min_units`` of them; else None, and they take ``drifting``) the others'.
+    ``drifting``, fitted on every unit, is the prior of a unit with an input whose slope
+    drifts beyond normal ageing; ``steady``, fitted on the units none of whose slopes does
+    when there are at least ``forecast.pool_min_units`` of them (else None: they take
+    ``drifting``), the prior of those units.
     Wear, not normal ageing, is what accelerates: given the whole fleet's prior, the healthy
     units of a fleet of exponential wear were extended as exponentials, and 26 of 36 were
     told a failure year within the horizon (none true; benchmarks/prognosis.py, flow, seeds
