@@ -87,30 +87,20 @@ def fleet_priors(cfg: Config, post, shape_priors: dict, directions: dict | None 
 
 def _drifts(cfg: Config, trend: dict, directions: dict, fleet=None) -> bool:
     """Whether some input's slope in its last segment drifts beyond normal ageing: the
-    forecast's per-input test (:func:`~.trend.slope_test` on the posterior's slope draws,
-    normal, at ``forecast.alpha``), the draws weighted to the fleet's sigma as
+    forecast's per-input test (:func:`~.trend.posterior_slope_test`'s: the posterior's
+    slope draws, normal, at ``forecast.alpha``), the draws weighted to the fleet's sigma as
     :func:`_pool_unit` resamples them."""
-    from scipy import special
-
     from ..calibrate.trend import last_segment
+    from .trend import POSTERIOR_DOF, slope_p_value
     slope = last_segment(trend, "slope")                                  # [n, d]
     w = (fleet.weights(np.asarray(trend["sigma"], float)) if fleet is not None
          else np.full(len(slope), 1.0 / len(slope)))
     b = w @ slope
     se = np.sqrt(np.maximum(w @ (slope - b) ** 2, 0.0))
-    for i, name in enumerate(cfg.model.input_names):
-        spec = cfg.model.inputs[name]
-        sign = directions[name].sign
-        ps = []
-        for d_ in ((sign,) if sign else (1, -1)):
-            excess = d_ * b[i] - (d_ * spec.normal_rate + spec.normal_rate_tolerance)
-            # The normal's upper tail (scipy.stats.norm.sf's value, without its overhead).
-            ps.append(float(special.ndtr(-excess / se[i])) if se[i] > 0 else
-                      (0.0 if excess > 0 else 1.0))
-        p = ps[0] if sign else min(1.0, 2 * min(ps))
-        if p < cfg.forecast.alpha:
-            return True
-    return False
+    return any(slope_p_value(b[i], se[i], POSTERIOR_DOF, cfg.model.inputs[name].normal_rate,
+                             cfg.model.inputs[name].normal_rate_tolerance,
+                             directions[name].sign) < cfg.forecast.alpha
+               for i, name in enumerate(cfg.model.input_names))
 
 
 def fleet_sigma_prior(cfg: Config, post, draws: list | None = None):
