@@ -25,7 +25,7 @@ from .covariance import estimate_error_covariance
 from .detection import gradient_from, gradient_points, mid_state
 from .judge import (MIN_TREND_YEARS, STATUS_OK, STATUS_UNRELIABLE, STATUS_WITHHELD,
                     describe_blind, describe_restart, history_slope_draws, judge,
-                    prognosis_status)
+                    prognosis_status, recent_restarts)
 from .plan import maintenance_plan
 from .pooling import ShapePriors, _pool_unit
 from .predictive import (residual_correlation, sample_predictive, sample_state,
@@ -278,8 +278,8 @@ def new_parts_as_before(trend: dict, since: dict, years: np.ndarray, names: list
     names : list of str
         The inputs, in the trend's order.
     """
-    new = [i for i, n in enumerate(names)
-           if since[n] > years[0] and int(np.sum(years >= since[n])) < MIN_TREND_YEARS]
+    late = recent_restarts(since, years)
+    new = [i for i, n in enumerate(names) if n in late]
     hist = history_slope_draws(trend) if new and "start" in trend else None
     if hist is None:
         return trend

@@ -89,14 +89,9 @@ def prognosis_status(up, cfg: Config, windows: list) -> tuple[str, str]:
                 f"{int(up.years[k])}; {misfit.size} of {st.size} years miss) from year {first}; "
                 "run 'twinmon diagnose'")
         k = int(bad[-1])
-        j = int(np.argmax(edge[k]))
+        j, side = _edge_side(cfg, up, edge, k)
         name = cfg.model.input_names[j]
         spec = cfg.model.inputs[name]
-        # The bound the year's estimates lean on. The draws pile up there when the plant
-        # needs a value beyond it, and also when its true value lies just inside: either
-        # way the box does not leave the estimate room, and widening it tells which.
-        side = "low" if float(np.asarray(up.mean)[k, j]) < 0.5 * (spec.low + spec.high) \
-            else "high"
         bound = spec.low if side == "low" else spec.high
         unit = f" {spec.units}" if spec.units not in ("", "1") else ""
         return STATUS_WITHHELD, (
@@ -114,15 +109,26 @@ def prognosis_status(up, cfg: Config, windows: list) -> tuple[str, str]:
     return STATUS_OK, ""
 
 
+def _edge_side(cfg: Config, up, edge: np.ndarray, k: int) -> tuple[int, str]:
+    """The input whose estimates of year ``k`` lean most on the box's edge (``edge``: the
+    posterior's share within the margin [n_y, d]) and the bound's side, ``low`` or ``high``.
+    The draws pile up there when the plant needs a value beyond it, and also when its true
+    value lies just inside: either way the box does not leave the estimate room, and
+    widening it tells which."""
+    j = int(np.argmax(edge[k]))
+    spec = cfg.model.inputs[cfg.model.input_names[j]]
+    return j, ("low" if float(np.asarray(up.mean)[k, j]) < 0.5 * (spec.low + spec.high)
+               else "high")
+
+
 def _worn_past_box(cfg: Config, up, edge: np.ndarray, k: int) -> bool:
     """Whether year ``k``'s estimates sit on the box's edge (``calibrate.edge_share``) on
     the degrading side of the input leaning on it."""
-    j = int(np.argmax(edge[k]))
+    j, side = _edge_side(cfg, up, edge, k)
     if not edge[k, j] > cfg.calibrate.edge_share:
         return False
-    spec = cfg.model.inputs[cfg.model.input_names[j]]
-    high = float(np.asarray(up.mean)[k, j]) >= 0.5 * (spec.low + spec.high)
-    return (spec.degrading == "up" and high) or (spec.degrading == "down" and not high)
+    return cfg.model.inputs[cfg.model.input_names[j]].degrading == {"high": "up",
+                                                                   "low": "down"}[side]
 
 
 def box_bound_of(reason: str) -> Optional[str]:
@@ -189,6 +195,19 @@ def describe_blind(cfg: Config, drift: IndicatorDrift, years: np.ndarray) -> str
             "rule it out")
 
 
+def recent_restarts(since: dict, years: np.ndarray) -> dict:
+    """The inputs whose trend restarted (after their first recorded year) fewer than
+    :data:`MIN_TREND_YEARS` recorded years before the record's end: name -> (restart year,
+    recorded years since)."""
+    years = np.asarray(years)
+    out = {}
+    for n, y in since.items():
+        k = int(np.sum(years >= y))
+        if y > years[0] and k < MIN_TREND_YEARS:
+            out[n] = (int(y), k)
+    return out
+
+
 def describe_restart(since: dict, years: np.ndarray) -> str:
     """Why a unit's prognosis is unreliable when an input's trend restarted (a recorded
     replacement, or a repair found in the estimates) fewer than :data:`MIN_TREND_YEARS`
@@ -206,13 +225,11 @@ def describe_restart(since: dict, years: np.ndarray) -> str:
     years : ndarray of int, shape [n_y]
         The recorded years.
     """
-    years = np.asarray(years)
-    late = {n: int(y) for n, y in since.items()
-            if y > years[0] and int(np.sum(years >= y)) < MIN_TREND_YEARS}
+    late = recent_restarts(since, years)
     if not late:
         return ""
-    what = ", ".join(f"{n} in year {y} ({int(np.sum(years >= y))} recorded year(s) since)"
-                     for n, y in late.items())
+    what = ", ".join(f"{n} in year {y} ({k} recorded year(s) since)"
+                     for n, (y, k) in late.items())
     return (f"prognosis unreliable: the trend restarted after a repair, of {what}: too few "
             f"years (a trend needs {MIN_TREND_YEARS}) to show the new part's own rate, so the "
             "forecast assumes one (the rate of the part it replaced; normal ageing for a "
