@@ -481,11 +481,10 @@ def test_candidates_hidden_alike_on_every_unit_are_said_once():
 
 
 def test_a_healthy_units_failure_year_says_whether_its_centre_or_its_spread_reaches_it():
-    from types import SimpleNamespace
-
-    from twinmon.report.summary import healthy_due
-    assert healthy_due(SimpleNamespace(median_failure_year=15), 0.05) == \
-        "normal ageing reaches the limit"
-    why = healthy_due(SimpleNamespace(median_failure_year=None), 0.05)
+    from twinmon.forecast.plan import no_fault_due
+    years = np.arange(11, 18)
+    assert no_fault_due(years, np.linspace(0.0, 0.7, 7), 0.05) == \
+        "normal ageing alone reaches the limit"
+    why = no_fault_due(years, np.linspace(0.0, 0.3, 7), 0.05)
     assert why.startswith("no fault is seen, but the forecast's spread reaches the limit")
     assert "P(unsafe) above 5 %" in why

@@ -9,6 +9,7 @@ import numpy as np
 
 from ..config import Config
 from ..forecast.judge import box_bound_of, describe_power
+from ..forecast.plan import no_fault_due
 from ..repairs import FoundRepair
 from .common import plain
 from .fleet import FleetView, overview_lines
@@ -185,18 +186,6 @@ def faulty_components(cfg: Config, uf) -> list[str]:
     return sorted(out)
 
 
-def healthy_due(uf, limit: float) -> str:
-    """Why a unit with no fault seen has a failure year: the forecast's centre reaches the
-    limit (its median failure year lies in the horizon: normal ageing does), or only its
-    spread does (a short record, shapes the record cannot rule out), which "normal ageing
-    reaches the limit" misstated: on the benchmark's 21 held-out flow fleets, all 31 healthy
-    units with a failure year had their median beyond the horizon, and none fails."""
-    if uf.median_failure_year is not None:
-        return "normal ageing reaches the limit"
-    return (f"no fault is seen, but the forecast's spread reaches the limit with P(unsafe) "
-            f"above {100 * limit:g} %; each year of record narrows it")
-
-
 def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
     """The plain-language summary of one unit; ``observed``: {unit: (years, indicator)}."""
     cfg, ind = inp.cfg, inp.words.ind
@@ -265,7 +254,8 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
                 or uf.failure_year <= last + 1
             when = "now" if now else f"before year {uf.failure_year - 1} ends"
             s.action = (f"inspect the {what} {when}" if what
-                        else f"overhaul the unit {when} ({healthy_due(uf, limit)})")
+                        else f"overhaul the unit {when} "
+                        f"({no_fault_due(uf.years_future, uf.p_unsafe, limit)})")
         else:
             s.p_unsafe = float(np.max(uf.p_unsafe)) if uf.p_unsafe.size else 0.0
             s.action = (f"inspect the {what} at the next planned stop" if what
