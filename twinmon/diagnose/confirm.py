@@ -36,21 +36,42 @@ def confirm(s: UnitState, name: str, value: float, onset: int, fixed_fit=None):
     """Best augmented fit of candidate ``name`` over onsets ``onset +- onset_search``:
     ``(chi2, FitResult, first fitted row, onset)``, or None if no onset is within the years."""
     best = None
-    for on in range(onset - s.dc.onset_search, onset + s.dc.onset_search + 1):
+    near = range(onset - s.dc.onset_search, onset + s.dc.onset_search + 1)
+    # The screening's onset first, from the inputs moved to make room for the effect; the
+    # other onsets from its fit (the effect's value, the years' inputs), a few steps away.
+    first = None
+    for on in sorted(near, key=lambda o: (abs(o - onset), o)):
         if on < s.years[0] or on > s.years[-1]:
             continue
-        u0 = _readjusted_start(s, name, value, on)
-        chi2, fit, k0 = fit_with(s, [(name, on)], [value], u0)
+        if first is not None:
+            u0, v0 = _from_fit(s, name, value, on, first)
+        else:
+            u0, v0 = _readjusted_start(s, name, value, on), value
+        chi2, fit, k0 = fit_with(s, [(name, on)], [v0], u0)
+        if fit is not None and first is None:
+            first = fit
         if fit is not None and (best is None or chi2 < best[0]):
             best = (chi2, fit, k0, on)
     return best
 
 
-def _readjusted_start(s: UnitState, name, value, onset):
-    """Base inputs moved by one linear step to make room for the effect."""
+def _from_fit(s: UnitState, name, value, onset, fit):
+    """Start values for onset ``onset`` from ``fit`` (the same candidate at another onset):
+    its value and its fitted years' inputs; a year it did not fit is moved as
+    :func:`_readjusted_start` moves it."""
+    ue, ut = fit.problem.unpack(fit.x)
+    rows = np.searchsorted(s.years, fit.problem.years)
+    u = _readjusted_start(s, name, value, onset, skip=set(rows.tolist()))
+    u[rows] = ut
+    return u, s.twin.effect_of(name, ue[0])
+
+
+def _readjusted_start(s: UnitState, name, value, onset, skip=()):
+    """Base inputs moved by one linear step to make room for the effect, in every year from
+    the onset but the rows of ``skip``."""
     u = s.base_u.copy()
     for k in range(s.n_y):
-        if s.years[k] < onset:
+        if s.years[k] < onset or k in skip:
             continue
         mask = np.isfinite(s.Y[k])
         theta = s.twin.theta_of(u[k])

@@ -64,7 +64,8 @@ def hidden_effects(s: UnitState, candidates: list, u_last: np.ndarray | None = N
     # The span of the inputs' sensitivities there, for a cheap first look.
     J = JointFit(s.twin, base[None], s.years[k:k + 1], [(n, 0) for n in eff0])
     x = np.concatenate([[s.twin.effect_u(n, v) for n, v in eff0.items()], u0])
-    Q = np.linalg.qr(J.jacobian(x)[:, len(eff0):])[0]
+    J_u = J.jacobian(x)[:, len(eff0):]
+    Q = np.linalg.qr(J_u)[0]
     out = {}
     for name in candidates:
         e = s.twin.effects[name]
@@ -83,8 +84,12 @@ def hidden_effects(s: UnitState, candidates: list, u_last: np.ndarray | None = N
             if gap < HIDDEN_GAP or _window_gap(s, d - Q @ (Q.T @ d)) > 3 * HIDDEN_VISIBLE:
                 continue
             prob = JointFit(s.twin, y[None], s.years[k:k + 1], [(n, 0) for n in eff0])
-            # The effects in the twin stay at their values: only the inputs move.
-            fit = _refit_inputs(prob, x, len(eff0))
+            # The effects in the twin stay at their values: only the inputs move, from
+            # the linearised fit's point (one Gauss-Newton step: r = d at u0, dr/du = J_u),
+            # which saves the refit its first iterations.
+            step = np.linalg.lstsq(J_u, -d, rcond=None)[0]
+            start = np.concatenate([x[:len(eff0)], np.clip(u0 + step, 0.0, 1.0)])
+            fit = _refit_inputs(prob, start, len(eff0))
             visible = _window_gap(s, fit[0])
             if visible < HIDDEN_VISIBLE:
                 ends.append((gap, end, visible, fit[1]))
@@ -111,4 +116,5 @@ def _refit_inputs(prob: JointFit, x0: np.ndarray, n_e: int) -> tuple:
         return prob.jacobian(np.concatenate([fixed, u]))[:, n_e:]
     res = least_squares(resid, np.clip(x0[n_e:], 1e-9, 1 - 1e-9), jac=jac, bounds=(0.0, 1.0),
                         method="trf", x_scale="jac", max_nfev=100)
-    return resid(res.x), res.x
+    # The residual at the solution is the fit's own last evaluation (res.fun).
+    return res.fun, res.x
