@@ -488,3 +488,17 @@ def test_a_healthy_units_failure_year_says_whether_its_centre_or_its_spread_reac
     why = no_fault_due(years, np.linspace(0.0, 0.3, 7), 0.05)
     assert why.startswith("no fault is seen, but the forecast's spread reaches the limit")
     assert "P(unsafe) above 5 %" in why
+
+
+def test_a_gap_fleet_with_units_the_fleet_lacks_gets_its_own_colours(pipeline, tmp_path):
+    """Diagnose run on another file than the report's observations (run's
+    --gap-observations), with a unit the observed fleet does not have: the diagnose figures
+    draw it in a colour of its own instead of failing on a missing colour."""
+    from ..conftest import first_years
+    cfg, _, _, art = pipeline
+    if art["gap"] is None:
+        pytest.skip("diagnose is not built")
+    obs = first_years(art["observations"], tmp_path / "two.h5", 4, units=["Park", "Colt"])
+    s = report(cfg, tmp_path / "out", observations=obs, gap=art["gap"])
+    assert s.sections["diagnose"] == "rendered"
+    assert "Monk" in (tmp_path / "out" / "index.html").read_text()

@@ -274,7 +274,9 @@ def _render(cfg: Config, inp: Inputs, tmp: Path, out: Path, provenance: dict,
             chunks = _groups(other, GROUP)
             gap_views = [(g, _subset(inp, g, gap_only=True),
                           f"_{k + 1}" if len(chunks) > 1 else "") for k, g in enumerate(chunks)]
-            for i, u in enumerate(other):
+        if inp.gap_other_source is not None:
+            # Other machines than the fleet's may be units the fleet does not have.
+            for i, u in enumerate(inp.gap.units):
                 colours.setdefault(u, UNIT_COLOURS[i % len(UNIT_COLOURS)])
         # Each unit's named effects, groups and hidden candidates (a large fleet's: those
         # drawn in detail).
