@@ -271,3 +271,16 @@ def test_cli_update_prints_what_it_kept(setup, tmp_path):
     r = CliRunner().invoke(main, args + ["--observations", str(long), "--update",
                                          "--set", "calibrate.chains=3"])
     assert r.exit_code == 5 and "calibrate.chains 4 -> 3" in r.output
+
+
+def test_a_year_that_runs_out_of_steps_still_reports_its_r_hat(setup):
+    """Chains stopped at their longest run before the ESS mark was met: the year is
+    unconverged, and its R-hat is the chains' (not NaN, which the prognosis' reason then
+    printed as 'R-hat up to nan')."""
+    cfg, _, _, sur = setup
+    cfg = dataclasses.replace(cfg, calibrate=dataclasses.replace(
+        cfg.calibrate, ess_warn=100000, samples=200, burn_in=50, max_extensions=0))
+    (unit,) = _units(cfg, ("Monk",), years=1)
+    p = calibrate_units(sur, cfg, [unit])["Monk"]
+    assert not p.fit["converged"][0]
+    assert np.all(np.isfinite(p.rhat[0])) and np.all(p.rhat[0] > 0.9), p.rhat[0]

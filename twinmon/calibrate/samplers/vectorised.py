@@ -58,7 +58,7 @@ from ..posterior import UnitPosterior, thin_indices
 from ..shared import (ADAPT_DOWN, ADAPT_PERIOD, ADAPT_RANGE, ADAPT_UP, initial_states,
                       sampling_pool, unit_groups, year_prior)
 from .batch_map import Batch, batch_map, laplace_logpdf
-from .convergence import converged, first_look, longest_run, more_steps
+from .convergence import converged, diagnostics, first_look, longest_run, more_steps
 from .gpbatch import make_predictor, worker_predict
 
 #: Warm-started years burn in for this fraction of ``calibrate.burn_in``.
@@ -301,6 +301,10 @@ def _sample_year(surrogate, predict, cfg: Config, states: list[_UnitState], n_ke
             draws[u] = [chains]
             conv, rhat, n_eff = converged(chains, cfg)
             if conv or kept[u] >= cap[u]:
+                if not conv and np.isnan(rhat).all():
+                    # Stopped short of the ESS mark, where converged() skips the R-hat: the
+                    # year's record and its unconverged reason need it all the same.
+                    rhat, n_eff = diagnostics(chains)
                 result[u] = (chains, conv, rhat, n_eff)
                 active[u] = False
                 zbuf[u] = lubuf[u] = None
