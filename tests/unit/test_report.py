@@ -502,3 +502,25 @@ def test_a_gap_fleet_with_units_the_fleet_lacks_gets_its_own_colours(pipeline, t
     s = report(cfg, tmp_path / "out", observations=obs, gap=art["gap"])
     assert s.sections["diagnose"] == "rendered"
     assert "Monk" in (tmp_path / "out" / "index.html").read_text()
+
+
+def test_a_gap_of_another_file_is_not_merged_when_the_observations_are_not_given(
+        pipeline, tmp_path):
+    """report --workdir without --observations, after run --gap-observations: the gap
+    artifact diagnosed another file than the posterior was calibrated from, so its units
+    (here Monk's first three years, standing for a gap fleet's unit of the same name) are
+    other records, not the fleet's units."""
+    from twinmon.diagnose import diagnose
+
+    from ..conftest import first_years
+    cfg, _, _, art = pipeline
+    if art["posterior"] is None:
+        pytest.skip("calibrate is not built")
+    other = first_years(art["observations"], tmp_path / "other.h5", 3, units=["Monk"])
+    diagnose(cfg, other, tmp_path / "gap.h5", workers=1)
+    out = tmp_path / "out"
+    report(cfg, out, posterior=art["posterior"], forecast=art["forecast"],
+           gap=tmp_path / "gap.h5")
+    data = json.loads((out / "summary.json").read_text())
+    assert data["units"]["Monk"]["diagnose"] is None
+    assert "This section diagnoses" in (out / "index.html").read_text()

@@ -87,6 +87,11 @@ def load(cfg: Config, paths: dict) -> Inputs:
             same = diagnosed[0]["sha256"] == artifacts.file_sha256(paths["observations"])
             if not same:
                 inp.gap_other_source = diagnosed[0]["path"]
+        elif diagnosed and paths.get("posterior") is not None:
+            # No observations given: the posterior records those it was calibrated from.
+            calibrated = lineage.recorded_inputs(paths["posterior"])
+            if calibrated and all(r["sha256"] != diagnosed[0]["sha256"] for r in calibrated):
+                inp.gap_other_source = diagnosed[0]["path"]
     if paths.get("truth") is not None:
         # Checked here, its units read for the units drawn (:func:`with_truth_of`).
         from ..fabricate import read_truth
