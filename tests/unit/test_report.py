@@ -524,3 +524,39 @@ def test_a_gap_of_another_file_is_not_merged_when_the_observations_are_not_given
     data = json.loads((out / "summary.json").read_text())
     assert data["units"]["Monk"]["diagnose"] is None
     assert "This section diagnoses" in (out / "index.html").read_text()
+
+
+
+def test_surrogate_figure_of_three_long_named_inputs_keeps_its_titles_inside(tmp_path):
+    """Figure 5's legend names each drawn test run by its inputs: with three inputs of long
+    names the two-column legend was wider than its panel, the layout pushed the error panel
+    off the figure and its title was clipped at the right edge."""
+    from types import SimpleNamespace
+
+    from twinmon.report.common import Figures, Words
+    from twinmon.report.fig_surrogate import fig_surrogate
+    cfg = load_config(DCDRIVE)
+    time = cfg.model.output.times.times
+    X = np.array([[23.1, 115.0, 2.82], [32.2, 74.4, 4.75], [35.2, 20.4, 6.03],
+                  [34.9, 94.4, 27.3], [30.0, 60.0, 10.0]])
+    Y = 250.0 + 40.0 * (1 - np.exp(-time[None, :] / (0.2 + 0.05 * np.arange(5)[:, None])))
+    sur = SimpleNamespace(
+        input_names=["element_resistance", "element_conductance", "insulation_loss"],
+        predict_with_var=lambda x: (Y[: len(x)] * 1.001, np.full((len(x), time.size), 0.01)))
+    sims = SimpleNamespace(ok={"test": np.ones(len(X), bool)}, X={"test": X}, Y={"test": Y},
+                           time=time)
+    drawn = []
+
+    class Kept(Figures):
+        def save(self, fig, *args):
+            drawn.append(fig)
+            super().save(fig, *args)
+
+    fig_surrogate(Kept(tmp_path), SimpleNamespace(surrogate=sur, sims=sims,
+                                                  words=Words.from_config(cfg)))
+    (fig,) = drawn
+    renderer = fig.canvas.get_renderer()
+    for ax in fig.axes:
+        for art in (ax.title, ax.get_legend()):
+            box = art.get_window_extent(renderer)
+            assert box.x0 >= 0 and box.x1 <= fig.bbox.width, (art, box, fig.bbox)

@@ -7,6 +7,11 @@ from .common import Figures, indicator_rows, qty
 from .load import Inputs
 
 
+#: Longest label of a drawn test run that still fits two to a row under the left panel
+#: (8 pt legend text in a 6.5 in panel); the DC drive's are 49 characters.
+LEGEND_PAIR_CHARS = 55
+
+
 def surrogate_errors(pred: np.ndarray, Y: np.ndarray) -> dict:
     """Errors of ``pred`` against ``Y`` [n_test, n_t], as ``reduce``'s validation defines them.
 
@@ -41,8 +46,8 @@ def fig_surrogate(figs: Figures, inp: Inputs) -> dict:
     a1, a2 = fig.subplots(1, 2, width_ratios=[1.25, 1])
     cmap = ["#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd"]
     sd = np.sqrt(np.maximum(var, 0.0))
-    for c, i in zip(cmap, pick):
-        lab = ", ".join(f"{n}={v:.3g}" for n, v in zip(sur.input_names, X[i]))
+    labels = [", ".join(f"{n}={v:.3g}" for n, v in zip(sur.input_names, X[i])) for i in pick]
+    for c, i, lab in zip(cmap, pick, labels):
         a1.fill_between(time, pred[i] - 1.645 * sd[i], pred[i] + 1.645 * sd[i], color=c,
                         alpha=0.25, lw=0)
         a1.plot(time, pred[i], "-", color=c, lw=1.5, label=lab)
@@ -53,7 +58,10 @@ def fig_surrogate(figs: Figures, inp: Inputs) -> dict:
     a1.set_ylabel(w.out_axis)
     a1.set_title(f"{len(pick)} of {len(X)} test runs")
     # Below the axes: the runs fill the plot, whatever the output's shape.
-    a1.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=2)
+    # Two columns while a run's label is short (two inputs of short names): longer ones,
+    # side by side, are wider than the panel and push the error panel off the figure.
+    a1.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.14),
+              ncol=2 if max(map(len, labels), default=0) <= LEGEND_PAIR_CHARS else 1)
     a1.grid(alpha=0.3)
     a2.semilogy(time, 100 * rng.max(axis=0), "o-", color="#d62728", ms=3,
                 label="max over test runs (% of range)")
