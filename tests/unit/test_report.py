@@ -560,3 +560,26 @@ def test_surrogate_figure_of_three_long_named_inputs_keeps_its_titles_inside(tmp
         for art in (ax.title, ax.get_legend()):
             box = art.get_window_extent(renderer)
             assert box.x0 >= 0 and box.x1 <= fig.bbox.width, (art, box, fig.bbox)
+
+
+def test_a_prognosis_withheld_at_the_box_is_not_called_a_misfit():
+    """A unit withheld because its estimates sit on the design box's edge, while the twin
+    fits its data, was titled 'prognosis withheld: the twin misses the plant' in the unit
+    table and on figures 7-9, beside a reason saying the twin fits."""
+    from twinmon.report.common import state_words
+    from twinmon.report.unit_summary import UnitSummary
+    edge = ("prognosis withheld: the estimates of insulation_loss sit on the design box's "
+            "low edge (31 % of the posterior in year 9 within 2 % of the range of 0.5 W/K) "
+            "from year 1: the plant needs, or nearly needs, inputs beyond the twin's box; "
+            "widen model.inputs.insulation_loss.low or run 'twinmon diagnose'")
+    misfit = ("prognosis withheld: the twin misses the plant by 3.1 noise sd in the heating "
+              "window (residual RMS 2.0 sd in year 4; 3 of 6 years miss) from year 4; run "
+              "'twinmon diagnose'")
+    assert "misses" not in state_words("withheld", edge)
+    assert "box" in state_words("withheld", edge)
+    assert "misses the plant" in state_words("withheld", misfit)
+    assert "misses the plant" in state_words("withheld")
+    s = UnitSummary(name="Ash", status="withheld", status_reason=edge, root_cause="withheld")
+    assert "misses" not in s.status_words and "box" in s.status_words
+    s = UnitSummary(name="Ash", status="withheld", status_reason=misfit, root_cause="withheld")
+    assert "misses the plant" in s.status_words

@@ -40,6 +40,15 @@ SKIP_HINTS = {
 }
 
 
+def withheld_words(reason: str = "", forced: bool = False) -> str:
+    """Why a prognosis is withheld (or was forced), at a glance: its estimates sit on the
+    design box's edge (the twin may fit the data well), else the twin misses the plant."""
+    from ..forecast.judge import box_bound_of
+    why = ("the estimates sit on the twin's box" if box_bound_of(reason)
+           else "the twin misses the plant")
+    return f"FORCED prognosis: {why}" if forced else f"prognosis withheld: {why}"
+
+
 # ---------------------------------------------------------------------------------------
 # The config's words
 # ---------------------------------------------------------------------------------------
@@ -116,13 +125,14 @@ class Words:
         return text + (" or its twin leaves the physical domain" if self.has_nonphysical else "")
 
 
-def state_words(root_cause: Optional[str]) -> str:
+def state_words(root_cause: Optional[str], reason: str = "") -> str:
     """``healthy``, ``<component> fault``, ``several faults`` (root cause ``both``), or
-    ``prognosis withheld`` (the twin misses the plant)."""
+    ``prognosis withheld`` and why: the twin misses the plant, or (``reason``, the
+    forecast's status reason, says so) the estimates sit on the design box's edge."""
     if root_cause is None:
         return "unknown"
     if root_cause == "withheld":
-        return "prognosis withheld: the twin misses the plant"
+        return withheld_words(reason)
     if root_cause == "healthy":
         return "healthy"
     if root_cause == "both":

@@ -44,7 +44,8 @@ def fig_trends(figs: Figures, inp: Inputs, colours: dict) -> None:
                     color=LIMIT_COLOUR if t.rejects else "k",
                     bbox={"fc": "white", "alpha": 0.8, "lw": 0})
             if j == 0:
-                ax.set_title(f"{unit}: {state_words(u.root_cause)}", color=c, fontweight="bold")
+                ax.set_title(f"{unit}: {state_words(u.root_cause, u.status_reason)}", color=c,
+                             fontweight="bold")
             if j == len(names) - 1:
                 ax.set_xlabel("year of service")
             if i == 0:
@@ -115,8 +116,8 @@ def fig_marginals(figs: Figures, inp: Inputs, colours: dict) -> list[str]:
                 ax.set_xlim(x0, x1)
             ax.set_xlabel(input_label(cfg, name))
             ax.set_ylabel("probability density")
-            ax.set_title(f"{unit} ({state_words(u.root_cause)}): {name}", color=colours[unit],
-                         fontsize=10)
+            ax.set_title(f"{unit} ({state_words(u.root_cause, u.status_reason)}): {name}",
+                         color=colours[unit], fontsize=10)
             ax.grid(alpha=0.3)
             if j == 0:
                 if u.has_truth:
@@ -195,7 +196,7 @@ def fig_indicator_forecast(figs: Figures, inp: Inputs, colours: dict,
         ax.axvline(yo[-1] + 0.5, color="grey", ls=":", lw=1)
         _zoom(ax, data_o, data_f, ind.limit, ttr, cap)
         ax.set_ylabel(w.ind_axis)
-        ax.set_title(f"{unit} ({state_words(u.root_cause)}): " + (
+        ax.set_title(f"{unit} ({state_words(u.root_cause, u.status_reason)}): " + (
             f"fails in year {u.failure_year}" if u.failure_year is not None
             else f"no failure by year {int(yf[-1])}") + "; numbers: P(unsafe) per future year",
             color=c, fontsize=10, loc="left")

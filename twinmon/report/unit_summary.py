@@ -7,7 +7,7 @@ from typing import Optional
 
 import numpy as np
 
-from .common import pct, state_words
+from .common import pct, state_words, withheld_words
 
 
 @dataclass
@@ -84,8 +84,7 @@ class UnitSummary:
     def status_words(self) -> str:
         """The status as a maintenance engineer reads it at a glance."""
         return {"ok": "prognosis given: the twin fits the data",
-                "withheld": ("FORCED prognosis: the twin misses the plant" if self.forced
-                             else "prognosis withheld: the twin misses the plant"),
+                "withheld": withheld_words(self.status_reason, self.forced),
                 "unreliable": "prognosis unreliable (the reason is given with the unit)",
                 "none": "no forecast"}.get(self.status, self.status)
 
@@ -95,7 +94,7 @@ class UnitSummary:
             return "prognosis withheld"
         if self.root_cause is None and self.health != "unknown":
             return self.health              # not forecast, and why (too few years)
-        words = state_words(self.root_cause)
+        words = state_words(self.root_cause, self.status_reason)
         return f"{words} (forced)" if self.forced else \
             f"{words} (unreliable)" if self.status == "unreliable" else words
 
