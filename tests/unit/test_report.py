@@ -583,3 +583,18 @@ def test_a_prognosis_withheld_at_the_box_is_not_called_a_misfit():
     assert "misses" not in s.status_words and "box" in s.status_words
     s = UnitSummary(name="Ash", status="withheld", status_reason=misfit, root_cause="withheld")
     assert "misses the plant" in s.status_words
+
+
+def test_figure_9_does_not_say_no_failure_for_a_withheld_prognosis():
+    """A withheld unit has no failure year; figure 9 titled it 'no failure by year 17' above
+    P(unsafe) of 67-100 % in the years drawn under the title."""
+    from types import SimpleNamespace
+
+    from twinmon.report.fig_forecast import failure_words
+    held = SimpleNamespace(status="withheld", forced=False, failure_year=None)
+    assert "no failure by" not in failure_words(held, 17)
+    assert "withheld" in failure_words(held, 17)
+    forced = SimpleNamespace(status="withheld", forced=True, failure_year=13)
+    assert failure_words(forced, 17) == "fails in year 13"
+    ok = SimpleNamespace(status="ok", forced=False, failure_year=None)
+    assert failure_words(ok, 17) == "no failure by year 17"

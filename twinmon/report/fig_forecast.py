@@ -148,6 +148,17 @@ def _box_data(rows, ttr: bool, cap: float) -> list[np.ndarray]:
     return out
 
 
+def failure_words(u, last_year: int) -> str:
+    """Figure 9's verdict on unit forecast ``u``: its failure year, none by ``last_year``,
+    or, for a prognosis withheld (not forced), no failure year at all: the P(unsafe) drawn
+    beside it may pass the limit, but the forecast does not date a failure it withholds."""
+    if u.status == "withheld" and not u.forced:
+        return "no failure year (prognosis withheld)"
+    if u.failure_year is not None:
+        return f"fails in year {u.failure_year}"
+    return f"no failure by year {last_year}"
+
+
 def fig_indicator_forecast(figs: Figures, inp: Inputs, colours: dict,
                            observed: Optional[dict]) -> None:
     """Figure 9: the indicator's distribution per year per unit, P(unsafe), failure year.
@@ -196,10 +207,9 @@ def fig_indicator_forecast(figs: Figures, inp: Inputs, colours: dict,
         ax.axvline(yo[-1] + 0.5, color="grey", ls=":", lw=1)
         _zoom(ax, data_o, data_f, ind.limit, ttr, cap)
         ax.set_ylabel(w.ind_axis)
-        ax.set_title(f"{unit} ({state_words(u.root_cause, u.status_reason)}): " + (
-            f"fails in year {u.failure_year}" if u.failure_year is not None
-            else f"no failure by year {int(yf[-1])}") + "; numbers: P(unsafe) per future year",
-            color=c, fontsize=10, loc="left")
+        ax.set_title(f"{unit} ({state_words(u.root_cause, u.status_reason)}): "
+                     + failure_words(u, int(yf[-1])) + "; numbers: P(unsafe) per future year",
+                     color=c, fontsize=10, loc="left")
         ax.grid(alpha=0.3, axis="y")
         ax.legend(fontsize=8, loc="upper left")
     axes[-1].set_xlabel("year of service (light boxes: observed years from the posterior; "
