@@ -284,6 +284,14 @@ def test_fmumodel_reuse_and_errors(model):
     assert "motor.D" in model.parameter_names and "pump.b2" in model.parameter_names
 
 
+def test_a_parameter_value_that_is_not_a_number_is_a_simulation_error(model):
+    # The message formatting every value as a number raised a TypeError of its own.
+    with pytest.raises(SimulationError, match="must be numbers.*pump.b2='fast'"):
+        model.run({"motor.D": 14.0, "pump.b2": "fast"})
+    with pytest.raises(SimulationError, match="must be numbers.*motor.D=.*start"):
+        model.run({"motor.D": {"start": 14.0}})
+
+
 def test_fmumodel_recovers_after_failure(model):
     ok = model.run({})
     with pytest.raises(SimulationError, match="motor.D=nan|pump.b2"):

@@ -3,6 +3,7 @@ direct C calls (FMI 2.0 or 3.0 Co-Simulation), or fmpy's CVode for Model Exchang
 from __future__ import annotations
 
 import ctypes
+import numbers
 import shutil
 import tempfile
 import weakref
@@ -57,7 +58,9 @@ _STATUS = ["ok", "warning", "discard", "error", "fatal", "pending"]
 
 
 def _fmt_params(values: Mapping[str, float]) -> str:
-    return ", ".join(f"{k}={v:.6g}" for k, v in values.items()) or "defaults"
+    # A value that is not a number is shown as it is (the message refusing it lists it).
+    return ", ".join(f"{k}={v:.6g}" if isinstance(v, numbers.Real) else f"{k}={v!r}"
+                     for k, v in values.items()) or "defaults"
 
 
 class FMUModel:
