@@ -598,3 +598,16 @@ def test_figure_9_does_not_say_no_failure_for_a_withheld_prognosis():
     assert failure_words(forced, 17) == "fails in year 13"
     ok = SimpleNamespace(status="ok", forced=False, failure_year=None)
     assert failure_words(ok, 17) == "no failure by year 17"
+
+
+def test_figure_8_axis_follows_the_bulk_of_the_draws_not_a_few_far_ones():
+    """Three far draws in 2000 (a wear shape extended far: the water heater's conductance
+    drawn at 870 W/K beside a bulk at 60-150) set figure 8's axis to 0-900 and squeezed
+    the histograms into a bin or two; the axis now leaves out the extreme 1 % at each end
+    and keeps the true values in view."""
+    from twinmon.report.fig_forecast import shown_range
+    rng = np.random.default_rng(3)
+    bulk = rng.normal(100.0, 15.0, 2000)
+    bulk[:3] = [870.0, 640.0, 0.0]
+    lo, hi = shown_range([bulk, bulk + 5.0], marks=[95.0, 170.0])
+    assert 40.0 < lo < 70.0 and 165.0 < hi < 190.0, (lo, hi)

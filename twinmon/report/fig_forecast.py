@@ -82,6 +82,23 @@ def selected_years(years_future: np.ndarray) -> list[int]:
     return [y for y in dict.fromkeys(want) if y in set(years_future.tolist())]
 
 
+#: Share of a forecast input's draws left out at each end of figure 8's axis: a few draws
+#: of a wear shape extended far (an exponential's tail: 0.9 % of a water heater's draws)
+#: would set a range tens of times the bulk's and squeeze every histogram into a bin.
+MARGINAL_TAIL = 0.01
+
+
+def shown_range(draws: list, marks=()) -> tuple[float, float]:
+    """Figure 8's axis range for one input: the draws of every year drawn without their
+    extreme :data:`MARGINAL_TAIL` at each end, and the ``marks`` (true values), padded."""
+    lo = min(float(np.nanquantile(x, MARGINAL_TAIL)) for x in draws)
+    hi = max(float(np.nanquantile(x, 1 - MARGINAL_TAIL)) for x in draws)
+    finite = [m for m in marks if np.isfinite(m)]
+    lo, hi = min([lo] + finite), max([hi] + finite)
+    pad = 0.04 * (hi - lo) if hi > lo else max(abs(lo), 1.0) * 0.05
+    return lo - pad, hi + pad
+
+
 def fig_marginals(figs: Figures, inp: Inputs, colours: dict) -> list[str]:
     """Figure 8: marginal distributions of the forecast inputs; returns the units shown."""
     import matplotlib
@@ -95,17 +112,22 @@ def fig_marginals(figs: Figures, inp: Inputs, colours: dict) -> list[str]:
     for i, unit in enumerate(shown):
         u = fc.units[unit]
         yrs = selected_years(np.asarray(u.years_future))
+        idxs = [int(np.flatnonzero(u.years_future == y)[0]) for y in yrs]
         for j, name in enumerate(names):
             ax = axes[i, j]
-            for k, y in enumerate(yrs):
-                idx = int(np.flatnonzero(u.years_future == y)[0])
+            truth = ([float(u.true_inputs[name][idx]) for idx in idxs]
+                     if u.has_truth and u.true_inputs is not None else [])
+            shown = shown_range([u.samples[idx, :, j] for idx in idxs], truth)
+            for k, (y, idx) in enumerate(zip(yrs, idxs)):
                 x = u.samples[idx, :, j]
                 col = cmap(k / max(len(yrs) - 1, 1) * 0.85)
-                ax.hist(x, bins=40, density=True, histtype="stepfilled", alpha=0.3, color=col)
-                ax.hist(x, bins=40, density=True, histtype="step", lw=1.3, color=col,
-                        label=f"year {y}")
-                if u.has_truth and u.true_inputs is not None:
-                    ax.axvline(u.true_inputs[name][idx], color=col, ls="--", lw=1)
+                ax.hist(x, bins=40, range=shown, density=True, histtype="stepfilled",
+                        alpha=0.3, color=col)
+                ax.hist(x, bins=40, range=shown, density=True, histtype="step", lw=1.3,
+                        color=col, label=f"year {y}")
+                if truth:
+                    ax.axvline(truth[k], color=col, ls="--", lw=1)
+            ax.set_xlim(*shown)
             spec = cfg.model.inputs.get(name)
             if spec is not None:
                 x0, x1 = ax.get_xlim()
