@@ -611,3 +611,33 @@ def test_figure_8_axis_follows_the_bulk_of_the_draws_not_a_few_far_ones():
     bulk[:3] = [870.0, 640.0, 0.0]
     lo, hi = shown_range([bulk, bulk + 5.0], marks=[95.0, 170.0])
     assert 40.0 < lo < 70.0 and 165.0 < hi < 190.0, (lo, hi)
+
+
+def test_a_prognosis_withheld_at_the_box_is_not_a_disagreement_with_diagnose(pipeline):
+    """Withheld because the estimates sit on the box's edge (the twin fits), with no gap
+    found by diagnose: the two stages agree. The summary said 'diagnose found no
+    significant gap although calibration finds the twin missing the plant'."""
+    import dataclasses
+
+    from twinmon.report.load import load, observed_indicator
+    from twinmon.report.summary import unit_summary
+    cfg, _, _, art = pipeline
+    if art["forecast"] is None or art["gap"] is None:
+        pytest.skip("forecast or diagnose is not built")
+    inp = load(cfg, {k: art[k] for k in ("observations", "forecast", "gap")})
+    unit = "Park"
+    edge = ("prognosis withheld: the estimates of motor_damping sit on the design box's low "
+            "edge (31 % of the posterior in year 4 within 2 % of the range of 4) from year 1: "
+            "the plant needs, or nearly needs, inputs beyond the twin's box; widen "
+            "model.inputs.motor_damping.low or run 'twinmon diagnose'")
+    uf = inp.forecast.units[unit]
+    uf.status, uf.status_reason, uf.forced = "withheld", edge, False
+    inp.gap.units[unit] = dataclasses.replace(inp.gap.units[unit], verdict="none")
+    s = unit_summary(unit, inp, observed_indicator(inp))
+    assert "although calibration finds the twin missing the plant" not in s.confidence
+    misfit = ("prognosis withheld: the twin misses the plant by 3.1 noise sd in the rise "
+              "window (residual RMS 2.0 sd in year 4; 3 of 4 years miss) from year 2; run "
+              "'twinmon diagnose'")
+    uf.status_reason = misfit
+    s = unit_summary(unit, inp, observed_indicator(inp))
+    assert "although calibration finds the twin missing the plant" in s.confidence

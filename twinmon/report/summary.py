@@ -344,8 +344,9 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
         if gap.verdict == "unexplained" and withheld and not box_bound_of(s.status_reason):
             s.action = ("revise the model: the twin misses the plant and no candidate effect of "
                         "model.effects explains the gap (diagnose)")
-        elif gap.verdict == "none" and withheld:
-            # The two stages disagree: say it rather than let one silently win.
+        elif gap.verdict == "none" and withheld and not box_bound_of(s.status_reason):
+            # The two stages disagree: say it rather than let one silently win. (Withheld
+            # for estimates on the box's edge, the twin may fit: no disagreement.)
             why.append("diagnose found no significant gap although calibration finds the twin "
                        "missing the plant; compare their settings (noise, windows, alpha)")
         if gap.verdict == "effect":
