@@ -169,3 +169,37 @@ def test_units_within_normal_ageing_get_the_prior_of_units_like_them():
     _, pri = fleet_priors(cfg, few, shape_priors, directions)
     assert pri.steady is None and pri.of(False) is pri.drifting
     assert _shapes_dict(pri)["steady"] == {"pooled": False}
+
+
+def test_records_too_short_to_show_a_shape_teach_the_fleet_none():
+    """The fleet's prior of the shapes is learnt from units whose current segment spans
+    forecast.pool_shapes_min_years: over fewer, a unit's evidence leans on the line
+    whatever its wear. A fleet of 7-year records learns nothing (the calibration's prior
+    stands); 8-year records are learnt from; a fleet of both learns from the long ones."""
+    from types import SimpleNamespace
+
+    from twinmon.config import load_config
+    from twinmon.forecast.pooling import fleet_shape_prior
+
+    from ..conftest import CONFIGS
+    cfg = load_config(CONFIGS / "pump.yaml")
+    assert cfg.forecast.pool_shapes_min_years == 8
+    rng = np.random.default_rng(4)
+    n = 300
+
+    def unit(n_years: int):
+        code = rng.choice([0, 1], n, p=[0.3, 0.7])
+        trend = {"sigma": np.abs(rng.normal(0.1, 0.01, (n, 2))), "shape": code,
+                 "growth": np.where(code == 1, 0.3, 0.0), "start": np.array([[1, 1]])}
+        return SimpleNamespace(trend=trend, years=np.arange(1, n_years + 1))
+
+    shape_priors = {"line": 0.6, "accelerating": 0.2, "change": 0.2}
+    short = SimpleNamespace(units={f"U{i}": unit(7) for i in range(10)}, path="<memory>")
+    assert fleet_shape_prior(cfg, short, shape_priors) is None
+    long = SimpleNamespace(units={f"U{i}": unit(8) for i in range(10)}, path="<memory>")
+    assert fleet_shape_prior(cfg, long, shape_priors).n_units == 10
+    both = SimpleNamespace(units={**short.units, **{f"L{i}": unit(8) for i in range(6)}},
+                           path="<memory>")
+    assert fleet_shape_prior(cfg, both, shape_priors).n_units == 6
+    cfg7 = load_config(CONFIGS / "pump.yaml", ["forecast.pool_shapes_min_years=7"])
+    assert fleet_shape_prior(cfg7, short, shape_priors).n_units == 10

@@ -46,6 +46,12 @@ class ForecastConfig:
     #: draws, and reweight each unit's draws to it (twinmon/calibrate/fleet_shapes.py), when
     #: at least ``pool_min_units`` units weighed shapes. false: ``calibrate.shapes`` as is.
     pool_shapes: bool = True
+    #: The fleet's prior of the trend forms is learnt from the units whose current segment
+    #: spans at least this many recorded years: over fewer, each unit's evidence favours the
+    #: line whatever the wear (a slight curvature costs a shape more than it explains), and
+    #: a fleet of such records learnt "lines" and extended accelerating wear as lines
+    #: (docs/forecast.md, *A fleet-level prior of the trend shapes*).
+    pool_shapes_min_years: int = 8
     #: Trend-shape gate: an input that drifts abnormally and whose yearly estimates
     #: accelerate in its degrading direction (one-sided test of a quadratic term over the
     #: current part's years, at this level, Bonferroni over the inputs tested) makes the
@@ -82,6 +88,8 @@ class ForecastConfig:
         if self.pool_min_units < 2:
             yield "pool_min_units", "must be >= 2 (one unit cannot inform a fleet's prior)", \
                 self.pool_min_units
+        if self.pool_shapes_min_years < 1:
+            yield "pool_shapes_min_years", "must be >= 1", self.pool_shapes_min_years
         if not 0.5 <= self.attribution_confidence < 1:
             yield "attribution_confidence", "must lie in [0.5, 1)", self.attribution_confidence
         if self.horizon < 1:

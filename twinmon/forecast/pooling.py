@@ -220,7 +220,11 @@ def fleet_shape_prior(cfg: Config, post, shape_priors: dict, fleet=None,
         start = np.asarray(trend["start"])
         last = start[(start >= 0).sum(axis=0) - 1, np.arange(start.shape[1])]   # [d]
         yrs = np.asarray(trend["years"])
-        avail.append(available_forms((yrs[None, :] >= last[:, None]).sum(axis=1)))
+        span = (yrs[None, :] >= last[:, None]).sum(axis=1)                      # [d]
+        # A segment shorter than pool_shapes_min_years says nothing of the fleet's shapes
+        # (its evidence leans on the line whatever the wear): the line alone is available.
+        avail.append(available_forms(span) if span.max() >= cfg.forecast.pool_shapes_min_years
+                     else available_forms(np.zeros_like(span)))
     if len(shares) < cfg.forecast.pool_min_units:
         return None
     fit = fit_fleet_shapes(np.array(shares), np.array(avail), base)
