@@ -484,8 +484,9 @@ def test_candidates_hidden_alike_on_every_unit_are_said_once():
 def test_a_healthy_units_failure_year_says_whether_its_centre_or_its_spread_reaches_it():
     from twinmon.forecast.plan import no_fault_due
     years = np.arange(11, 18)
-    assert no_fault_due(years, np.linspace(0.0, 0.7, 7), 0.05) == \
-        "normal ageing alone reaches the limit"
+    assert no_fault_due(years, np.linspace(0.0, 0.7, 7), 0.05) == (
+        "its trend reaches the limit, though no input's slope over its record is proven "
+        "beyond normal ageing")
     why = no_fault_due(years, np.linspace(0.0, 0.3, 7), 0.05)
     assert why.startswith("no fault is seen, but the forecast's spread reaches the limit")
     assert "P(unsafe) above 5 %" in why
