@@ -456,16 +456,29 @@ def test_a_unit_on_the_box_edge_is_withheld_naming_the_bound_it_leans_on():
     status = np.array(["ok", "ok", "ok", "edge", "edge"])
     share = np.zeros((5, 2))
     share[3:, 0] = [0.4, 0.9]
-    mean = np.tile([0.00052, 1.0], (5, 1))
+    # On the high edge, where a bearing's wear takes its friction: worn past the box.
+    mean = np.tile([0.0059, 1.0], (5, 1))
     up = SimpleNamespace(status=status, years=years, mean=mean,
                          fit={"edge_share": share, "window_rms": np.zeros(5)})
     st, why = prognosis_status(up, cfg, [])
     assert st == "withheld"
-    assert "bearing_friction sit on the design box's low edge" in why
-    assert "90 % of the posterior in year 5" in why and "of 0.0005 N.m.s/rad" in why
-    assert "widen model.inputs.bearing_friction.low" in why
+    assert "bearing_friction sit on the design box's high edge" in why
+    assert "90 % of the posterior in year 5" in why and "of 0.006 N.m.s/rad" in why
+    assert "widen model.inputs.bearing_friction.high" in why
     from twinmon.forecast.judge import box_bound_of
-    assert box_bound_of(why) == "model.inputs.bearing_friction.low"
+    assert box_bound_of(why) == "model.inputs.bearing_friction.high"
+    # On the low edge, its sound side (a friction near the least the box allows): the box
+    # cuts the estimates' spread, but no part is worn past it. Unreliable, not withheld;
+    # one such year before the last is not enough.
+    up.mean = np.tile([0.00052, 1.0], (5, 1))
+    st, why = prognosis_status(up, cfg, [])
+    assert st == "unreliable" and box_bound_of(why) is None
+    assert ("bearing_friction lean on the design box's low edge of 0.0005 N.m.s/rad, its "
+            "sound side, in year(s) 4-5") in why
+    assert "lower model.inputs.bearing_friction.low if the model allows it" in why
+    up.status = np.array(["ok", "ok", "ok", "edge", "ok"])
+    assert prognosis_status(up, cfg, []) == ("ok", "")
+    up.status = status
     # The last year misses the plant too. On the low edge, the side a bearing's wear does
     # not take it (its friction degrades up), the edge makes up for something the twin
     # lacks: the misfit is named. On the high edge, worn past the box: the box, with the

@@ -410,8 +410,9 @@ def test_a_figure_that_does_not_pickle_is_written_in_the_process(tmp_path):
 def test_a_withheld_unit_keeps_its_true_failure_year(tmp_path):
     """A prognosis withheld by the fit gate still has a true failure year in forecast.h5
     (fabricated data): the report shows it, as it does for a unit with a prognosis. The gate
-    is made to withhold every unit here: a year "sits on the box edge" when 1 % of its draws
-    lie within 49 % of the range from a bound, which they all do."""
+    is made to withhold every unit here: a year "misses the plant" when its residual RMS
+    passes the noise's and its chi-square or Ljung-Box test rejects at 0.999, which about
+    half of a unit's years do, and one such year withholds."""
     from twinmon.calibrate import calibrate
     from twinmon.fabricate import fabricate
     from twinmon.forecast import forecast, read_forecast
@@ -422,8 +423,8 @@ def test_a_withheld_unit_keeps_its_true_failure_year(tmp_path):
         "simulate": {"train_size": 24, "test_size": 4, "executor": "serial"},
         "calibrate": {"chains": 2, "samples": 150, "burn_in": 50, "workers": 1,
                       "ess_warn": 50.0, "max_extensions": 0,
-                      "edge_margin": 0.49, "edge_share": 0.01},
-        "forecast": {"samples": 150}}))
+                      "fit_min_rms": 1.0, "fit_alpha": 0.999},
+        "forecast": {"samples": 150, "withhold_years": 1}}))
     art = {"observations": tmp_path / "obs.h5", "truth": tmp_path / "truth.h5",
            "simulations": tmp_path / "sims.h5", "surrogate": tmp_path / "sur.h5",
            "posterior": tmp_path / "post.h5", "forecast": tmp_path / "fc.h5"}
@@ -483,8 +484,9 @@ def test_candidates_hidden_alike_on_every_unit_are_said_once():
 def test_a_healthy_units_failure_year_says_whether_its_centre_or_its_spread_reaches_it():
     from twinmon.forecast.plan import no_fault_due
     years = np.arange(11, 18)
-    assert no_fault_due(years, np.linspace(0.0, 0.7, 7), 0.05) == \
-        "normal ageing alone reaches the limit"
+    assert no_fault_due(years, np.linspace(0.0, 0.7, 7), 0.05) == (
+        "its trend reaches the limit, though no input's slope over its record is proven "
+        "beyond normal ageing")
     why = no_fault_due(years, np.linspace(0.0, 0.3, 7), 0.05)
     assert why.startswith("no fault is seen, but the forecast's spread reaches the limit")
     assert "P(unsafe) above 5 %" in why

@@ -56,8 +56,11 @@ def prognosis_status(up, cfg: Config, windows: list) -> tuple[str, str]:
     Withheld when at least ``forecast.withhold_years`` calibrated years (or the last one)
     miss the plant or sit on the design box's edge (calibrate's goodness of fit); the reason
     names the box when the years that miss sit on its edge on an input's degrading side too
-    (a part worn beyond the design range cannot be followed by the twin), else the misfit;
-    else unreliable when a year did not converge; else ok.
+    (a part worn beyond the design range cannot be followed by the twin), else the misfit.
+    Years on the box's edge only on their inputs' sound side (the side away from their
+    declared wear) do not withhold: as many of them (or the last year) make the prognosis
+    unreliable, with the bound in the reason. Else unreliable when a year did not
+    converge; else ok.
 
     Returns
     -------
@@ -68,7 +71,14 @@ def prognosis_status(up, cfg: Config, windows: list) -> tuple[str, str]:
     """
     from ..calibrate import STATUS_EDGE, STATUS_MISFIT, STATUS_UNCONVERGED
     st = np.asarray(up.status)
-    bad = np.flatnonzero((st == STATUS_MISFIT) | (st == STATUS_EDGE))
+    edge_years = np.flatnonzero(st == STATUS_EDGE)
+    # A year whose estimates lean on the box only on their inputs' healthy side (an input
+    # whose sound value lies near a bound the model cannot pass, a conductance near 0) says
+    # nothing of a part worn past the box: it makes the prognosis unreliable, not withheld.
+    sound = np.array([k for k in edge_years
+                      if not any(_wear_side(cfg, up, j, side)
+                                 for j, side in _edge_inputs(cfg, up, k))], dtype=int)
+    bad = np.setdiff1d(np.flatnonzero((st == STATUS_MISFIT) | (st == STATUS_EDGE)), sound)
     if bad.size and (bad.size >= cfg.forecast.withhold_years or bad[-1] == st.size - 1):
         f, k0 = up.fit, int(bad[0])
         first = int(up.years[k0])
@@ -103,10 +113,44 @@ def prognosis_status(up, cfg: Config, windows: list) -> tuple[str, str]:
                f"{year_ranges(up.years[misfit])}" if misfit.size else "")
             + ": the plant needs, or nearly needs, inputs beyond the twin's box; widen "
             f"model.inputs.{name}.{side} or run 'twinmon diagnose'")
+    if sound.size and (sound.size >= cfg.forecast.withhold_years or sound[-1] == st.size - 1):
+        k = int(sound[-1])
+        j, side = max(_edge_inputs(cfg, up, k), key=lambda js: up.fit["edge_share"][k][js[0]])
+        name = cfg.model.input_names[j]
+        spec = cfg.model.inputs[name]
+        bound = spec.low if side == "low" else spec.high
+        unit = f" {spec.units}" if spec.units not in ("", "1") else ""
+        return STATUS_UNRELIABLE, (
+            f"prognosis unreliable: the estimates of {name} lean on the design box's {side} "
+            f"edge of {bound:g}{unit}, its sound side, in year(s) "
+            f"{year_ranges(up.years[sound])}: the box cuts their spread there, and the trend "
+            f"read from them may be off; {'lower' if side == 'low' else 'raise'} "
+            f"model.inputs.{name}.{side} if the model allows it")
     unconv = np.flatnonzero(st == STATUS_UNCONVERGED)
     if unconv.size:
         return STATUS_UNRELIABLE, _unconverged(up, cfg, unconv)
     return STATUS_OK, ""
+
+
+def _edge_inputs(cfg: Config, up, k: int) -> list:
+    """The inputs whose estimates of year ``k`` lean on the box's edge (more than
+    ``calibrate.edge_share`` of the posterior within the margin), each with the bound's
+    side (``low`` or ``high``, by the year's mean)."""
+    edge = np.asarray(up.fit["edge_share"], float)
+    out = []
+    for j, name in enumerate(cfg.model.input_names):
+        if edge[k, j] > cfg.calibrate.edge_share:
+            spec = cfg.model.inputs[name]
+            mid = 0.5 * (spec.low + spec.high)
+            out.append((j, "low" if float(np.asarray(up.mean)[k, j]) < mid else "high"))
+    return out
+
+
+def _wear_side(cfg: Config, up, j: int, side: str) -> bool:
+    """Whether bound ``side`` of input ``j`` is where its wear takes it (or its degrading
+    direction is not declared, so that either side may be)."""
+    deg = cfg.model.inputs[cfg.model.input_names[j]].degrading
+    return deg not in ("up", "down") or deg == {"high": "up", "low": "down"}[side]
 
 
 def _edge_side(cfg: Config, up, edge: np.ndarray, k: int) -> tuple[int, str]:
