@@ -116,7 +116,9 @@ def test_auto_samples_a_pooling_fleet_jointly_on_the_dc_drive(drive):
     if not sur.exists():
         run_json("simulate", "-c", cfg, "-o", tmp / "simulations.h5")
         run_json("reduce", "-c", cfg, "--simulations", tmp / "simulations.h5", "-o", sur)
-    pool = ("--set", "forecast.pool_min_units=3")
+    # Six years of record: the shapes' prior learns from segments of 6 years here (the
+    # default asks for 8, where a record can show a shape).
+    pool = ("--set", "forecast.pool_min_units=3", "--set", "forecast.pool_shapes_min_years=6")
     cal = run_json("calibrate", "-c", cfg, *pool, "--surrogate", sur, "--observations", obs,
                    "-o", tmp / "joint.h5")
     assert cal["method"] == "laplace"
