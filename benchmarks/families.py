@@ -3,7 +3,8 @@
 Every family has the linear fleet's healthy units (rates uniform in the normal band: the
 false-alarm rate is measured on them) and faulty units whose *mean* excess rate over the ten
 recorded years is the given multiple of the tolerance, as the linear fleet's are, so a
-family differs from the linear one by the shape of its wear only:
+family differs from the linear one by the shape of its wear only (``rate_change`` excepted,
+below):
 
 * ``linear``: the straight lines of the original benchmark;
 * ``quadratic``: ``start + b a + c a^2``, a share ``q`` (0.5-1) of the mean rate from the
@@ -23,7 +24,13 @@ family differs from the linear one by the shape of its wear only:
   time, as sliding wear under rising contact stress does), none of the trend shapes'
   forms: faster early than a quadratic, slower late than an exponential;
 * ``mixed``: each faulty unit's wear takes one of the shapes above at random (linear,
-  quadratic, exponential, step, power): a fleet whose units do not share one mechanism.
+  quadratic, exponential, step, power): a fleet whose units do not share one mechanism;
+* ``rate_change``: normal ageing, then from year 4-7 the faulty rate, with no step: a
+  part whose wear rate jumps late (a seal that starts leaking, a bearing whose lubricant
+  gives out). Unlike the other families, the multiple is the excess rate *from the change
+  on*, the rate the unit wears at now: over the record the mean excess is only (10 -
+  year) / 9 of it (2/3 from year 4, 1/3 from year 7), and the rate at the end is 1.5-3
+  times the record's mean rate.
 
 Seeds: the same seed gives the same fleet in every family (same starts, same multiples).
 
@@ -78,7 +85,7 @@ import numpy as np
 
 YEARS = 10
 FAMILIES = ("linear", "quadratic", "exponential", "step", "repair", "repair_hidden",
-            "irregular", "reversing", "power", "mixed")
+            "irregular", "reversing", "power", "mixed", "rate_change")
 #: The shapes a ``mixed`` fleet's faulty units draw from.
 MIXED = ("linear", "quadratic", "exponential", "step", "power")
 #: Exponent of the ``power`` family's wear.
@@ -251,6 +258,10 @@ def shaped(family: str, start: float, rate: float, normal: float,
         size = rate * ages - normal * (year - 1) - after * (YEARS - year)
         tr.update(slope=normal, changes=[{"year": year, "size": float(size),
                                           "slope": float(after)}])
+    elif family == "rate_change":
+        year = int(rng.integers(4, 8))
+        # normal up to ``year``, then the fault's rate: no step.
+        tr.update(slope=normal, changes=[{"year": year, "size": 0.0, "slope": float(rate)}])
     elif family == "power":
         # c a^p has mean rate c 9^(p-1) over the record; the trajectory is written as its
         # yearly increments (a change of rate each year), exact at every service year.

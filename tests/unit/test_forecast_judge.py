@@ -527,3 +527,47 @@ def test_a_new_part_is_extended_at_the_rate_its_predecessor_wore():
     assert np.array_equal(out["slope"][:, 0, 0], slope[:, 0, 0])
     # Three years of the new part: its own trend.
     assert new_parts_as_before(trend, {"a": 8, "b": 1}, years, ["a", "b"]) is trend
+
+
+def test_simes_rejects_where_bonferroni_does_and_when_views_agree():
+    from twinmon.forecast.detection import simes
+    assert simes([0.009, 0.5, float("nan")], 0.03)           # below alpha / 2
+    assert not simes([0.016, 0.5], 0.03)
+    assert simes([0.016, 0.02], 0.03)                          # both below alpha
+    assert not simes([float("nan")], 0.03) and not simes([], 0.03)
+
+
+def test_a_late_rise_of_the_wear_rate_is_judged_on_the_current_rate():
+    """A pump whose wear rate rose late: its chord over the record lies half a tolerance
+    beyond the band's edge (p 0.06), its rate at the last year four. With most of the
+    posterior on wear that changed, the inputs' current rates are tested too and name the
+    pump; where the line explains the unit, they are not looked at."""
+    from types import SimpleNamespace
+
+    from twinmon.config import load_config
+    from twinmon.forecast.judge import judge
+
+    from ..conftest import CONFIGS
+    cfg = load_config(CONFIGS / "pump.yaml")
+    names = cfg.model.input_names
+    assert names == ["motor_damping", "pump_coef"]
+    rng = np.random.default_rng(5)
+    n = 4000
+    chord = np.column_stack([rng.normal(0.0, 0.05, n), rng.normal(-0.065, 0.02, n)])
+    current = np.column_stack([rng.normal(0.0, 0.08, n), rng.normal(-0.17, 0.03, n)])
+    trends = {nm: fit_trend(YEARS, rng.normal(0.0, 1.0, YEARS.size))[0] for nm in names}
+    for nm, t in trends.items():
+        t.component = cfg.model.inputs[nm].component
+    plan = dict(years=YEARS, since=1, slope_draws=chord, history_draws=None, trends=trends,
+                rate_draws=current, changed=0.94)
+    ind_obs = 15.0 + 0.01 * rng.standard_normal((YEARS.size, 50))
+    directions = {"motor_damping": SimpleNamespace(sign=1),
+                  "pump_coef": SimpleNamespace(sign=-1)}
+    drift, att = judge(cfg, "U1", plan, ind_obs, np.zeros(2), directions, set())
+    assert drift.p_inputs > cfg.forecast.alpha
+    assert drift.p_inputs_rate < 1e-3
+    assert drift.abnormal and att.verdict == "pump"
+    plan["changed"] = 0.2
+    drift, att = judge(cfg, "U1", plan, ind_obs, np.zeros(2), directions, set())
+    assert np.isnan(drift.p_inputs_rate)
+    assert not drift.abnormal and att.verdict == "healthy"

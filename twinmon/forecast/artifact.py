@@ -214,7 +214,8 @@ def _drift_state(dr: IndicatorDrift) -> dict:
             "normal_halfwidth": [float(v) for v in dr.normal_halfwidth],
             "gradient": [float(v) for v in dr.gradient], "sense": dr.sense,
             "p_value": dr.p_value, "abnormal": bool(dr.abnormal), "p_inputs": dr.p_inputs,
-            "p_history": dr.p_history, "detectable": [float(v) for v in dr.detectable]}
+            "p_history": dr.p_history, "p_inputs_rate": dr.p_inputs_rate,
+            "detectable": [float(v) for v in dr.detectable]}
 
 
 def _drift_from(d: dict) -> IndicatorDrift:

@@ -16,7 +16,7 @@ from typing import Optional
 
 import numpy as np
 
-from ..calibrate.shapes import describe_shape, shape_summary
+from ..calibrate.shapes import describe_shape, shape_probabilities, shape_summary
 from ..config import Config
 from ..errors import ArtifactError, CalibrationError
 from ..repairs import FoundRepair, find_repairs
@@ -173,11 +173,17 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict, fleet=None,
                                {n: d.sign for n, d in directions.items()}, post_cov)
         since = repair_years(cfg, up, years, repairs)
     trends = {}
-    slope_draws = history_draws = None
+    slope_draws = history_draws = rate_draws = None
+    changed = 0.0
     if trend_post:
         from ..calibrate.trend import last_segment
         slope_draws = last_segment(trend_post, "slope")         # [n, d]
         history_draws = history_slope_draws(trend_post)
+        if "now" in trend_post and "shape" in trend_post:
+            # The laplace method's trend shapes: the rate at the last year [n, d] and the
+            # posterior's weight on wear that changed or accelerated (judge's detection).
+            rate_draws = np.asarray(trend_post["now"], float)[:, 1, :]
+            changed = 1.0 - float(shape_probabilities(trend_post["shape"])[0])
     for i, name in enumerate(names):
         spec = cfg.model.inputs[name]
         t = segment_trend(years, mean[:, i], since[name], spec)
@@ -248,7 +254,8 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict, fleet=None,
                 resid=resid, step=step, since=max(since.values()), since_by_input=since,
                 repairs=repairs, post_cov=post_cov,
                 err_cov=err_cov, state=state, slope_draws=slope_draws,
-                history_draws=history_draws, pool_ess=pool_ess,
+                history_draws=history_draws, rate_draws=rate_draws, changed=changed,
+                pool_ess=pool_ess,
                 shapes="now" in trend_post and cfg.calibrate.shapes.get("accelerating", 0) > 0,
                 shape=shape_summary(future), trend_fit=trend_fit)
     return plan, [X.reshape(-1, d), Xo.reshape(-1, d), probe]

@@ -5,7 +5,7 @@ output in nearly the same way (for the pump, a damping rise and an efficiency de
 almost the same start-up curve; their single-year estimates correlate at 0.9), so each
 input's slope can sit inside its normal-ageing band while the health indicator -- which the
 data do identify -- drifts abnormally. Two views of the question, which :func:`~.judge.judge`
-combines at ``forecast.alpha / 2`` each:
+pools by Simes' test at ``forecast.alpha`` (:func:`simes`):
 
 * **the indicator's drift** (:func:`indicator_drift`): the OLS trend of the unit's yearly
   indicator (the posterior median of the indicator of each calibrated year,
@@ -86,6 +86,10 @@ class IndicatorDrift:
     #: The same test on each input's wear rate pooled over its trend's segments, when a
     #: repair restarted one (:func:`~.judge.history_slope_draws`); NaN otherwise.
     p_history: float = float("nan")
+    #: The inputs' test on the trend's rate at the last recorded year instead of its chord
+    #: over the segment, for a unit whose posterior puts most of its weight on wear that
+    #: changed or accelerated (:func:`~.judge.judge`); NaN otherwise.
+    p_inputs_rate: float = float("nan")
     #: Per input, the fault this record shows half the time: its excess rate, in tolerances
     #: beyond normal ageing, at which a test would reject with probability 0.5
     #: (:func:`detectable_multiples`); NaN for an input with no tolerance. Empty in
@@ -266,6 +270,18 @@ def _binned(pts: np.ndarray, w: np.ndarray, n: int) -> tuple[np.ndarray, np.ndar
     frac = pos - lo
     out = np.bincount(lo, w * (1 - frac), n) + np.bincount(lo + 1, w * frac, n)
     return grid, out
+
+
+def simes(p_values, alpha: float) -> bool:
+    """Simes' test of the intersection of the hypotheses whose p-values are given: rejects
+    when the j-th smallest of the k finite ones is below ``j alpha / k`` for some j. Its
+    level is ``alpha`` when the p-values are independent or positively dependent (Sarkar
+    1998), as one unit's views of its wear are (each grows with the same rates); it rejects
+    whenever Bonferroni's ``min p < alpha / k`` does, and also when several views are
+    small together. False when none is finite."""
+    p = np.sort([float(v) for v in p_values if np.isfinite(v)])
+    k = p.size
+    return bool(k) and bool(np.any(p < alpha * np.arange(1, k + 1) / k))
 
 
 def box_test(b: np.ndarray, C: np.ndarray, dof: int, normal_rate, tolerance,

@@ -12,6 +12,7 @@ and chunks the units were forecast in. The streams of a unit:
 5       the resampling of a joint posterior to the fleet's prior of its year-to-year sd
 6       the same with the fleet's prior of the trend forms too (the draws the future
         extends)
+7       the null distribution of the inputs' box test on their current rates (detection)
 ======  ==============================================================================
 """
 from __future__ import annotations
@@ -27,5 +28,5 @@ SEED_OFFSET = 5000
 
 
 def unit_rng(cfg: Config, unit: str, stream: int) -> np.random.Generator:
-    """The generator of ``stream`` (0-6, above) for ``unit``."""
+    """The generator of ``stream`` (0-7, above) for ``unit``."""
     return np.random.default_rng([cfg.seed + SEED_OFFSET, zlib.crc32(unit.encode()), stream])

@@ -214,7 +214,7 @@ def _drift_dict(dr: Optional[IndicatorDrift], names: list) -> Optional[dict]:
     out = {"slope": f(dr.slope), "slope_se": f(dr.slope_se), "normal_slope": f(dr.normal_slope),
            "normal_tolerance": f(float(np.sum(dr.normal_halfwidth))),
            "p_value": f(dr.p_value), "p_inputs": f(dr.p_inputs),
-           "p_history": f(dr.p_history),
+           "p_history": f(dr.p_history), "p_inputs_rate": f(dr.p_inputs_rate),
            "abnormal": bool(dr.abnormal),
            "years": [int(y) for y in dr.years]}
     if np.size(dr.detectable) == len(names):
