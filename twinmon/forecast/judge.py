@@ -82,11 +82,11 @@ def prognosis_status(up, cfg: Config, windows: list) -> tuple[str, str]:
     from ..calibrate import STATUS_EDGE, STATUS_MISFIT, STATUS_UNCONVERGED
     st = np.asarray(up.status)
     edge_years = np.flatnonzero(st == STATUS_EDGE)
-    # A year whose estimates lean on the box only on their inputs' healthy side (an input
+    # A year whose estimates lean on the box only on their inputs' sound side (an input
     # whose sound value lies near a bound the model cannot pass, a conductance near 0) says
     # nothing of a part worn past the box: it makes the prognosis unreliable, not withheld.
     sound = np.array([k for k in edge_years
-                      if not any(_wear_side(cfg, up, j, side)
+                      if not any(_wear_side(cfg, j, side)
                                  for j, side in _edge_inputs(cfg, up, k))], dtype=int)
     bad = np.setdiff1d(np.flatnonzero((st == STATUS_MISFIT) | (st == STATUS_EDGE)), sound)
     if bad.size and (bad.size >= cfg.forecast.withhold_years or bad[-1] == st.size - 1):
@@ -147,16 +147,17 @@ def _edge_inputs(cfg: Config, up, k: int) -> list:
     ``calibrate.edge_share`` of the posterior within the margin), each with the bound's
     side (``low`` or ``high``, by the year's mean)."""
     edge = np.asarray(up.fit["edge_share"], float)
-    out = []
-    for j, name in enumerate(cfg.model.input_names):
-        if edge[k, j] > cfg.calibrate.edge_share:
-            spec = cfg.model.inputs[name]
-            mid = 0.5 * (spec.low + spec.high)
-            out.append((j, "low" if float(np.asarray(up.mean)[k, j]) < mid else "high"))
-    return out
+    return [(j, _bound_side(cfg, up, k, j)) for j in range(len(cfg.model.input_names))
+            if edge[k, j] > cfg.calibrate.edge_share]
 
 
-def _wear_side(cfg: Config, up, j: int, side: str) -> bool:
+def _bound_side(cfg: Config, up, k: int, j: int) -> str:
+    """The bound of input ``j`` year ``k``'s estimates are nearer, by their mean."""
+    spec = cfg.model.inputs[cfg.model.input_names[j]]
+    return "low" if float(np.asarray(up.mean)[k, j]) < 0.5 * (spec.low + spec.high) else "high"
+
+
+def _wear_side(cfg: Config, j: int, side: str) -> bool:
     """Whether bound ``side`` of input ``j`` is where its wear takes it (or its degrading
     direction is not declared, so that either side may be)."""
     deg = cfg.model.inputs[cfg.model.input_names[j]].degrading
@@ -170,9 +171,7 @@ def _edge_side(cfg: Config, up, edge: np.ndarray, k: int) -> tuple[int, str]:
     value lies just inside: either way the box does not leave the estimate room, and
     widening it tells which."""
     j = int(np.argmax(edge[k]))
-    spec = cfg.model.inputs[cfg.model.input_names[j]]
-    return j, ("low" if float(np.asarray(up.mean)[k, j]) < 0.5 * (spec.low + spec.high)
-               else "high")
+    return j, _bound_side(cfg, up, k, j)
 
 
 def _worn_past_box(cfg: Config, up, edge: np.ndarray, k: int) -> bool:
