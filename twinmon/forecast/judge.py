@@ -110,15 +110,12 @@ def prognosis_status(up, cfg: Config, windows: list) -> tuple[str, str]:
                 "run 'twinmon diagnose'")
         k = int(bad[-1])
         j, side = _edge_side(cfg, up, edge, k)
-        name = cfg.model.input_names[j]
-        spec = cfg.model.inputs[name]
-        bound = spec.low if side == "low" else spec.high
-        unit = f" {spec.units}" if spec.units not in ("", "1") else ""
+        name, bound = _bound_words(cfg, j, side)
         return STATUS_WITHHELD, (
             f"prognosis withheld: the estimates of {name} sit on the design box's {side} "
             f"edge ({100 * f['edge_share'][k][j]:.0f} % of the posterior in year "
             f"{int(up.years[k])} within {100 * cfg.calibrate.edge_margin:g} % of the range "
-            f"of {bound:g}{unit}) from year {first}"
+            f"of {bound}) from year {first}"
             + (f", and the twin misses the plant in year(s) "
                f"{year_ranges(up.years[misfit])}" if misfit.size else "")
             + ": the plant needs, or nearly needs, inputs beyond the twin's box; widen "
@@ -126,13 +123,10 @@ def prognosis_status(up, cfg: Config, windows: list) -> tuple[str, str]:
     if sound.size and (sound.size >= cfg.forecast.withhold_years or sound[-1] == st.size - 1):
         k = int(sound[-1])
         j, side = max(_edge_inputs(cfg, up, k), key=lambda js: up.fit["edge_share"][k][js[0]])
-        name = cfg.model.input_names[j]
-        spec = cfg.model.inputs[name]
-        bound = spec.low if side == "low" else spec.high
-        unit = f" {spec.units}" if spec.units not in ("", "1") else ""
+        name, bound = _bound_words(cfg, j, side)
         return STATUS_UNRELIABLE, (
             f"prognosis unreliable: the estimates of {name} lean on the design box's {side} "
-            f"edge of {bound:g}{unit}, its sound side, in year(s) "
+            f"edge of {bound}, its sound side, in year(s) "
             f"{year_ranges(up.years[sound])}: the box cuts their spread there, and the trend "
             f"read from them may be off; {'lower' if side == 'low' else 'raise'} "
             f"model.inputs.{name}.{side} if the model allows it")
@@ -149,6 +143,14 @@ def _edge_inputs(cfg: Config, up, k: int) -> list:
     edge = np.asarray(up.fit["edge_share"], float)
     return [(j, _bound_side(cfg, up, k, j)) for j in range(len(cfg.model.input_names))
             if edge[k, j] > cfg.calibrate.edge_share]
+
+
+def _bound_words(cfg: Config, j: int, side: str) -> tuple[str, str]:
+    """Input ``j``'s name and its ``side`` bound with its units, as a reason says them."""
+    name = cfg.model.input_names[j]
+    spec = cfg.model.inputs[name]
+    unit = f" {spec.units}" if spec.units not in ("", "1") else ""
+    return name, f"{spec.low if side == 'low' else spec.high:g}{unit}"
 
 
 def _bound_side(cfg: Config, up, k: int, j: int) -> str:
