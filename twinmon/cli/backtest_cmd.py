@@ -40,10 +40,12 @@ def backtest(config_path, overrides, posterior, surrogate, observations, output,
     if as_json:
         emit_json(s.as_dict())
         return
+    from ..safety import Indicator
+    ind = Indicator.from_config(cfg)
     c = int(round(100 * s.confidence))
-    say(f"coverage of the {c} % prediction intervals of the indicator: "
+    say(f"coverage of the {c} % prediction intervals of the {ind.name}: "
         f"{100 * s.coverage:.0f} % of {s.n_pairs} later observations; median abs. error "
-        f"{s.indicator_mae:.3g}")
+        f"{ind.fmt(s.indicator_mae)}")
     if len(s.by_record) > 1:
         # Short records are where the intervals fail first: each length on its own.
         say("  by years of record at the forecast: " + ", ".join(
