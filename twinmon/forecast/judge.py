@@ -159,11 +159,13 @@ def _bound_side(cfg: Config, up, k: int, j: int) -> str:
     return "low" if float(np.asarray(up.mean)[k, j]) < 0.5 * (spec.low + spec.high) else "high"
 
 
-def _wear_side(cfg: Config, j: int, side: str) -> bool:
-    """Whether bound ``side`` of input ``j`` is where its wear takes it (or its degrading
-    direction is not declared, so that either side may be)."""
+def _wear_side(cfg: Config, j: int, side: str, undeclared: bool = True) -> bool:
+    """Whether bound ``side`` of input ``j`` is where its declared wear (``degrading``)
+    takes it; ``undeclared`` for an input whose direction is not declared."""
     deg = cfg.model.inputs[cfg.model.input_names[j]].degrading
-    return deg not in ("up", "down") or deg == {"high": "up", "low": "down"}[side]
+    if deg not in ("up", "down"):
+        return undeclared
+    return deg == {"high": "up", "low": "down"}[side]
 
 
 def _edge_side(cfg: Config, up, edge: np.ndarray, k: int) -> tuple[int, str]:
@@ -180,10 +182,8 @@ def _worn_past_box(cfg: Config, up, edge: np.ndarray, k: int) -> bool:
     """Whether year ``k``'s estimates sit on the box's edge (``calibrate.edge_share``) on
     the degrading side of the input leaning on it."""
     j, side = _edge_side(cfg, up, edge, k)
-    if not edge[k, j] > cfg.calibrate.edge_share:
-        return False
-    return cfg.model.inputs[cfg.model.input_names[j]].degrading == {"high": "up",
-                                                                   "low": "down"}[side]
+    return edge[k, j] > cfg.calibrate.edge_share and _wear_side(cfg, j, side,
+                                                                undeclared=False)
 
 
 def box_bound_of(reason: str) -> Optional[str]:
