@@ -6,10 +6,12 @@ from __future__ import annotations
 import dataclasses
 import json
 
+import h5py
 import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from twinmon.artifacts import file_sha256
 from twinmon.calibrate import (_unit_seed, calibrate, ess, make_log_density, read_posterior,
                                split_rhat, year_prior)
 from twinmon.calibrate.samplers import convergence, gpbatch
@@ -241,7 +243,7 @@ def test_update_with_the_openturns_sampler_equals_a_full_run(setup, tmp_path):
         _assert_same_unit(full, read_posterior(tmp_path / name).units["Park"], name)
 
 
-def test_update_redoes_a_unit_whose_data_changed_and_refuses_another_config(setup, tmp_path):
+def test_update_redoes_a_unit_whose_data_changed_and_refuses_another_config_or_version(setup, tmp_path):
     cfg, _, tmp, _ = setup
     sur = tmp / "sur.h5"
     short = _cut(tmp_path / "o2.h5", 2, drop=("Monk", "Colt"))
@@ -254,6 +256,14 @@ def test_update_redoes_a_unit_whose_data_changed_and_refuses_another_config(setu
     other = dataclasses.replace(cfg, calibrate=dataclasses.replace(cfg.calibrate, samples=400))
     with pytest.raises(ArtifactError, match=r"another config \(calibrate.samples 300 -> 400\)"):
         calibrate(other, sur, tmp_path / "o3.h5", tmp_path / "post.h5", update=True)
+    # Another twinmon's posterior is not continued (its years may come from other code).
+    with h5py.File(tmp_path / "post.h5", "r+") as f:
+        f.attrs["twinmon_version"] = "0.0.9"
+    before = file_sha256(tmp_path / "post.h5")
+    with pytest.raises(ArtifactError, match=r"post\.h5: made by twinmon 0\.0\.9, this is "
+                                            r"twinmon .*re-run calibrate without --update"):
+        calibrate(cfg, sur, tmp_path / "o3.h5", tmp_path / "post.h5", update=True)
+    assert file_sha256(tmp_path / "post.h5") == before
 
 
 def test_cli_update_prints_what_it_kept(setup, tmp_path):

@@ -103,7 +103,7 @@ def test_a_unit_whose_data_changed_is_redone(pump, tmp_path):
     assert differences(tmp_path / "fixed_full.h5", out) == []
 
 
-def test_another_config_or_fmu_or_an_older_gap_is_refused(pump, tmp_path):
+def test_another_config_fmu_or_version_or_an_older_gap_is_refused(pump, tmp_path):
     cfg, tmp, _ = pump
     out = tmp_path / "gap.h5"
     shutil.copy(tmp / "gap2.h5", out)
@@ -125,6 +125,18 @@ def test_another_config_or_fmu_or_an_older_gap_is_refused(pump, tmp_path):
     fmu2.write_bytes(resolve_fmu(cfg.model.fmu).read_bytes() + b"\0")
     with pytest.raises(ArtifactError, match=r"gap\.h5: made through another FMU.*other\.fmu"):
         check_update(cfg, fmu2, out, SECTIONS)
+
+    # Another twinmon's gap.h5: its per-year fits may come from other code (another fit
+    # tolerance), so a continued run would be neither version's full run.
+    old = tmp_path / "old.h5"
+    shutil.copy(out, old)
+    with h5py.File(old, "r+") as f:
+        f.attrs["twinmon_version"] = "0.0.9"
+    before = file_sha256(old)
+    with pytest.raises(ArtifactError, match=r"old\.h5: made by twinmon 0\.0\.9, this is "
+                                            r"twinmon .*re-run diagnose without --update"):
+        diagnose(cfg, tmp / "obs.h5", old, workers=1, update=True)
+    assert file_sha256(old) == before
 
     # A gap.h5 of a twinmon without the per-year records: refused, still read by the report.
     with h5py.File(out, "r+") as f:

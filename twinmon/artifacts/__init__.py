@@ -20,8 +20,8 @@ Layout, one module per concern:
 ================  =========================================================================
 """
 from .locks import lock_path, locks_output, output_lock
-from .provenance import (file_sha256, input_records, is_up_to_date, read_provenance,
-                         set_provenance, utc_now)
+from .provenance import (check_same_version, file_sha256, input_records, is_up_to_date,
+                         read_provenance, set_provenance, utc_now)
 from .reading import LazyUnits, get, get_shape, open_artifact, verify_artifact
 from .schema import READABLE, SCHEMAS, schema_name
 from .temporaries import remove_stale_temporaries
@@ -32,5 +32,5 @@ __all__ = ["COMPACT_LIBVER", "SCHEMAS", "READABLE", "schema_name", "file_sha256"
            "input_records", "write_artifact", "same_file", "check_outputs_not_inputs",
            "lock_path", "output_lock", "locks_output", "remove_stale_temporaries", "utc_now",
            "set_provenance", "open_artifact", "put", "get", "get_shape", "LazyUnits",
-           "read_provenance", "is_up_to_date", "verify_artifact", "json_attr", "set_attrs",
-           "file_type"]
+           "read_provenance", "is_up_to_date", "check_same_version", "verify_artifact",
+           "json_attr", "set_attrs", "file_type"]

@@ -80,6 +80,21 @@ def read_provenance(path: str | os.PathLike) -> dict:
     return out
 
 
+def check_same_version(prov: dict, path: str | os.PathLike, stage: str) -> None:
+    """Refuse (:class:`ArtifactError`) to continue an artifact another twinmon made.
+
+    ``--update`` keeps what an earlier run computed (a posterior's years, a gap's per-year
+    fits) and recomputes the rest: with another version the two halves may come from
+    different code (another fit tolerance, another sampler), and the result would be neither
+    version's full run. ``prov``: :func:`read_provenance` of ``path``; ``stage``: the
+    command to run again without ``--update``."""
+    made = prov.get("twinmon_version")
+    if made != _version():
+        raise ArtifactError(f"{path}: made by twinmon {made or 'of unknown version'}, this is "
+                            f"twinmon {_version()}; an update continues only its own "
+                            f"version's results: re-run {stage} without --update")
+
+
 def is_up_to_date(output: str | os.PathLike, kind: str, config: str,
                   inputs: Sequence[str | os.PathLike]) -> bool:
     """True when ``output`` exists, has the right schema, was made by this version of

@@ -21,8 +21,8 @@ A unit is calibrated in full instead when it is new, when the data of a stored y
 noise estimated from all the unit's years, which moves when years are added), or when its
 stored years are not the first of its years now. Units no longer in the observations are
 left out, as a full run would. An update is refused (``ArtifactError``) when the posterior
-was made with another ``model``/``calibrate``/``seed`` config, through another surrogate,
-or before these records existed.
+was made by another version of twinmon, with another ``model``/``calibrate``/``seed`` config,
+through another surrogate, or before these records existed.
 """
 from __future__ import annotations
 
@@ -135,6 +135,7 @@ def plan_update(cfg: Config, surrogate_id: str, output: str | os.PathLike,
     # The draws of the kept years stay in the file (write_posterior(base=...) appends to a
     # copy of it); a posterior/1 file is read whole and written again in the new layout.
     post = read_posterior(path, draws=prov.get("schema") != artifacts.schema_name("posterior"))
+    artifacts.check_same_version(prov, path, "calibrate")
     want = cfg.section_yaml(*SECTIONS)
     if prov.get("config") != want:
         raise ArtifactError(f"{path}: made with another config ("

@@ -17,8 +17,8 @@ A unit is diagnosed in full instead when it is new, when the data of a stored ye
 all the unit's years, which moves when years are added), or when its stored years are not
 the first of its years now (a year inserted or removed). Units no longer in the observations
 are left out, as a full run would. An update is refused (``ArtifactError``) when ``gap.h5``
-was made with another ``model``/``diagnose``/``safety`` config, through another FMU (its
-SHA-256), or before these records existed.
+was made by another version of twinmon, with another ``model``/``diagnose``/``safety``
+config, through another FMU (its SHA-256), or before these records existed.
 
 What an updated unit reports of its own cost: ``fmu_runs`` and ``wall_time`` are those of
 this run (the new years' base fit and screening plus everything recomputed), not the
@@ -156,8 +156,8 @@ def read_cache(grp: h5py.Group, path) -> YearCache | None:
 
 
 def check_update(cfg: Config, fmu, output: str | os.PathLike, sections) -> None:
-    """Refuse (``ArtifactError``) to update ``output`` when it was made with another config
-    (``sections``) or another FMU than ``fmu``."""
+    """Refuse (``ArtifactError``) to update ``output`` when it was made by another twinmon,
+    with another config (``sections``) or another FMU than ``fmu``."""
     path = Path(output)
     prov = artifacts.read_provenance(path)
     if prov.get("schema") != artifacts.schema_name("gap"):
@@ -168,6 +168,7 @@ def check_update(cfg: Config, fmu, output: str | os.PathLike, sections) -> None:
                            if old else f"not a gap artifact (schema {prov.get('schema')!r}, "
                            f"expected {artifacts.schema_name('gap')!r})")
             + "; re-run diagnose without --update")
+    artifacts.check_same_version(prov, path, "diagnose")
     want = cfg.section_yaml(*sections)
     if prov.get("config") != want:
         raise ArtifactError(f"{path}: made with another config ("
