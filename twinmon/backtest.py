@@ -177,6 +177,14 @@ class BacktestSummary:
     by_record: dict = field(default_factory=dict)
 
     @property
+    def unsafe_before_cuts(self) -> dict:
+        """Units unsafe already at or before their first cut: ``{unit: first unsafe year}``.
+        No forecast was made from before their end of life, so they have no time-to-failure
+        score and their years past it no coverage pair (the unit would have been repaired)."""
+        return {u: int(b.end_of_life) for u, b in self.units.items()
+                if b.end_of_life is not None and u not in self.ttf}
+
+    @property
     def all_in_band(self) -> bool:
         """The pooled coverage and that of every record length in their band."""
         return self.coverage_in_band and all(v["in_band"] for v in self.by_record.values())
@@ -198,6 +206,7 @@ class BacktestSummary:
                                    for n, v in self.by_record.items()},
             "alpha_lambda_accuracy": f(self.alpha_lambda),
             "units_reaching_unsafe": len(self.ttf),
+            "units_unsafe_before_cuts": self.unsafe_before_cuts,
             "ttf": {u: {"end_of_life": s.end_of_life, "cut_lambda": s.cut_lambda,
                         "alpha_lambda": s.alpha_lambda,
                         "relative_accuracy": f(s.relative_accuracy),

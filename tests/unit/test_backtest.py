@@ -66,3 +66,22 @@ def test_coverage_is_also_judged_per_record_length():
     by, warnings = coverage_by_record({"F": few}, 0.9, 0.05)
     assert by[4]["pairs"] == 3 and by[4]["coverage"] == pytest.approx(2 / 3)
     assert by[4]["in_band"] and warnings == []
+
+
+def test_a_unit_unsafe_before_its_first_cut_is_named_not_hidden():
+    """A unit unsafe from its first year has no forecast made before its end of life: no
+    time-to-failure score, and the summary says so instead of "no unit reached unsafe"."""
+    import numpy as np
+
+    from twinmon.backtest import BacktestSummary
+    years = [1, 2, 3, 4, 5, 6]
+    early = _unit(years, [3, 4], 0.0, 2.0, [1.0] * 6)
+    early.end_of_life = 1
+    late = _unit(years, [3, 4], 0.0, 2.0, [1.0] * 6)
+    s = BacktestSummary(units={"Early": early, "Fine": late}, coverage=1.0, n_pairs=0,
+                        indicator_mae=float("nan"))
+    assert s.unsafe_before_cuts == {"Early": 1}
+    d = s.as_dict()
+    assert d["units_reaching_unsafe"] == 0 and d["units_unsafe_before_cuts"] == {"Early": 1}
+    assert list(early.pairs()) == []          # past its end of life: nothing to cover
+    assert np.isnan(s.alpha_lambda)

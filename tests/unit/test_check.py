@@ -93,3 +93,22 @@ def test_observations_in_other_units_fail(drive_obs):
     assert len(res.problems) == 1
     msg = res.problems[0].message
     assert "/speed is in 'rad/s', the config's model.output.units is 'rpm'" in msg
+
+
+def test_a_value_no_twin_could_give_fails_as_calibrate_would(drive_obs, tmp_path):
+    """A sample of -1e9 rad/s passed check, then run stopped on it at once (exit 4)."""
+    import dataclasses
+
+    from twinmon.observations import read_observations, write_observations
+    tmp, obs = drive_obs
+    o = read_observations(obs)
+    unit = sorted(o.units)[0]
+    speed = o.units[unit].channels["speed"].copy()
+    speed[1, 3] = -1e9
+    units = {**o.units, unit: dataclasses.replace(o.units[unit], channels={"speed": speed})}
+    write_observations(tmp_path / "bad.h5", dataclasses.replace(o, units=units))
+    res = check(tmp / "fleet.yaml", observations=tmp_path / "bad.h5")
+    assert res.exit_code == 4
+    msg = res.problems[0].message
+    assert f"/units/{unit}/speed year 2 at t = " in msg and "-1e+09 rad/s" in msg
+    assert "far outside anything the twin gives" in msg and "\n" not in msg

@@ -643,3 +643,29 @@ def test_a_prognosis_withheld_at_the_box_is_not_a_disagreement_with_diagnose(pip
     uf.status_reason = misfit
     s = unit_summary(unit, inp, observed_indicator(inp))
     assert "although calibration finds the twin missing the plant" in s.confidence
+
+
+def test_a_unit_unsafe_already_is_said_so_not_given_next_year():
+    """A unit whose last recorded years are past the limit was told "fails in year 11" (the
+    year after the record, only the year to act by); a withheld one measured past the limit
+    said nothing of it. The summary now says since when, from the posterior and from the
+    recorded transients themselves."""
+    from twinmon.report.unit_summary import UnitSummary, trailing_run
+    assert trailing_run([1, 2, 3, 5, 6], [False, True, False, True, True]) == 5
+    assert trailing_run([1, 2, 3], [True, True, True]) == 1
+    assert trailing_run([1, 2, 3], [True, True, False]) is None
+    assert trailing_run([], []) is None
+    s = UnitSummary(name="Ash", status="ok", root_cause="bearing", failure_year=11,
+                    p_unsafe=1.0, last_year=10, horizon_end=17, unsafe_since=6,
+                    p_unsafe_last=0.98, measured_unsafe_since=7)
+    assert s.time_to_failure == ("unsafe since year 6 (P(unsafe) 98 % in 10; measured unsafe "
+                                 "since year 7)")
+    assert s.as_dict()["unsafe_since"] == 6 and s.as_dict()["measured_unsafe_since"] == 7
+    edge = ("prognosis withheld: the estimates lean on the design box's edge from year 1; "
+            "widen model.inputs.friction.high")
+    s = UnitSummary(name="Ash", status="withheld", status_reason=edge, root_cause="withheld",
+                    measured_unsafe_since=1)
+    assert s.time_to_failure.endswith("; measured unsafe since year 1")
+    s = UnitSummary(name="Ash", status="ok", root_cause="healthy", horizon_end=17,
+                    p_unsafe=0.0)
+    assert s.time_to_failure == "no failure by year 17 (max P(unsafe) 0 %)"

@@ -60,8 +60,15 @@ def backtest(config_path, overrides, posterior, surrogate, observations, output,
                 f"{int(t.rul_pred[list(t.rul_true).index(t.end_of_life - t.cut_lambda)])} vs "
                 f"{t.end_of_life - t.cut_lambda}; relative accuracy {t.relative_accuracy:.2f}; "
                 f"prognostic horizon {t.prognostic_horizon:g} yr")
-    else:
+    elif not s.unsafe_before_cuts:
         say("time to failure: no unit reached unsafe in its history")
+    early = s.unsafe_before_cuts
+    if early:
+        # Unsafe before any forecast could have seen it coming: nothing to score, but the
+        # user must not read "no unit reached unsafe".
+        say("time to failure: not scored for " + ", ".join(
+            f"{u} (unsafe from year {y})" for u, y in early.items())
+            + ": unsafe already at the first cut, no forecast was made before it")
     if s.cut_posteriors == "recalibrated":
         say("each cut's history calibrated again from its own years")
     say(f"wrote {output}")

@@ -72,8 +72,13 @@ def fig_backtest(figs: Figures, inp: Inputs, colours: dict) -> None:
     # A pooled coverage can hold while the forecasts from the shortest records miss.
     short = (" Outside the band by the years recorded when the forecast was made: "
              f"{', '.join(short)}." if short else "")
+    early = bt.unsafe_before_cuts
     al = (f"; alpha-lambda accuracy {100 * bt.alpha_lambda:.0f} % over {len(bt.ttf)} unit(s) "
-          "that reached unsafe" if bt.ttf else "; no unit reached unsafe in its history")
+          "that reached unsafe" if bt.ttf else "" if early
+          else "; no unit reached unsafe in its history")
+    if early:
+        al += ("; not scored, unsafe already at the first cut: " + ", ".join(
+            f"{u} (from year {y})" for u, y in early.items()))
     figs.save(fig, "fig_backtest", "backtest", f"Past forecasts of {ind.name} vs what came",
               f"Each coloured line and band is the forecast made from the years up to a cut "
               f"year; black is the {ind.name} later observed (calibrated twin, posterior "

@@ -14,7 +14,7 @@ from ..repairs import FoundRepair
 from .common import plain
 from .fleet import FleetView, overview_lines
 from .load import Inputs
-from .unit_summary import UnitSummary
+from .unit_summary import UnitSummary, trailing_run
 
 
 @dataclass
@@ -195,6 +195,7 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
         yrs, values = observed[unit]
         s.last_year, s.last_indicator = int(yrs[-1]), float(values[-1])
         s.last_indicator_text = ind.fmt(s.last_indicator)
+        s.measured_unsafe_since = trailing_run(yrs, ind.unsafe(np.asarray(values, float)))
     elif inp.obs is not None and unit in inp.obs.units:
         s.last_year = int(inp.obs.units[unit].years[-1])
     post = inp.posterior.units.get(unit) if inp.posterior is not None else None
@@ -227,6 +228,11 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
                     "the plant has left or nearly left; no prognosis until they have room"
                     if bound else "run `twinmon diagnose` to find what the twin lacks; no "
                     "prognosis until it fits")
+        if s.measured_unsafe_since is not None:
+            # What the recorded transients show needs no twin: the unit is unsafe now.
+            s.action = (f"unsafe as measured since year {s.measured_unsafe_since} ({ind.name} "
+                        f"{s.last_indicator_text} in year {s.last_year}, {ind.rule} is "
+                        f"unsafe): inspect the unit now; " + s.action)
         why.append(uf.status_reason)
     elif uf is not None:
         comps = faulty_components(cfg, uf)
@@ -247,6 +253,10 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
         s.plan = uf.plan
         yf = np.asarray(uf.years_future)
         last = int(uf.years_observed[-1])
+        if np.size(uf.p_unsafe_observed):
+            s.p_unsafe_last = float(uf.p_unsafe_observed[-1])
+            s.unsafe_since = trailing_run(uf.years_observed,
+                                          np.asarray(uf.p_unsafe_observed) > limit)
         what = " and the ".join(comps) if comps else None
         if uf.failure_year is not None:
             s.p_unsafe = float(uf.p_unsafe[int(np.flatnonzero(yf == uf.failure_year)[0])])

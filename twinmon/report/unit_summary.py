@@ -10,6 +10,16 @@ import numpy as np
 from .common import pct, state_words, withheld_words
 
 
+def trailing_run(years, flags) -> Optional[int]:
+    """The first of the last ``years`` in a row whose ``flags`` hold, or None when the last
+    one's does not (``years`` [n], ``flags`` [n] bool, in year order)."""
+    flags = np.asarray(flags, bool)
+    if not flags.size or not flags[-1]:
+        return None
+    off = np.flatnonzero(~flags)
+    return int(np.asarray(years)[off[-1] + 1 if off.size else 0])
+
+
 @dataclass
 class UnitSummary:
     """Plain-language state of one unit, derived from the artifacts given.
@@ -51,6 +61,14 @@ class UnitSummary:
         The sim-to-real gap verdict of this unit, if a gap artifact was given.
     true_failure_year : int or None
         From the forecast's truth check, when the data were fabricated.
+    unsafe_since : int or None
+        The first of the last recorded years in a row whose P(unsafe) (the posterior's, through
+        the twin) is above the limit, when the last one's is: the unit is unsafe already, and
+        ``failure_year`` (the year after the record) is only the year to act by.
+    measured_unsafe_since : int or None
+        The same from the indicator of each recorded transient itself (no twin): the first of
+        the last recorded years in a row whose measured indicator is past the limit. It holds
+        whatever the prognosis's status, a withheld one included.
     """
 
     name: str
@@ -79,6 +97,10 @@ class UnitSummary:
     #: observation (the fleet overview ranks and sums them); None / () without a prognosis.
     p_unsafe_max: Optional[float] = None
     p_unsafe_ahead: tuple = ()
+    unsafe_since: Optional[int] = None
+    measured_unsafe_since: Optional[int] = None
+    #: P(unsafe) of the last recorded year (the posterior's, through the twin).
+    p_unsafe_last: Optional[float] = None
 
     @property
     def status_words(self) -> str:
@@ -112,18 +134,25 @@ class UnitSummary:
     def time_to_failure(self) -> str:
         """e.g. ``"fails in year 14 (P(unsafe) 12 % in 14; median year 15)"`` (the median
         year where it differs from the year to act by)."""
+        measured = (f"; measured unsafe since year {self.measured_unsafe_since}"
+                    if self.measured_unsafe_since is not None else "")
         if self.status == "withheld" and not self.forced:
             from ..forecast.judge import box_bound_of
             return ("withheld: the plant is at the twin's box" if box_bound_of(self.status_reason)
-                    else "withheld: the twin misses the plant")
+                    else "withheld: the twin misses the plant") + measured
         if self.root_cause is None:
             if self.last_indicator is None:
                 return "no forecast"
             return f"last {self.indicator} {self.last_indicator_text} (no forecast)"
+        if self.unsafe_since is not None:
+            # Unsafe already: the year after the record is only the year to act by.
+            return (f"unsafe since year {self.unsafe_since} (P(unsafe) "
+                    f"{pct(self.p_unsafe_last)} in {self.last_year}{measured})")
         if self.failure_year is not None:
             return (f"fails in year {self.failure_year} "
                     f"(P(unsafe) {pct(self.p_unsafe)} in {self.failure_year}{self.median_note})")
-        return f"no failure by year {self.horizon_end} (max P(unsafe) {pct(self.p_unsafe)})"
+        return (f"no failure by year {self.horizon_end} (max P(unsafe) {pct(self.p_unsafe)}"
+                f"{measured})")
 
     def as_dict(self) -> dict:
         return {
@@ -140,5 +169,6 @@ class UnitSummary:
             "diagnose": self.diagnose, "true_failure_year": self.true_failure_year,
             "status": self.status, "status_reason": self.status_reason or None,
             "status_words": self.status_words, "forced": self.forced,
-            "p_unsafe_max": self.p_unsafe_max,
+            "p_unsafe_max": self.p_unsafe_max, "unsafe_since": self.unsafe_since,
+            "measured_unsafe_since": self.measured_unsafe_since,
         }
