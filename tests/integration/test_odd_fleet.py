@@ -96,7 +96,13 @@ def test_a_part_worn_past_the_box_is_said_to_be_past_the_box(odd_run):
     s = units["Beyond"]
     assert s["status"] == "withheld"
     assert "motor_damping sit on the design box's high edge" in s["status_reason"]
-    assert s["action"].startswith("widen model.inputs.motor_damping.high and run again")
+    assert "widen model.inputs.motor_damping.high and run again" in s["action"]
+    # Its recorded transients are past the limit themselves (t90 above 30 s): no twin is
+    # needed to say it is unsafe now, and the action says it first.
+    since = s["measured_unsafe_since"]
+    assert since is not None and since <= 10
+    assert s["action"].startswith(f"unsafe as measured since year {since} (t90 ")
+    assert s["time_to_failure"].endswith(f"; measured unsafe since year {since}")
 
 
 def test_the_backtest_runs_on_a_fleet_with_units_new_in_service(odd_run, tmp_path):
