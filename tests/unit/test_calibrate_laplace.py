@@ -407,3 +407,25 @@ def test_units_are_written_as_they_finish_and_a_failure_keeps_the_old_file(setup
     assert ("write", "U2") in events            # a unit was written before the failure
     assert out.read_bytes() == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["again.h5", "obs.h5", "post.h5"]
+
+
+def test_update_redraws_a_unit_whose_events_changed_without_a_new_year(setup, tmp_path):
+    """An event added to a unit with no new year moves its trend's segments: the update
+    draws it again (as a full run would), not keeps the stored trend under the new event."""
+    import shutil
+
+    from twinmon.observations import Event, add_events
+    cfg, _, tmp, sur = setup
+    obs = tmp_path / "o.h5"
+    _fleet(obs, sur, [2, 3])
+    calibrate(cfg, tmp / "sur.h5", obs, tmp_path / "upd.h5")
+    ev = tmp_path / "ev.h5"
+    shutil.copy(obs, ev)
+    add_events(ev, {"U3": [Event(int(YEARS[4]), "pump")]})
+    u = calibrate(cfg, tmp / "sur.h5", ev, tmp_path / "upd.h5", update=True).update
+    assert u["redone_units"] == ["U3"] and u["kept_years"] == len(YEARS)
+    calibrate(cfg, tmp / "sur.h5", ev, tmp_path / "full.h5")
+    full, upd = read_posterior(tmp_path / "full.h5"), read_posterior(tmp_path / "upd.h5")
+    for unit in full.units:
+        _assert_same_unit(full.units[unit], upd.units[unit], unit)
+    assert upd.units["U3"].trend["start"].shape[0] == 2        # the event starts a segment

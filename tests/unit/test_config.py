@@ -129,6 +129,22 @@ def test_section_yaml_is_resolved_with_defaults():
     assert np.isclose(cfg.model.bounds, [[4.0, 30.0], [2.2, 4.0]]).all()
 
 
+def test_calibrate_records_the_fit_settings_it_judges_its_years_with():
+    """Each year's goodness of fit uses diagnose's windows (their order: the records store
+    an index) and Ljung-Box lags: changing them changes the posterior, nothing else of
+    diagnose does."""
+    cfg = load_config(CONFIGS / "pump.yaml")
+    base = cfg.section_yaml("calibrate")
+    lags = load_config(CONFIGS / "pump.yaml", ["diagnose.ljung_box_lags=2"])
+    assert lags.section_yaml("calibrate") != base
+    wins = dict(cfg.diagnose_windows())
+    swapped = {n: {"start": w.start, "stop": w.stop} for n, w in reversed(list(wins.items()))}
+    other = load_config(CONFIGS / "pump.yaml", [f"diagnose.windows={swapped}"])
+    assert other.section_yaml("calibrate") != base
+    gain = load_config(CONFIGS / "pump.yaml", ["diagnose.bic_gain=12"])
+    assert gain.section_yaml("calibrate") == base
+
+
 def test_scientific_notation_without_dot_is_a_number(tmp_path):
     # YAML 1.1 reads 1e6 as a string; people write it, so it is a float here.
     cfg = load_config(CONFIGS / "pump.yaml", ["safety.unsafe_if.above=3e1",

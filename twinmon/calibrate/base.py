@@ -141,6 +141,10 @@ class Method(ABC):
     #: summarises them, then draws the unit again), or samples a unit with new years again
     #: whole (False).
     continues_years: ClassVar[bool]
+    #: Whether a unit's maintenance events enter its posterior (the trend's segments restart
+    #: at them): ``--update`` then calibrates again a unit whose events changed, even one
+    #: without a new year.
+    uses_events: ClassVar[bool] = False
 
     def can_continue(self, posterior: UnitPosterior) -> bool:
         """Whether a stored posterior of a unit holds what :attr:`continues_years` needs

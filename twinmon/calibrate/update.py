@@ -18,8 +18,9 @@ seed, which gives the full run's arrays.
 
 A unit is calibrated in full instead when it is new, when the data of a stored year changed
 (each year's observation row and noise are recorded as a SHA-256: a corrected file, or a
-noise estimated from all the unit's years, which moves when years are added), or when its
-stored years are not the first of its years now. Units no longer in the observations are
+noise estimated from all the unit's years, which moves when years are added), when its
+stored years are not the first of its years now, or (joint and laplace methods, whose trend
+restarts at them) when its maintenance events changed. Units no longer in the observations are
 left out, as a full run would. An update is refused (``ArtifactError``) when the posterior
 was made by another version of twinmon, with another ``model``/``calibrate``/``seed`` config,
 through another surrogate, or before these records existed.
@@ -168,6 +169,11 @@ def plan_update(cfg: Config, surrogate_id: str, output: str | os.PathLike,
         years = np.asarray(run.years)
         same = n <= len(years) and np.array_equal(p.years, years[:n]) and \
             list(p.digest) == year_digests(run.flows, run.noise)[:n]
+        if same and method.uses_events:
+            # An event added or removed moves the trend's segments, whatever the years.
+            now = [(int(e.year), str(e.component), str(e.action))
+                   for e in getattr(run, "events", ())]
+            same = [(int(y), str(c), str(a)) for y, c, a in p.events] == now
         if not same:
             redone.append(unit)
         elif n == len(years) or (method.continues_years and method.can_continue(p)):

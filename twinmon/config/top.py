@@ -105,6 +105,15 @@ class Config:
             # The joint method starts a trend segment at each unrecorded repair it finds, at
             # forecast's level: it decides the posterior too.
             out["calibrate"]["repairs_by"] = {"forecast.repair_alpha": self.forecast.repair_alpha}
+        if "calibrate" in out:
+            # Each year's goodness of fit (calibrate/fit.py) is judged on diagnose's windows
+            # and Ljung-Box lags: they decide the posterior's fit records too (an update
+            # that kept years fitted on other windows stored their indices, out of range).
+            out["calibrate"]["fit_by"] = {
+                # A list: the records store a window's index, so the order is part of it.
+                "diagnose.windows": [[n, w.start, w.stop]
+                                     for n, w in self.diagnose_windows().items()],
+                "diagnose.ljung_box_lags": self.diagnose.ljung_box_lags}
         for section, keys in EXECUTION_ONLY.items():
             if isinstance(out.get(section), dict):
                 for k in keys:

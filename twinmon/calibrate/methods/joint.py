@@ -484,6 +484,7 @@ class JointMethod(Method):
 
     name = "joint"
     continues_years = False
+    uses_events = True
 
     @property
     def samplers(self):

@@ -420,6 +420,7 @@ class LaplaceMethod(Method):
     #: ``--update`` keeps the stored years' sites (each depends on its year alone) and
     #: summarises the years added since; every updated unit is drawn again whole.
     continues_years = True
+    uses_events = True
 
     def can_continue(self, p: UnitPosterior) -> bool:
         return bool(p.site)
