@@ -37,6 +37,30 @@ def test_failed_write_keeps_the_previous_artifact(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["a.h5"]  # no temp file left
 
 
+def test_a_swallowed_ctrl_c_keeps_the_previous_artifact(tmp_path):
+    """A KeyboardInterrupt raised where Python drops it (a weak-reference callback, a
+    ``__del__``) is recorded by the handler: the artifact being written is not made final."""
+    from twinmon import interrupts
+    out = tmp_path / "a.h5"
+    with artifacts.write_artifact(out, "gap") as f:
+        artifacts.put(f, "v", [1.0], "1", "first")
+    interrupts.reset()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            with artifacts.write_artifact(out, "gap") as f:
+                artifacts.put(f, "v", [2.0], "1", "second")
+                try:
+                    interrupts.on_sigint(2, None)
+                except KeyboardInterrupt:
+                    pass                       # swallowed, as "Exception ignored in ..."
+        assert interrupts.pending()
+    finally:
+        interrupts.reset()
+    with h5py.File(out) as f:
+        assert f["v"][0] == 1.0
+    assert [p.name for p in tmp_path.iterdir()] == ["a.h5"]
+
+
 def test_open_checks_schema_and_content(tmp_path):
     p = tmp_path / "notes.h5"
     p.write_text("not hdf5")

@@ -77,6 +77,8 @@ def write_artifact(path: str | os.PathLike, kind: str, *, config: str = "",
                 for key, value in (extra_attrs or {}).items():
                     f.attrs[key] = value
                 yield f
+            from ..interrupts import raise_if_interrupted
+            raise_if_interrupted()      # a Ctrl-C swallowed while writing: not made final
             os.replace(tmp, path)
         except OSError as exc:
             # Name the artifact, not the hidden temporary file, and keep HDF5's multi-line

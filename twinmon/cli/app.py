@@ -6,7 +6,7 @@ import signal
 
 import click
 
-from .. import __version__
+from .. import __version__, interrupts
 from ..errors import Interrupted, TwinmonError
 
 #: Set when SIGTERM arrived: the command ends as after a Ctrl-C, with 143 instead of 130.
@@ -37,7 +37,10 @@ class TwinmonGroup(click.Group):
 
     def invoke(self, ctx):
         try:
-            return super().invoke(ctx)
+            out = super().invoke(ctx)
+            # A Ctrl-C swallowed on its way (interrupts.py) still ends the command as one.
+            interrupts.raise_if_interrupted()
+            return out
         except TwinmonError as exc:
             if ctx.obj and ctx.obj.get("verbose"):
                 import traceback
@@ -82,6 +85,10 @@ def main(ctx, verbose, quiet):
     """
     global _terminated
     _terminated = False         # a process that runs several commands: this one's SIGTERM only
+    interrupts.reset()
+    old_int = interrupts.install()
+    if old_int is not None:
+        ctx.call_on_close(lambda: signal.signal(signal.SIGINT, old_int))
     try:
         old = signal.signal(signal.SIGTERM, _on_sigterm)
     except ValueError:          # not the main thread (an embedding application's worker)

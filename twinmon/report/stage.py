@@ -438,6 +438,8 @@ def _pooled_truth_check(errors: list) -> dict:
 
 def _install(tmp: Path, out: Path) -> None:
     """Move a finished report into ``out``: figures, then summary.json, index.html last."""
+    from ..interrupts import raise_if_interrupted
+    raise_if_interrupted()          # a Ctrl-C swallowed while rendering: nothing installed
     out.mkdir(parents=True, exist_ok=True)
     figures = out / "figures"
     old = out / f".figures.{os.getpid()}.old"
