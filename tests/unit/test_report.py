@@ -669,3 +669,13 @@ def test_a_unit_unsafe_already_is_said_so_not_given_next_year():
     s = UnitSummary(name="Ash", status="ok", root_cause="healthy", horizon_end=17,
                     p_unsafe=0.0)
     assert s.time_to_failure == "no failure by year 17 (max P(unsafe) 0 %)"
+    # The fleet overview's cells and reasons say it too.
+    from twinmon.report.fleet import failure_cell, risk_reasons
+    now = UnitSummary(name="Ash", status="ok", root_cause="bearing", failure_year=11,
+                      last_year=10, horizon_end=17, unsafe_since=6, p_unsafe_max=1.0)
+    assert failure_cell(now) == "unsafe since 6"
+    assert risk_reasons(now, 0.05)[0] == "unsafe since year 6"
+    held = UnitSummary(name="Ash", status="withheld", status_reason=edge,
+                       root_cause="withheld", measured_unsafe_since=1)
+    assert failure_cell(held) == "withheld, measured unsafe since 1"
+    assert "measured unsafe since year 1" in risk_reasons(held, 0.05)

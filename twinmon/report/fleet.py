@@ -61,7 +61,9 @@ class FleetView:
 def risk_reasons(s: UnitSummary, limit: float) -> list[str]:
     """Why a unit needs a look (empty: it does not)."""
     why = []
-    if s.failure_year is not None:
+    if s.unsafe_since is not None:
+        why.append(f"unsafe since year {s.unsafe_since}")
+    elif s.failure_year is not None:
         why.append(f"fails in year {s.failure_year}")
     elif s.p_unsafe_max is not None and s.p_unsafe_max > limit:
         why.append(f"P(unsafe) {pct(s.p_unsafe_max)}")
@@ -72,8 +74,10 @@ def risk_reasons(s: UnitSummary, limit: float) -> list[str]:
     if s.diagnose is not None and s.diagnose.get("verdict") not in (None, "none"):
         why.append("diagnose: " + ("effect " + ", ".join(s.diagnose.get("effects", []))
                                    if s.diagnose["verdict"] == "effect" else "gap unexplained"))
-    if s.root_cause is None and s.action.startswith("unsafe at the last recorded"):
-        why.append("unsafe at the last recording")
+    if s.unsafe_since is None and s.measured_unsafe_since is not None:
+        # The recorded transients themselves, whatever the twin could say (a withheld
+        # prognosis, no forecast).
+        why.append(f"measured unsafe since year {s.measured_unsafe_since}")
     return why
 
 
@@ -128,8 +132,11 @@ def is_fleet(cfg: Config, n_units: int) -> bool:
 
 def failure_cell(s: UnitSummary) -> str:
     """``year 14 (+3)``: the failure year and the years after the last observation."""
+    if s.unsafe_since is not None:
+        return f"unsafe since {s.unsafe_since}"
     if s.status == "withheld" and not s.forced:
-        return "withheld"
+        return ("withheld, measured unsafe since " f"{s.measured_unsafe_since}"
+                if s.measured_unsafe_since is not None else "withheld")
     if s.failure_year is None:
         return "-" if s.root_cause is None else f"none by {s.horizon_end}"
     ahead = f" (+{s.failure_year - s.last_year})" if s.last_year is not None else ""
