@@ -232,27 +232,14 @@ def _check_observations(cfg: Config, path, res: CheckResult) -> None:
                                          f"config's {where} is {want[ch]!r}")
     check_events(cfg, obs)
     # What calibrate and diagnose refuse at once (years, records far outside what the twin
-    # gives, a single value far outside anything it could: calibrate's RANGE_FACTOR rule,
-    # on the FMU's own envelope over the box since a check needs no surrogate): a check
-    # that passes must not be followed by a run that stops on its first step.
-    from .calibrate import RANGE_FACTOR
-    from .plausibility import check_observations, output_envelope
+    # gives, a single value far outside anything it could: calibrate's rule, on the FMU's
+    # own envelope over the box since a check needs no surrogate): a check that passes must
+    # not be followed by a run that stops on its first step.
+    from .plausibility import check_observations, output_envelope, refuse_far_values
     check_observations(cfg, obs, path)
     lo, hi = output_envelope(cfg)
-    lo, hi = float(np.min(lo)), float(np.max(hi))
-    width = max(hi - lo, abs(hi), 1e-300)
-    name, units = cfg.model.output.name, cfg.model.output.units
-    for unit in obs.units:
-        y = obs.output_of(unit)
-        with np.errstate(invalid="ignore"):
-            bad = (y < lo - RANGE_FACTOR * width) | (y > hi + RANGE_FACTOR * width)
-        if bad.any():
-            k, j = np.argwhere(bad)[0]
-            raise InputDataError(
-                f"{path}: /units/{unit}/{name} year {obs.units[unit].years[k]} at "
-                f"t = {obs.time[j]:g} s is {y[k, j]:g} {units}, far outside anything the "
-                f"twin gives over the design box ({lo:.4g} to {hi:.4g} {units}); check the "
-                "units and the channel")
+    refuse_far_values(obs, path, cfg.model.output.name, cfg.model.output.units,
+                      float(np.min(lo)), float(np.max(hi)), "the twin gives over the design box")
     res.checked.append(f"observations {path.name}: {len(obs.units)} units on the config's "
                        "time grid, channels and units, values within the twin's reach")
 

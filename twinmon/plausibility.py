@@ -182,3 +182,31 @@ def _envelope(key, cfg: Config) -> tuple[np.ndarray, np.ndarray]:
         out = (Y.min(axis=0), Y.max(axis=0))
     _cache[key] = out
     return out
+
+
+#: Observed values beyond the twin's range by more than this many times its width are taken
+#: for a unit or scale mistake (or a broken sensor), not for a degraded machine.
+RANGE_FACTOR = 1.0
+
+
+def refuse_far_values(obs, path, name: str, units: str, lo: float, hi: float,
+                      what: str) -> None:
+    """Refuse a single value of channel ``name`` further than :data:`RANGE_FACTOR` times the
+    range ``lo``..``hi`` (``what`` produced it, for the message) from it.
+
+    Raises
+    ------
+    InputDataError
+        Naming the file, unit, year, time and value."""
+    width = max(hi - lo, abs(hi), 1e-300)
+    low, high = lo - RANGE_FACTOR * width, hi + RANGE_FACTOR * width
+    for unit in obs.units:
+        y = obs.units[unit].channels[name]
+        with np.errstate(invalid="ignore"):
+            bad = (y < low) | (y > high)
+        if bad.any():
+            k, j = np.argwhere(bad)[0]
+            raise InputDataError(
+                f"{path}: /units/{unit}/{name} year {obs.units[unit].years[k]} at "
+                f"t = {obs.time[j]:g} s is {y[k, j]:g} {units}, far outside anything {what} "
+                f"({lo:.4g} to {hi:.4g} {units}); check the units and the channel")

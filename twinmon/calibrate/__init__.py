@@ -235,37 +235,22 @@ def _check_inputs(cfg: Config, surrogate, surrogate_path, obs) -> None:
     check_observed_range(cfg, surrogate, obs)
 
 
-#: Observed values beyond the simulated range by more than this many times its width are
-#: taken for a unit or scale mistake (or a broken sensor), not for a degraded machine.
-RANGE_FACTOR = 1.0
-
-
 def check_observed_range(cfg: Config, surrogate, obs, channel: str = "") -> None:
     """Observed values of the output (or of a further ``channel``, with that channel's
-    surrogate) must lie near what the design's simulations produced.
+    surrogate) must lie near what the design's simulations produced
+    (:func:`~twinmon.plausibility.refuse_far_values`).
 
     Raises
     ------
     InputDataError
         A value further than ``RANGE_FACTOR`` times the simulated range from it, naming the
         unit, year, time and value."""
+    from ..plausibility import refuse_far_values
     train = surrogate.training_outputs()
-    lo, hi = float(np.min(train)), float(np.max(train))
-    width = max(hi - lo, abs(hi), 1e-300)
-    low, high = lo - RANGE_FACTOR * width, hi + RANGE_FACTOR * width
     name = channel or cfg.model.output.name
-    units = cfg.model.channel_units.get(name, "")
-    for unit in obs.units:
-        y = obs.units[unit].channels[name]
-        with np.errstate(invalid="ignore"):
-            bad = (y < low) | (y > high)
-        if bad.any():
-            k, j = np.argwhere(bad)[0]
-            raise InputDataError(
-                f"{obs.path}: /units/{unit}/{name} year {obs.units[unit].years[k]} at "
-                f"t = {obs.time[j]:g} s is {y[k, j]:g} {units}, far outside anything the "
-                f"design's simulations produced ({lo:.4g} to {hi:.4g} {units}); check the "
-                "units and the channel")
+    refuse_far_values(obs, obs.path, name, cfg.model.channel_units.get(name, ""),
+                      float(np.min(train)), float(np.max(train)),
+                      "the design's simulations produced")
 
 
 def _likelihood_model(cfg: Config, surrogate, surrogate_path, obs):
