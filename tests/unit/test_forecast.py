@@ -610,3 +610,23 @@ def test_a_negative_worker_count_is_refused_in_one_line(setup, command):
     res = CliRunner().invoke(main, [*command, "-c", str(cfg_path), "-j", "-1"])
     assert res.exit_code == 3          # a bad value, as simulate -j -1 (ConfigError)
     assert "workers: expected 0 (one per core) or a positive count, got -1" in res.output
+
+
+def test_the_drift_is_described_against_what_normal_units_show():
+    """A slope inside "+- the band's edge" was called abnormal (p = 0.0064) in the same
+    sentence: the edge is reached only when every input ages at its own edge at once. The
+    sentence now gives the range 90 % of normal units stay in, then the edge."""
+    import numpy as np
+
+    from twinmon.forecast.detection import IndicatorDrift, uniform_sum
+    half = np.array([0.2, 0.179])
+    d = IndicatorDrift(np.arange(10), np.zeros(10), 0.448, 0.05, 8, 0.0886, half,
+                       np.array([1.0, 1.0]), 1, 0.0064, True)
+    text = d.describe("t90", "s")
+    assert text.startswith("t90 slope +0.448 s/yr vs normal ageing +0.0886 (90 % of normal "
+                           "units within +-")
+    assert text.endswith("all within +-0.379; p = 0.0064)")
+    q = float(text.split("within +-")[1].split(",")[0])
+    u, w = uniform_sum(half)
+    assert abs(float(w[np.abs(u) <= q].sum()) - 0.9) < 0.02
+    assert q < 0.379          # the 90 % range is inside the edge the text used to give alone

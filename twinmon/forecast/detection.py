@@ -104,9 +104,16 @@ class IndicatorDrift:
     def describe(self, name: str, units: str) -> str:
         if not np.isfinite(self.slope):
             return f"{name} trend not testable ({self.years.size} finite year(s))"
+        # The null is each input's rate anywhere in its band (uniform): their sum reaches
+        # the band's edge only when every input does at once. Its 90 % range is what a
+        # normal unit shows; "+- the edge" alone read as if a slope inside it were normal.
+        half = np.abs(np.asarray(self.normal_halfwidth, float))
+        u, w = uniform_sum(half)
+        order = np.argsort(np.abs(u))
+        q90 = float(np.abs(u)[order][np.searchsorted(np.cumsum(w[order]), 0.9)])
         return (f"{name} slope {self.slope:+.3g} {units}/yr vs normal ageing "
-                f"{self.normal_slope:+.3g} +- {float(np.sum(self.normal_halfwidth)):.3g} "
-                f"(p = {self.p_value:.2g})")
+                f"{self.normal_slope:+.3g} (90 % of normal units within +-{q90:.3g}, all "
+                f"within +-{float(np.sum(half)):.3g}; p = {self.p_value:.2g})")
 
 
 def mid_state(trends: dict, names: list) -> np.ndarray:
