@@ -142,7 +142,24 @@ def test_a_scheduler_out_of_reach_fails_fast_in_one_line(small_cfg, tmp_path):
     assert r.returncode == 3, r.stderr
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and address in lines[0] and "dask.address" in lines[0], r.stderr
+    # Refused at once, and said so (it waited the timeout twice, then blamed a handshake).
+    assert "Connection refused" in lines[0] and "handshake" not in lines[0]
     assert not list(tmp_path.glob("s.h5*"))         # no partial file left behind
+
+
+@pytest.mark.parametrize("address", ["foo", "tcp://127.0.0.1", "inproc://x",
+                                     "tls://127.0.0.1:1", "ucx://127.0.0.1:1"])
+def test_an_address_that_is_no_tcp_scheduler_is_a_config_error(address):
+    """Another transport or no port: one config line naming the key, not a traceback from
+    inside Dask (tls, ucx) or a wait for the timeout twice."""
+    from twinmon.config import load_config
+    from twinmon.config.dask import scheduler_host_port
+    from twinmon.errors import ConfigError
+    assert scheduler_host_port(address) is None
+    with pytest.raises(ConfigError, match=r"dask.address: expected a TCP scheduler address"):
+        load_config(CONFIGS / "pump.yaml", [f"dask.address={address}"])
+    assert scheduler_host_port("tcp://10.0.0.5:8786") == ("10.0.0.5", 8786)
+    assert scheduler_host_port("[::1]:8786") == ("::1", 8786)
 
 
 def test_ctrl_c_on_dask_exits_130_and_leaves_no_worker(small_cfg, tmp_path):

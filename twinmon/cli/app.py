@@ -51,6 +51,13 @@ class TwinmonGroup(click.Group):
                 _terminated_exit(ctx)
             click.echo(f"twinmon: {exc.family}: {exc.message}", err=True)
             ctx.exit(exc.exit_code)
+        except RuntimeError as exc:
+            # OpenTURNS turns a Ctrl-C that reaches it inside its C++ into its own
+            # "Interruption in ..." RuntimeError: ours when our handler saw the SIGINT.
+            if not interrupts.pending():
+                raise
+            click.echo("twinmon: interrupted", err=True)
+            ctx.exit(143 if _terminated else 130)
         except KeyboardInterrupt:
             # Ctrl-C: one line and the shell's code for SIGINT; stages that resume say so
             # themselves (Interrupted above).

@@ -56,6 +56,27 @@ def _client_within(distributed, address: str, timeout: float):
     return box["client"]
 
 
+def _listening(address: str, timeout: float) -> None:
+    """Raise ``ConfigError`` at once when nothing listens at ``address`` (a refused or
+    unroutable TCP connection): a Dask client would retry until ``timeout``, then twice as
+    long while it closes, and the message would blame the handshake."""
+    import socket
+
+    from ..config.dask import scheduler_host_port
+    from ..errors import ConfigError
+    hp = scheduler_host_port(address)
+    if hp is None:
+        raise ConfigError(f"dask.address: {address!r} is not a TCP scheduler address "
+                          "(tcp://host:port)")
+    try:
+        with socket.create_connection(hp, timeout=timeout):
+            pass
+    except OSError as exc:
+        raise ConfigError(f"dask.address: cannot reach the Dask scheduler at {address}: "
+                          f"{exc.strerror or type(exc).__name__} (nothing listens there?)") \
+            from None
+
+
 # The connection: a client, and the LocalCluster it owns when there is no address
 # ---------------------------------------------------------------------------------------
 class DaskConnection:
@@ -97,6 +118,7 @@ class DaskConnection:
         # what matters here reaches the command through the tasks' results, in one line.
         logging.getLogger("distributed").setLevel(logging.CRITICAL)
         if address:
+            _listening(address, timeout)
             try:
                 self.client = _client_within(distributed, address, timeout)
             except (OSError, TimeoutError, ValueError) as exc:
