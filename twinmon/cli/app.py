@@ -52,9 +52,9 @@ class TwinmonGroup(click.Group):
             click.echo(f"twinmon: {exc.family}: {exc.message}", err=True)
             ctx.exit(exc.exit_code)
         except RuntimeError as exc:
-            # OpenTURNS turns a Ctrl-C that reaches it inside its C++ into its own
-            # "Interruption in ..." RuntimeError: ours when our handler saw the SIGINT.
-            if not interrupts.pending():
+            # OpenTURNS catches a Ctrl-C that arrives inside its C++ with a handler of its
+            # own, and raises "Interruption in OT::..." (our handler never sees it).
+            if not (interrupts.pending() or str(exc).startswith("Interruption in OT::")):
                 raise
             click.echo("twinmon: interrupted", err=True)
             ctx.exit(143 if _terminated else 130)
