@@ -630,3 +630,37 @@ def test_the_drift_is_described_against_what_normal_units_show():
     u, w = uniform_sum(half)
     assert abs(float(w[np.abs(u) <= q].sum()) - 0.9) < 0.02
     assert q < 0.379          # the 90 % range is inside the edge the text used to give alone
+
+
+def test_the_sequential_estimates_lag_a_drift_where_the_data_are_weak():
+    """filter_attenuation: the slope of the expected sequential estimates for a drift of 1 a
+    year. Data that fix each year (posterior far inside the prior): no lag. Data that keep
+    only a tenth of the prior's precision a year (a 10x noisier record): the estimates show
+    under half the drift, and the prognosis says so (describe_lag)."""
+    import numpy as np
+
+    from twinmon.config import load_config
+    from twinmon.forecast.chunk import describe_lag
+    from twinmon.forecast.covariance import MIN_ATTENUATION, filter_attenuation
+    cfg = load_config(CONFIGS / "pump.yaml")
+    years = np.arange(1, 11)
+    q0 = (cfg.calibrate.prior_width * np.diff(cfg.model.bounds, axis=1).ravel()) ** 2
+    strong = np.array([np.diag(q0 * 1e-4)] * 10)
+    assert np.allclose(filter_attenuation(cfg, years, strong, np.array([1, 1])), 1.0,
+                       atol=1e-3)
+    # P_k = 0.9 Q_k with Q_k = q0 + P_{k-1}: P = 9 q0 at the fixed point.
+    weak = np.array([np.diag(9 * q0)] * 10)
+    a = filter_attenuation(cfg, years, weak, np.array([1, 1]))
+    # The same recursion by hand for one input: m_k = 0.9 m_{k-1} + 0.1 k.
+    m, path = 0.0, []
+    for k in years:
+        m = (0.9 * m + 0.1 * k) if k > 1 else float(k)
+        path.append(m)
+    assert np.allclose(a, np.polyfit(years, path, 1)[0])
+    assert a[0] < MIN_ATTENUATION
+    text = describe_lag(cfg.model.input_names, a)
+    assert text.startswith("prognosis unreliable: each year's estimate leans on the year "
+                           "before") and "motor_damping" in text and "pump_coef" in text
+    assert describe_lag(cfg.model.input_names, np.array([0.9, np.nan])) == ""
+    # A trend restarted two years ago: no line to judge there.
+    assert np.isnan(filter_attenuation(cfg, years, weak, np.array([1, 9]))[1])

@@ -21,7 +21,7 @@ from ..config import Config
 from ..errors import ArtifactError, CalibrationError
 from ..repairs import FoundRepair, find_repairs
 from .attribution import HEALTHY
-from .covariance import estimate_error_covariance
+from .covariance import MIN_ATTENUATION, estimate_error_covariance, filter_attenuation
 from .detection import gradient_from, gradient_points, mid_state
 from .judge import (MIN_TREND_YEARS, STATUS_OK, STATUS_UNRELIABLE, STATUS_WITHHELD,
                     describe_blind, describe_restart, history_slope_draws, judge,
@@ -120,6 +120,21 @@ def _forecast_chunk(state: _TwinState, units: list, *, directions: dict, box_ok:
     return out
 
 
+def describe_lag(names: list, attenuation: np.ndarray) -> str:
+    """Why a sequential unit's prognosis is unreliable when its yearly estimates of an input
+    show less than :data:`~.covariance.MIN_ATTENUATION` of a drift
+    (:func:`~.covariance.filter_attenuation`), or ``""``."""
+    low = [(float(a), n) for n, a in zip(names, attenuation)
+           if np.isfinite(a) and a < MIN_ATTENUATION]
+    if not low:
+        return ""
+    what = ", ".join(f"{n} {100 * a:.0f} %" for a, n in sorted(low))
+    return ("prognosis unreliable: each year's estimate leans on the year before (its data "
+            f"give little a year), so the yearly estimates show only part of a steady drift "
+            f"({what}): the trends, their tests and the failure year understate one; a less "
+            "noisy record, or the fleet calibrated jointly (5 or more units), would show it")
+
+
 def _plan_unit(cfg: Config, unit: str, up, directions: dict, fleet=None,
                shape_priors: Optional[dict] = None, shapes=None,
                input_range: Optional[np.ndarray] = None) -> tuple[dict, list]:
@@ -214,6 +229,10 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict, fleet=None,
     fut = years[-1] + np.arange(1, fc.horizon + 1)
     state = None
     err_cov = estimate_error_covariance(cfg, post_cov, sequential=not trend_post)
+    # How much of a drift the sequential estimates show (their prior lags it where the data
+    # are weak); a joint posterior's trend is sampled with its years and does not lag.
+    attenuation = None if trend_post else filter_attenuation(
+        cfg, years, post_cov, np.array([since[n] for n in names]))
     if trend_post:
         # The joint method sampled the trend itself: draw the future from its posterior
         # predictive (levels, slopes and year-to-year sd), not from lines refitted to
@@ -257,7 +276,7 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict, fleet=None,
                 history_draws=history_draws, rate_draws=rate_draws, changed=changed,
                 pool_ess=pool_ess,
                 shapes="now" in trend_post and cfg.calibrate.shapes.get("accelerating", 0) > 0,
-                shape=shape_summary(future), trend_fit=trend_fit)
+                shape=shape_summary(future), trend_fit=trend_fit, attenuation=attenuation)
     return plan, [X.reshape(-1, d), Xo.reshape(-1, d), probe]
 
 
@@ -367,6 +386,10 @@ def _finish_unit(cfg: Config, unit: str, up, p: dict, twin: TwinResult,
         shape = shape_gate(cfg, p["since_by_input"], p["years"], p["mean"], trends)
         if shape:
             uf.status, uf.status_reason = STATUS_UNRELIABLE, shape
+    if uf.status == STATUS_OK and p.get("attenuation") is not None:
+        lag = describe_lag(names, p["attenuation"])
+        if lag:
+            uf.status, uf.status_reason = STATUS_UNRELIABLE, lag
     fit = p["trend_fit"]
     if fit is not None:
         uf.trend_fit = fit.as_dict(fc.trend_fit_alpha)
