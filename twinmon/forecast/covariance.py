@@ -49,16 +49,25 @@ def filter_error_covariance(post_cov: np.ndarray, prior_var: Optional[np.ndarray
         E[k, k] = P[k]
     if prior_var is None:
         return E
-    gains = [np.zeros((d, d))]
-    for k in range(1, n):
-        q = np.asarray(prior_var, float) + (np.diag(P[k - 1]) if carry else 0.0)
-        gains.append(P[k] / q[None, :])
+    gains = filter_gains(P, prior_var, carry)
     for m in range(n):
         M = P[m]
         for k in range(m + 1, n):
             M = gains[k] @ M
             E[k, m], E[m, k] = M, M.T
     return E
+
+
+def filter_gains(post_cov: np.ndarray, prior_var: np.ndarray, carry: bool = True) -> list:
+    """The sequential prior's gains ``A_k = P_k Q_k^-1`` per year [d, d] (year 1's, under
+    the uniform prior, 0): ``Q_k = diag(prior_var [+ diag P_{k-1}])``
+    (:func:`filter_error_covariance`)."""
+    P = np.asarray(post_cov, float)
+    gains = [np.zeros(P.shape[1:])]
+    for k in range(1, len(P)):
+        q = np.asarray(prior_var, float) + (np.diag(P[k - 1]) if carry else 0.0)
+        gains.append(P[k] / q[None, :])
+    return gains
 
 
 def estimate_error_covariance(cfg: Config, post_cov: np.ndarray, sequential: bool) -> np.ndarray:
@@ -152,10 +161,7 @@ def filter_attenuation(cfg: Config, years: np.ndarray, post_cov: np.ndarray,
     K, d = P.shape[:2]
     t = np.asarray(years, float)
     q0 = (cfg.calibrate.prior_width * np.diff(cfg.model.bounds, axis=1).ravel()) ** 2
-    gains = [np.zeros((d, d))]
-    for k in range(1, K):
-        q = q0 + (np.diag(P[k - 1]) if cfg.calibrate.prior_carry_variance else 0.0)
-        gains.append(P[k] / q[None, :])
+    gains = filter_gains(P, q0, cfg.calibrate.prior_carry_variance)
     out = np.full(d, np.nan)
     for j in range(d):
         seg = t >= since[j]
