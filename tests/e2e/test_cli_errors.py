@@ -96,3 +96,26 @@ def test_verbose_shows_traceback_and_json_is_clean(tmp_path, fmu_path):
     import json
     summary = json.loads(r.stdout)
     assert summary["runs"] == 10 and summary["failures"] == 0 and summary["runs_per_s"] > 0
+
+
+def test_an_openturns_interruption_is_a_ctrl_c(monkeypatch):
+    """OpenTURNS catches a Ctrl-C that arrives inside its C++ with a handler of its own and
+    raises "Interruption in OT::..."; that came out as a traceback and exit 1. Another
+    RuntimeError is still a bug, not an interrupt."""
+    from click.testing import CliRunner
+
+    import twinmon.check
+    from twinmon.cli import main
+
+    def interrupted(*args, **kwargs):
+        raise RuntimeError("Interruption in OT::Function::operator ()(OT::Sample const &) "
+                           "const")
+    monkeypatch.setattr(twinmon.check, "check", interrupted)
+    r = CliRunner().invoke(main, ["check", "-c", str(CONFIGS / "pump.yaml")])
+    assert r.exit_code == 130 and "twinmon: interrupted" in r.output
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("something else")
+    monkeypatch.setattr(twinmon.check, "check", broken)
+    r = CliRunner().invoke(main, ["check", "-c", str(CONFIGS / "pump.yaml")])
+    assert isinstance(r.exception, RuntimeError) and r.exit_code not in (0, 130)
