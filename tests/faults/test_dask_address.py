@@ -53,3 +53,35 @@ def test_simulate_with_an_address_that_is_no_scheduler(work, silent_address):
     assert elapsed < 25, f"took {elapsed:.1f} s"
     left = sorted(p.name for p in out.parent.iterdir()) if out.parent.exists() else []
     assert left == [], left
+
+
+def test_an_address_that_speaks_another_protocol_is_a_config_error(work):
+    """A service that speaks first (an SSH banner) was read as Dask's frames: a MemoryError
+    for exabytes and a 95-line traceback, exit 1. Now exit 3, the address named."""
+    srv = socket.socket()
+    srv.bind(("127.0.0.1", 0))
+    srv.listen(8)
+    held = []
+
+    def serve():
+        while True:
+            try:
+                c = srv.accept()[0]
+            except OSError:
+                return
+            c.sendall(b"SSH-2.0-OpenSSH_9.0\r\n" + b"\xff" * 64)
+            held.append(c)
+    threading.Thread(target=serve, daemon=True).start()
+    address = f"tcp://127.0.0.1:{srv.getsockname()[1]}"
+    try:
+        r = twinmon("simulate", "-c", work / "small.yaml", "--set", "simulate.executor=dask",
+                    "--set", f"dask.address={address}", "--set", "dask.timeout=3",
+                    "-o", work / "e" / "sim.h5", cwd=work, timeout=120)
+    finally:
+        for c in held:
+            c.close()
+        srv.close()
+    assert r.returncode == 3, r.stderr
+    first = r.stderr.strip().splitlines()[0]
+    assert first.startswith(f"twinmon: config error: dask.address: {address} does not "
+                            "answer as a Dask scheduler"), r.stderr

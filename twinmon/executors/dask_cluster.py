@@ -125,6 +125,13 @@ class DaskConnection:
                 raise ConfigError(f"dask.address: cannot reach the Dask scheduler at "
                                   f"{address} within {timeout:g} s "
                                   f"({_one_line(exc)})") from None
+            except Exception as exc:  # noqa: BLE001 -- a service speaking another protocol
+                # Something that answers first in its own protocol (an SSH banner) is read
+                # as Dask's length-prefixed frames: a MemoryError for exabytes, a decoding
+                # error, a TypeError. None of it is twinmon's to show as a traceback.
+                raise ConfigError(f"dask.address: {address} does not answer as a Dask "
+                                  f"scheduler ({type(exc).__name__}: {_one_line(exc)})") \
+                    from None
             self.workers = max(1, len(self.client.scheduler_info()["workers"]))
             return
         self.workers = workers or len(os.sched_getaffinity(0))
