@@ -640,7 +640,7 @@ def test_the_sequential_estimates_lag_a_drift_where_the_data_are_weak():
     import numpy as np
 
     from twinmon.config import load_config
-    from twinmon.forecast.chunk import describe_lag
+    from twinmon.forecast.judge import describe_lag
     from twinmon.forecast.covariance import MIN_ATTENUATION, filter_attenuation
     cfg = load_config(CONFIGS / "pump.yaml")
     years = np.arange(1, 11)

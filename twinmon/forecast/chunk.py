@@ -21,11 +21,11 @@ from ..config import Config
 from ..errors import ArtifactError, CalibrationError
 from ..repairs import FoundRepair, find_repairs
 from .attribution import HEALTHY
-from .covariance import MIN_ATTENUATION, estimate_error_covariance, filter_attenuation
+from .covariance import estimate_error_covariance, filter_attenuation
 from .detection import gradient_from, gradient_points, mid_state
 from .judge import (MIN_TREND_YEARS, STATUS_OK, STATUS_UNRELIABLE, STATUS_WITHHELD,
-                    describe_blind, describe_restart, history_slope_draws, judge,
-                    prognosis_status, recent_restarts)
+                    describe_blind, describe_lag, describe_restart, history_slope_draws,
+                    judge, prognosis_status, recent_restarts)
 from .plan import maintenance_plan
 from .pooling import ShapePriors, _pool_unit
 from .predictive import (residual_correlation, sample_predictive, sample_state,
@@ -118,21 +118,6 @@ def _forecast_chunk(state: _TwinState, units: list, *, directions: dict, box_ok:
             _add_truth(cfg, uf, unit, tr, truth_path, state.spec, state.executor)
         out.append((unit, uf))
     return out
-
-
-def describe_lag(names: list, attenuation: np.ndarray) -> str:
-    """Why a sequential unit's prognosis is unreliable when its yearly estimates of an input
-    show less than :data:`~.covariance.MIN_ATTENUATION` of a drift
-    (:func:`~.covariance.filter_attenuation`), or ``""``."""
-    low = [(float(a), n) for n, a in zip(names, attenuation)
-           if np.isfinite(a) and a < MIN_ATTENUATION]
-    if not low:
-        return ""
-    what = ", ".join(f"{n} {100 * a:.0f} %" for a, n in sorted(low))
-    return ("prognosis unreliable: each year's estimate leans on the year before (its data "
-            f"give little a year), so the yearly estimates show only part of a steady drift "
-            f"({what}): the trends, their tests and the failure year understate one; a less "
-            "noisy record, or the fleet calibrated jointly (5 or more units), would show it")
 
 
 def _plan_unit(cfg: Config, unit: str, up, directions: dict, fleet=None,

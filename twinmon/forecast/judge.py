@@ -30,7 +30,7 @@ import numpy as np
 
 from ..config import Config
 from .attribution import AMBIGUOUS, HEALTHY, Attribution, attribute, separating_channel
-from .covariance import slope_covariance
+from .covariance import MIN_ATTENUATION, slope_covariance
 from .detection import (IndicatorDrift, box_test_uniform, detectable_multiples,
                         indicator_drift, simes)
 from .streams import unit_rng
@@ -248,6 +248,21 @@ def describe_blind(cfg: Config, drift: IndicatorDrift, years: np.ndarray) -> str
     return (f"prognosis unreliable: with {len(years)} year(s) of record, a fault {what} would "
             "be missed half the time (x: its normal-ageing tolerance); 'healthy' does not "
             "rule it out")
+
+
+def describe_lag(names: list, attenuation: np.ndarray) -> str:
+    """Why a sequential unit's prognosis is unreliable when its yearly estimates of an input
+    show less than :data:`~.covariance.MIN_ATTENUATION` of a drift
+    (:func:`~.covariance.filter_attenuation`), or ``""``."""
+    low = [(float(a), n) for n, a in zip(names, attenuation)
+           if np.isfinite(a) and a < MIN_ATTENUATION]
+    if not low:
+        return ""
+    what = ", ".join(f"{n} {100 * a:.0f} %" for a, n in sorted(low))
+    return ("prognosis unreliable: each year's estimate leans on the year before (its data "
+            f"give little a year), so the yearly estimates show only part of a steady drift "
+            f"({what}): the trends, their tests and the failure year understate one; a less "
+            "noisy record, or the fleet calibrated jointly (5 or more units), would show it")
 
 
 def recent_restarts(since: dict, years: np.ndarray) -> dict:

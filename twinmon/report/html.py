@@ -206,10 +206,9 @@ def page(cfg: Config, words: Words, summary: ReportSummary, figs: list[dict],
                    else "ok" if s.root_cause == "healthy" else "bad" if s.failure_year is not None
                    else "warn" if s.root_cause else "")
             ttf = s.time_to_failure
-            if s.unsafe_since is not None:
-                # Unsafe already: the summary's own words, not "1 year after the record".
-                ttf = s.time_to_failure
-            elif s.failure_year is not None and s.last_year is not None:
+            # Unsafe already: the summary's own words, not "1 year after the record".
+            if s.unsafe_since is None and s.failure_year is not None \
+                    and s.last_year is not None:
                 n = s.failure_year - s.last_year
                 ttf = (f"year {s.failure_year} of service: {n} year{'s' if n != 1 else ''} "
                        f"after the last observation (year {s.last_year}); P(unsafe) "

@@ -186,6 +186,17 @@ def faulty_components(cfg: Config, uf) -> list[str]:
     return sorted(out)
 
 
+def _measured_unsafe(s: UnitSummary, ind) -> str:
+    """The action's prefix when the recorded transients themselves are past the limit
+    (``s.measured_unsafe_since``): what they show needs no twin, whatever the prognosis
+    (withheld, or none); "" otherwise."""
+    if s.measured_unsafe_since is None:
+        return ""
+    return (f"unsafe as measured since year {s.measured_unsafe_since} ({ind.name} "
+            f"{s.last_indicator_text} in year {s.last_year}, {ind.rule} is unsafe): inspect "
+            "the unit now; ")
+
+
 def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
     """The plain-language summary of one unit; ``observed``: {unit: (years, indicator)}."""
     cfg, ind = inp.cfg, inp.words.ind
@@ -228,11 +239,7 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
                     "the plant has left or nearly left; no prognosis until they have room"
                     if bound else "run `twinmon diagnose` to find what the twin lacks; no "
                     "prognosis until it fits")
-        if s.measured_unsafe_since is not None:
-            # What the recorded transients show needs no twin: the unit is unsafe now.
-            s.action = (f"unsafe as measured since year {s.measured_unsafe_since} ({ind.name} "
-                        f"{s.last_indicator_text} in year {s.last_year}, {ind.rule} is "
-                        f"unsafe): inspect the unit now; " + s.action)
+        s.action = _measured_unsafe(s, ind) + s.action
         why.append(uf.status_reason)
     elif uf is not None:
         comps = faulty_components(cfg, uf)
@@ -260,8 +267,7 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
         what = " and the ".join(comps) if comps else None
         if uf.failure_year is not None:
             s.p_unsafe = float(uf.p_unsafe[int(np.flatnonzero(yf == uf.failure_year)[0])])
-            now = (uf.p_unsafe_observed.size and uf.p_unsafe_observed[-1] > limit) \
-                or uf.failure_year <= last + 1
+            now = s.unsafe_since is not None or uf.failure_year <= last + 1
             when = "now" if now else f"before year {uf.failure_year - 1} ends"
             s.action = (f"inspect the {what} {when}" if what
                         else f"overhaul the unit {when} "
@@ -312,11 +318,8 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
     elif post is not None:
         s.action = "run `twinmon forecast` for a trend and a time to failure"
     else:
-        s.action = "run `twinmon calibrate` and `twinmon forecast` for a diagnosis"
-        if s.last_indicator is not None and bool(ind.unsafe(np.asarray(s.last_indicator))):
-            s.action = (f"unsafe at the last recorded transient ({ind.name} "
-                        f"{s.last_indicator_text}, {ind.rule} is unsafe): inspect the unit; "
-                        + s.action)
+        s.action = (_measured_unsafe(s, ind)
+                    + "run `twinmon calibrate` and `twinmon forecast` for a diagnosis")
 
     if post is not None:
         cc = cfg.calibrate
