@@ -571,3 +571,26 @@ def test_a_late_rise_of_the_wear_rate_is_judged_on_the_current_rate():
     drift, att = judge(cfg, "U1", plan, ind_obs, np.zeros(2), directions, set())
     assert np.isnan(drift.p_inputs_rate)
     assert not drift.abnormal and att.verdict == "healthy"
+
+
+def test_level_cause_names_the_inputs_whose_restoration_makes_the_unit_safe():
+    """A unit unsafe with no drift: the inputs that alone bring it back when set to nominal
+    are named; when none does alone, those that move the indicator towards safe, most
+    first (the pump's t90: above the limit is unsafe, so a lower t90 is a gain)."""
+    from twinmon.config import load_config
+    from twinmon.forecast.plan import level_cause, restore_points
+    from ..conftest import CONFIGS
+    cfg = load_config(CONFIGS / "pump.yaml")
+    state = np.array([28.5, 3.5])
+    pts = restore_points(cfg, state)
+    assert np.allclose(pts, [[10.0, 3.5], [28.5, 3.61]])
+    lv = level_cause(cfg, state, np.array([False, True]), np.array([12.0, 33.0]), 34.0)
+    assert list(lv) == ["motor_damping"] and lv["motor_damping"]["safe"]
+    assert lv["motor_damping"]["value"] == 28.5 and lv["motor_damping"]["nominal"] == 10.0
+    # Neither alone: both move t90 down, the pump's the more.
+    lv = level_cause(cfg, state, np.array([True, True]), np.array([33.0, 31.0]), 34.0)
+    assert list(lv) == ["pump_coef", "motor_damping"]
+    assert not any(v["safe"] for v in lv.values())
+    # A restoration that makes it worse, or a level never reached (inf), names nothing.
+    assert level_cause(cfg, state, np.array([True, True]), np.array([35.0, np.inf]),
+                       34.0) == {}

@@ -20,13 +20,13 @@ from ..calibrate.shapes import describe_shape, shape_probabilities, shape_summar
 from ..config import Config
 from ..errors import ArtifactError, CalibrationError
 from ..repairs import FoundRepair, find_repairs
-from .attribution import HEALTHY
+from .attribution import HEALTHY, SEVERAL
 from .covariance import estimate_error_covariance, filter_attenuation
 from .detection import gradient_from, gradient_points, mid_state
 from .judge import (MIN_TREND_YEARS, STATUS_OK, STATUS_UNRELIABLE, STATUS_WITHHELD,
                     describe_blind, describe_lag, describe_restart, history_slope_draws,
                     judge, prognosis_status, recent_restarts)
-from .plan import maintenance_plan
+from .plan import level_cause, level_plan, maintenance_plan, restore_points
 from .pooling import ShapePriors, _pool_unit
 from .predictive import (residual_correlation, sample_predictive, sample_state,
                          state_interval, state_predictive)
@@ -110,14 +110,38 @@ def _forecast_chunk(state: _TwinState, units: list, *, directions: dict, box_ok:
                          fmu_everywhere=not box_ok, predict=state.predict, spec=state.spec,
                          limit_state=state.limit_state)
     unsafe_all = twin.unsafe(cfg.safety)
-    out, offset = [], 0
+    out, offsets, offset = [], [], 0
     for (unit, up, tr), p in zip(units, plans):
+        offsets.append(offset)
         uf, offset = _finish_unit(cfg, unit, up, p, twin, unsafe_all, offset, directions,
                                   fit_windows)
+        out.append(uf)
+    # Units unsafe now with no drift to blame: which part's level puts them there, from the
+    # twin at their last state with each input set back to nominal (a few points, for the
+    # few units that need them; the others' results do not move).
+    limit = cfg.safety.failure_probability
+    need = [j for j, uf in enumerate(out) if uf.root_cause == HEALTHY
+            and np.size(uf.p_unsafe_observed) and uf.p_unsafe_observed[-1] > limit]
+    if need:
+        d = len(cfg.model.input_names)
+        last = [plans[j]["mean"][-1] for j in need]
+        back = evaluate_twin(cfg, state.sur, np.concatenate([restore_points(cfg, x)
+                                                             for x in last]),
+                             state.executor, fmu_everywhere=not box_ok, predict=state.predict,
+                             spec=state.spec, limit_state=state.limit_state)
+        bad = back.unsafe(cfg.safety)
+        for a, j in enumerate(need):
+            rows = slice(a * d, (a + 1) * d)
+            levels = level_cause(cfg, last[a], bad[rows], back.value[rows],
+                                 float(np.nanmedian(out[j].indicator_observed[-1])))
+            if levels:
+                unit, up, _ = units[j]
+                out[j] = _finish_unit(cfg, unit, up, plans[j], twin, unsafe_all, offsets[j],
+                                      directions, fit_windows, levels)[0]
+    for (unit, _, tr), uf in zip(units, out):
         if tr is not None:
             _add_truth(cfg, uf, unit, tr, truth_path, state.spec, state.executor)
-        out.append((unit, uf))
-    return out
+    return list(zip([u for u, _, _ in units], out))
 
 
 def _plan_unit(cfg: Config, unit: str, up, directions: dict, fleet=None,
@@ -312,10 +336,12 @@ def new_parts_as_before(trend: dict, since: dict, years: np.ndarray, names: list
 
 def _finish_unit(cfg: Config, unit: str, up, p: dict, twin: TwinResult,
                  unsafe_all: np.ndarray, offset: int, directions: dict,
-                 fit_windows: list) -> tuple[UnitForecast, int]:
+                 fit_windows: list, levels: Optional[dict] = None
+                 ) -> tuple[UnitForecast, int]:
     """A unit's forecast from its plan and its slice of the chunk's twin results (starting at
     ``offset``): probabilities, failure year, verdict, plan, status. Returns it and the
-    offset of the next unit."""
+    offset of the next unit. ``levels``: the inputs whose level puts a unit with no drift
+    past its limit (:func:`~.plan.level_cause`): they are its root cause and its plan."""
     from ..safety import failure_year as first_failure
     fc = cfg.forecast
     names = cfg.model.input_names
@@ -355,6 +381,11 @@ def _finish_unit(cfg: Config, unit: str, up, p: dict, twin: TwinResult,
     uf.plan = maintenance_plan(trends, p["fut"], p_unsafe, fyear,
                                int(p["years"][-1]), float(p_obs[-1]), cfg.safety,
                                drift=drift, attribution=attribution, cfg=cfg)
+    if levels:
+        comps = list(dict.fromkeys(cfg.model.inputs[n].component or n for n in levels))
+        uf.root_cause = comps[0] if len(comps) == 1 else SEVERAL
+        uf.level_cause = levels
+        uf.plan = level_plan(cfg, levels, float(p_obs[-1]), int(p["years"][-1]))
     uf.repairs = [r.as_dict() for r in p["repairs"]]
     uf.shape = p["shape"]
     told = describe_shape(uf.shape) if uf.root_cause != HEALTHY else ""

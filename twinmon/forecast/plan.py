@@ -111,3 +111,74 @@ def maintenance_plan(trends: dict, years_future: np.ndarray,
                 f"<= {limit:.2f} through year {horizon_end} (max {pmax:.2f}){sound_txt}.")
     return (f"No action: all components within normal ageing; P(unsafe) stays <= {limit:.2f} "
             f"through year {horizon_end} (max {pmax:.2f}). Re-check at next year's recording.")
+
+
+def restore_points(cfg: Config, state: np.ndarray) -> np.ndarray:
+    """The unit's state ``state`` [d] with each input alone set back to its nominal value
+    (``model.inputs.<name>.nominal``): [d, d], row ``i`` restoring input ``i``."""
+    names = cfg.model.input_names
+    out = np.repeat(np.asarray(state, float)[None, :], len(names), axis=0)
+    out[np.arange(len(names)), np.arange(len(names))] = [cfg.model.inputs[n].nominal
+                                                         for n in names]
+    return out
+
+
+def level_cause(cfg: Config, state: np.ndarray, unsafe: np.ndarray, value: np.ndarray,
+                current: float) -> dict:
+    """Which inputs' levels put a unit past its limit when no drift explains it (a part
+    fitted worn, or a step before or early in the record: its slope is normal, so the
+    detection, which tests wear rates, calls the unit healthy while it is unsafe).
+
+    Each input alone is set back to nominal at the unit's last state (:func:`restore_points`)
+    and the twin judges the result: the inputs whose restoration alone makes the unit safe
+    are named; when none does alone, those whose restoration moves the indicator towards
+    safe, most first (several parts together).
+
+    Parameters
+    ----------
+    state : ndarray, shape [d]
+        The unit's last estimated inputs (input units).
+    unsafe, value : ndarray, shape [d]
+        The twin's verdict and health indicator at the restored points.
+    current : float
+        The indicator at the unit's last state (the posterior's median).
+
+    Returns
+    -------
+    dict
+        ``{input: {"value", "nominal", "restored", "safe"}}`` for the inputs named, in
+        order; empty when no input's restoration helps.
+    """
+    from ..safety import Indicator
+    sense = Indicator.from_config(cfg).sense
+    names = cfg.model.input_names
+    with np.errstate(invalid="ignore"):
+        gain = sense * (float(current) - np.asarray(value, float))
+    gain = np.where(np.isnan(gain), 0.0, gain)
+    alone = [i for i in range(len(names)) if not unsafe[i]]
+    pick = alone if alone else [i for i in np.argsort(-gain) if gain[i] > 0]
+    return {names[i]: {"value": float(state[i]), "nominal": cfg.model.inputs[names[i]].nominal,
+                       "restored": float(value[i]), "safe": bool(not unsafe[i])}
+            for i in pick}
+
+
+def level_plan(cfg: Config, levels: dict, p_unsafe_now: float, last_year: int) -> str:
+    """The maintenance sentence of a unit unsafe at a level (:func:`level_cause`)."""
+    from ..safety import Indicator
+    ind = Indicator.from_config(cfg)
+    comps = list(dict.fromkeys(cfg.model.inputs[n].component or n for n in levels))
+    parts = []
+    for n, v in levels.items():
+        u = cfg.model.inputs[n].units
+        parts.append(f"{n} {v['value']:.4g} {u} (nominal {v['nominal']:.4g}; at nominal "
+                     f"{ind.name} {ind.fmt(v['restored'])}"
+                     + (", safe)" if v["safe"] else ")"))
+    alone = all(v["safe"] for v in levels.values())
+    return (f"Inspect/replace the {' and the '.join(comps)} now (already unsafe: P(unsafe) "
+            f"{p_unsafe_now:.2f} in year {last_year}): a level, not a drift -- "
+            + "; ".join(parts)
+            + (" -- each alone puts the unit past its limit" if alone and len(parts) > 1
+               else " -- puts the unit past its limit" if alone
+               else " -- together put the unit past its limit")
+            + "; no input wears faster than normal ageing, so the level dates from before "
+            "the record or from a step in it.")

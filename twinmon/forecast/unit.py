@@ -103,6 +103,10 @@ class UnitForecast:
     #: ``year_p_values``, the ``missed_years`` named when it fails and the ``shapes``
     #: weighed; empty when it was off or no year could be predicted.
     trend_fit: dict = field(default_factory=dict)
+    #: A unit unsafe now with no drift to blame: the inputs whose level puts it past its
+    #: limit (:func:`~.plan.level_cause`: ``{input: {"value", "nominal", "restored",
+    #: "safe"}}``; its components are the root cause); empty otherwise.
+    level_cause: dict = field(default_factory=dict)
 
     #: Set by :meth:`slim`: the figures kept when the Monte Carlo arrays are dropped.
     _slim: Optional[dict] = field(default=None, repr=False)
@@ -199,6 +203,8 @@ class UnitForecast:
             d["trend_shape"] = dict(self.shape)
         if self.trend_fit:
             d["trend_fit"] = dict(self.trend_fit)
+        if self.level_cause:
+            d["level_cause"] = {n: dict(v) for n, v in self.level_cause.items()}
         if self.has_truth:
             d["true_failure_year"] = self.true_failure_year
             d["truth_source"] = self.truth_source

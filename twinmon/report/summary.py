@@ -168,6 +168,11 @@ def faulty_components(cfg: Config, uf) -> list[str]:
     cannot tell which ("pump 0.62 or motor 0.38"); for forecasts made before attribution,
     the components of the inputs whose slope test rejects (the config's ``component``
     words; the input's name when it has none)."""
+    levels = getattr(uf, "level_cause", None)
+    if levels:
+        # Unsafe at a level with no drift: the parts whose level puts it there.
+        return list(dict.fromkeys((cfg.model.inputs[n].component if n in cfg.model.inputs
+                                   else "") or n for n in levels))
     att = getattr(uf, "attribution", None)
     if att is not None and att.verdict != "withheld":
         probs = att.probabilities
@@ -244,7 +249,10 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
     elif uf is not None:
         comps = faulty_components(cfg, uf)
         s.root_cause = uf.root_cause
-        s.health = "healthy" if not comps else "degrading: " + " and ".join(comps)
+        s.health = ("healthy" if not comps else
+                    "unsafe: " + " and ".join(comps) + " (a level, not a drift)"
+                    if getattr(uf, "level_cause", None) else
+                    "degrading: " + " and ".join(comps))
         if uf.forced:
             s.health += " (FORCED: the twin misses the plant)"
             why.append("FORCED: " + uf.status_reason)
