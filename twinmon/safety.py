@@ -12,6 +12,7 @@ Nothing here knows which machine it judges: the pump's t90 > 30 s is
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 
@@ -153,6 +154,16 @@ def failure_year(years: np.ndarray, p_unsafe: np.ndarray, safety: SafetyConfig) 
     """First year whose probability of being unsafe exceeds ``failure_probability``."""
     over = np.flatnonzero(np.asarray(p_unsafe) > safety.failure_probability)
     return int(years[over[0]]) if over.size else None
+
+
+def trailing_run(years, flags) -> Optional[int]:
+    """The first of the last ``years`` in a row whose ``flags`` hold, or None when the last
+    one's does not (``years`` [n], ``flags`` [n] bool, in year order)."""
+    flags = np.asarray(flags, bool)
+    if not flags.size or not flags[-1]:
+        return None
+    off = np.flatnonzero(~flags)
+    return int(np.asarray(years)[off[-1] + 1 if off.size else 0])
 
 
 def median_failure_year(years: np.ndarray, p_unsafe: np.ndarray) -> int | None:

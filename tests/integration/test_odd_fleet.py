@@ -68,7 +68,12 @@ def test_units_new_in_service_do_not_stop_the_fleet(odd_run):
     for u, k in (("Young", 2), ("Infant", 1)):
         assert units[u]["health"] == "not judged (too few years)"
         assert units[u]["action"].startswith(f"no prognosis yet: {k} calibrated year(s)")
-    assert units["Steady"]["status"] == "ok" and units["Steady"]["root_cause"] == "healthy"
+    s = units["Steady"]
+    assert s["root_cause"] == "healthy", s
+    # Its trend may bend (the fleet's shapes learnt from these odd units): a failure year
+    # from the bend alone is not a confident one.
+    assert s["status"] == "ok" or (s["status"] == "unreliable" and s["status_reason"]
+                                   .startswith("prognosis unreliable: no input wears")), s
 
 
 def test_a_part_replaced_in_the_last_years_is_not_called_failing(odd_run):
@@ -125,6 +130,8 @@ def test_a_part_unsafe_at_its_level_is_named_though_it_does_not_drift(odd_run):
     lv = read_forecast(work / "forecast.h5").units["Fitted"].level_cause
     assert list(lv) == ["motor_damping"] and lv["motor_damping"]["safe"], lv
     assert lv["motor_damping"]["nominal"] == 10.0
+    # The truth: unsafe since its first year, not in the first year after the record.
+    assert s["true_failure_year"] == 1, s
 
 
 def test_the_backtest_runs_on_a_fleet_with_units_new_in_service(odd_run, tmp_path):

@@ -594,3 +594,28 @@ def test_level_cause_names_the_inputs_whose_restoration_makes_the_unit_safe():
     # A restoration that makes it worse, or a level never reached (inf), names nothing.
     assert level_cause(cfg, state, np.array([True, True]), np.array([35.0, np.inf]),
                        34.0) == {}
+
+
+def test_a_failure_year_from_the_bend_alone_is_not_confirmed():
+    """A unit with no fault found whose failure year only its bent draws reach is
+    unreliable; one whose straight-line draws reach it too, or with a fault, is not."""
+    from twinmon.config import load_config
+    from twinmon.forecast.judge import describe_bend
+    from ..conftest import CONFIGS
+    cfg = load_config(CONFIGS / "pump.yaml")
+    fut = np.arange(11, 18)
+    p_all = np.array([0.0, 0.01, 0.03, 0.15, 0.3, 0.4, 0.5])
+    p_line = np.array([0.0, 0.0, 0.0, 0.02, 0.04, 0.06, 0.08])
+    bent = {"line": 0.7, "accelerating": 0.25, "change": 0.05}
+    why = describe_bend(cfg, bent, fut, p_all, 14, p_line, healthy=True)
+    assert why.startswith("prognosis unreliable: no input wears faster than normal ageing")
+    assert "P(unsafe) 0.15 in year 14, the straight-line draws 0.02" in why
+    assert describe_bend(cfg, bent, fut, p_all, 14, p_line + 0.05, True) == ""   # line too
+    assert describe_bend(cfg, bent, fut, p_all, 14, p_line, healthy=False) == ""
+    assert describe_bend(cfg, bent, fut, p_all, None, p_line, True) == ""
+    assert describe_bend(cfg, {}, fut, p_all, 14, None, True) == ""    # a line-only posterior
+    # Too few line draws to tell: by the shapes' shares.
+    assert describe_bend(cfg, bent, fut, p_all, 14, None, True) == ""
+    why = describe_bend(cfg, {"line": 0.2, "accelerating": 0.7, "change": 0.1}, fut, p_all,
+                        14, None, True)
+    assert "a straight line 0.20 of the posterior (accelerating 0.70, a change 0.10)" in why

@@ -135,6 +135,51 @@ def test_fall_test_reads_no_fall_into_wear_that_bends():
     assert findings / 300 <= 0.05
 
 
+def test_fall_test_reads_no_fall_into_estimates_that_rise_every_year(monkeypatch):
+    """Exponential wear on one input: the scan's quadratic plus a step fits a fall where the
+    curve outruns the quadratic, though the estimates rise every year; the estimates' own
+    means across the year must fall too."""
+    import twinmon.repairs as R
+    rng = np.random.default_rng(5)
+    years = np.arange(1, 12)
+    cov = np.full((11, 1, 1), 0.01 ** 2)
+    runs = [1 + 0.02 * np.exp(0.3 * (years - 1)) + 0.01 * rng.standard_normal(11)
+            for _ in range(200)]
+
+    def findings():
+        return sum(p * tried < 0.05 for p, _, _, tried in
+                   (fall_test(years, x[:, None], cov, 0, +1) for x in runs))
+    assert findings() == 0
+    # Without the estimates' own check the same runs give findings (the check is what
+    # keeps them out).
+    monkeypatch.setattr(R, "_falls", lambda *a: True)
+    assert findings() >= 5
+
+
+def test_shape_gate_tests_every_input_when_none_drifts():
+    """A part that ages normally, then wears fast from year 7: its slope over the record is
+    within normal ageing (no input drifts), and the gate names its acceleration; beside an
+    input that drifts it is not tested."""
+    from dataclasses import replace
+    from twinmon.forecast.trend import Trend, shape_gate
+    cfg = load_config(CONFIGS / "pump.yaml")
+    rng = np.random.default_rng(2)
+    years = np.arange(1, 11)
+    pump = 3.65 - 0.02 * years - 0.2 * np.maximum(years - 6, 0) + 0.01 * rng.standard_normal(10)
+    motor = 10.0 + 0.05 * rng.standard_normal(10)
+    mean = np.column_stack([motor, pump])
+    base = Trend(intercept=0.0, slope=0.0, slope_se=1.0, slope_ci=(0.0, 0.0), residual_std=0.0,
+                 n=10, x_mean=5.5, sxx=82.5, normal_rate=0.0, tolerance=0.0, direction=+1,
+                 p_value=1.0, test="t", rejects=False, component="motor")
+    trends = {"motor_damping": base,
+              "pump_coef": replace(base, direction=-1, component="pump")}
+    since = {"motor_damping": 1, "pump_coef": 1}
+    reason, name = shape_gate(cfg, since, years, mean, trends)
+    assert name == "pump_coef" and reason.startswith("pump_coef's yearly estimates accelerate")
+    trends["motor_damping"] = replace(base, rejects=True)
+    assert shape_gate(cfg, since, years, mean, trends) == ("", None)
+
+
 @pytest.fixture(scope="module")
 def dcdrive_fleet(tmp_path_factory):
     """A DC drive (not the pump) fleet: a bearing whose friction grows exponentially, one

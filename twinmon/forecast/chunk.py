@@ -20,12 +20,13 @@ from ..calibrate.shapes import describe_shape, shape_probabilities, shape_summar
 from ..config import Config
 from ..errors import ArtifactError, CalibrationError
 from ..repairs import FoundRepair, find_repairs
+from ..safety import trailing_run
 from .attribution import HEALTHY, SEVERAL
 from .covariance import estimate_error_covariance, filter_attenuation
 from .detection import gradient_from, gradient_points, mid_state
-from .judge import (MIN_TREND_YEARS, STATUS_OK, STATUS_UNRELIABLE, STATUS_WITHHELD,
-                    describe_blind, describe_lag, describe_restart, history_slope_draws,
-                    judge, prognosis_status, recent_restarts)
+from .judge import (MIN_LINE_DRAWS, MIN_TREND_YEARS, STATUS_OK, STATUS_UNRELIABLE, STATUS_WITHHELD,
+                    describe_bend, describe_blind, describe_lag, describe_restart,
+                    history_slope_draws, judge, prognosis_status, recent_restarts)
 from .plan import level_cause, level_plan, maintenance_plan, restore_points
 from .pooling import ShapePriors, _pool_unit
 from .predictive import (residual_correlation, sample_predictive, sample_state,
@@ -236,7 +237,7 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict, fleet=None,
     # detection's normal-ageing band), evaluated with every other point.
     probe, step = gradient_points(cfg, mid_state(trends, names))
     fut = years[-1] + np.arange(1, fc.horizon + 1)
-    state = None
+    state = future_line = None
     err_cov = estimate_error_covariance(cfg, post_cov, sequential=not trend_post)
     # How much of a drift the sequential estimates show (their prior lags it where the data
     # are weak); a joint posterior's trend is sampled with its years and does not lag.
@@ -250,8 +251,13 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict, fleet=None,
         rng = unit_rng(cfg, unit, 0)
         draws = trend_predictive(new_parts_as_before(future, since, years, names), fut,
                                  rng)                          # [n, h, d]
-        X = draws[rng.integers(0, draws.shape[0], fc.samples)].transpose(1, 0, 2)
+        take = rng.integers(0, draws.shape[0], fc.samples)
+        X = draws[take].transpose(1, 0, 2)
         state = "trend"
+        if "shape" in future:
+            # Which future draws extend a straight line (describe_bend: a failure year that
+            # only the bent draws reach).
+            future_line = np.asarray(future["shape"])[take] == 0
     elif fc.predictive == "state" and common.sum() >= MIN_TREND_YEARS:
         # (A part replaced in the last years: its line has no spread of its own to take
         # the state's uncertainty from; each trend's own predictive below carries the
@@ -285,7 +291,8 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict, fleet=None,
                 history_draws=history_draws, rate_draws=rate_draws, changed=changed,
                 pool_ess=pool_ess,
                 shapes="now" in trend_post and cfg.calibrate.shapes.get("accelerating", 0) > 0,
-                shape=shape_summary(future), trend_fit=trend_fit, attenuation=attenuation)
+                shape=shape_summary(future), trend_fit=trend_fit, attenuation=attenuation,
+                future_line=future_line)
     return plan, [X.reshape(-1, d), Xo.reshape(-1, d), probe]
 
 
@@ -399,9 +406,24 @@ def _finish_unit(cfg: Config, unit: str, up, p: dict, twin: TwinResult,
         # The twin fits, but the trend may not: accelerating wear makes the line's
         # failure year late with intervals that look sure. A posterior that averaged the
         # accelerating shape in (calibrate.shapes) has already weighed it.
-        shape = shape_gate(cfg, p["since_by_input"], p["years"], p["mean"], trends)
+        shape, accel = shape_gate(cfg, p["since_by_input"], p["years"], p["mean"], trends)
         if shape:
             uf.status, uf.status_reason = STATUS_UNRELIABLE, shape
+            if uf.root_cause == HEALTHY:
+                # No slope beyond normal ageing, but a part's wear speeds up: that part is
+                # the one to look at, not "no action".
+                comp = cfg.model.inputs[accel].component or accel
+                uf.watch = [comp]
+                if fyear is None:
+                    uf.plan = (f"Inspect the {comp} at the next planned stop: no input's "
+                               "slope over the record is beyond normal ageing, but its wear "
+                               f"accelerates; on the straight-line trends P(unsafe) stays <= "
+                               f"{cfg.safety.failure_probability:.2f} through year "
+                               f"{int(p['fut'][-1])} (max {float(np.max(p_unsafe)):.2f}).")
+                else:
+                    uf.plan = (f"Inspect the {comp} first: its wear accelerates, though no "
+                               f"input's slope over the record is beyond normal ageing. "
+                               f"{uf.plan}")
     if uf.status == STATUS_OK and p.get("attenuation") is not None:
         lag = describe_lag(names, p["attenuation"])
         if lag:
@@ -418,6 +440,15 @@ def _finish_unit(cfg: Config, unit: str, up, p: dict, twin: TwinResult,
             latest = describe_latest(cfg, fit, int(p["years"][-1]), fc.trend_fit_alpha)
             if latest:
                 uf.status, uf.status_reason = STATUS_UNRELIABLE, latest
+    if uf.status == STATUS_OK:
+        # No fault found, but a failure year from the trend's bend alone.
+        line = p["future_line"]
+        p_line = (unsafe_all[sl].reshape(h, n_s)[:, line].mean(axis=1)
+                  if line is not None and line.sum() >= MIN_LINE_DRAWS else None)
+        bend = describe_bend(cfg, uf.shape, p["fut"], p_unsafe, fyear, p_line,
+                             uf.root_cause == HEALTHY)
+        if bend:
+            uf.status, uf.status_reason = STATUS_UNRELIABLE, bend
     if uf.status == STATUS_OK:
         # A part replaced lately (a recorded event, or a repair found): its trend restarted
         # too few years ago to show the new part's rate. (After the trend-fit gate: a
@@ -470,9 +501,10 @@ def _add_truth(cfg: Config, uf: UnitForecast, unit: str, truth_unit, truth_path,
     of the record, as a backtest makes it) and its recorded future: what the unit will
     really be, year-to-year jitter included; otherwise (truth files written before the
     future was recorded, a longer horizon) each true trajectory's fitted line extended.
-    ``uf.truth_source`` says which."""
-    from ..safety import Indicator, is_unsafe
-    from ..simulate import as_parameters, run_batch
+    ``uf.truth_source`` says which. The true failure year is the first future year the true
+    unit is unsafe; for a unit truly unsafe at the forecast's last recorded year already, the
+    first of the years it has been unsafe in a row up to it (as ``unsafe_since`` reads the
+    forecast's own)."""
     ty, inputs, fy, finputs = truth_unit
     names = cfg.model.input_names
     for name in names:
@@ -496,13 +528,34 @@ def _add_truth(cfg: Config, uf: UnitForecast, unit: str, truth_unit, truth_path,
             slope, icpt = np.polyfit(ty, np.asarray(inputs[name], float), 1)
             Xt[:, i] = icpt + slope * uf.years_future
     uf.truth_source = "recorded future" if realised else "trend line"
-    batch = run_batch(spec, as_parameters(cfg, Xt), executor)
+    # The true state of the forecast's last recorded year too, run with the future: a unit
+    # truly unsafe there failed before the forecast's years (its true failure year is the
+    # first of that trailing run, found from the years before it only then).
+    h = uf.years_future.size
+    last = int(uf.years_observed[-1])
+    past = np.flatnonzero(years <= last)
+    seen = past.size and int(years[past[-1]]) == last
+    Xp = np.column_stack([values[n][past] for n in names]) if seen else np.empty((0, len(names)))
+    value, bad = _true_unsafe(cfg, spec, executor, np.vstack([Xt, Xp[-1:]]))
+    uf.has_truth = True
+    uf.true_indicator = value[:h]
+    uf.true_unsafe = bad[:h]
+    uf.true_inputs = {n: Xt[:, i] for i, n in enumerate(cfg.model.input_names)}
+    uf.true_failure_year = int(uf.years_future[np.argmax(bad[:h])]) if bad[:h].any() else None
+    if seen and bad[h]:
+        flags = _true_unsafe(cfg, spec, executor, Xp[:-1])[1]
+        uf.true_failure_year = trailing_run(years[past], np.append(flags, True))
+
+
+def _true_unsafe(cfg: Config, spec, executor, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The health indicator [m] and whether each state is unsafe [m] (a failed run is), of
+    true states ``X`` [m, d], through the FMU."""
+    from ..safety import Indicator, is_unsafe
+    from ..simulate import as_parameters, run_batch
+    if not len(X):
+        return np.empty(0), np.empty(0, bool)
+    batch = run_batch(spec, as_parameters(cfg, X), executor)
     ind = Indicator.from_config(cfg)
     value = np.where(batch.ok, ind(spec.times, batch.outputs[ind.variable]), np.nan)
     nph = (batch.outputs[cfg.model.nonphysical][:, -1] > 0.5) if cfg.model.nonphysical else None
-    bad = is_unsafe(value, cfg.safety, nph) | ~batch.ok
-    uf.has_truth = True
-    uf.true_indicator = value
-    uf.true_unsafe = bad
-    uf.true_inputs = {n: Xt[:, i] for i, n in enumerate(cfg.model.input_names)}
-    uf.true_failure_year = int(uf.years_future[np.argmax(bad)]) if bad.any() else None
+    return value, is_unsafe(value, cfg.safety, nph) | ~batch.ok

@@ -46,6 +46,11 @@ STATUS_OK, STATUS_WITHHELD, STATUS_UNRELIABLE = "ok", "withheld", "unreliable"
 CHANGED_SHARE = 0.5
 
 
+#: Fewest future draws on the straight line whose P(unsafe) tells whether the line alone
+#: reaches the limit (:func:`describe_bend`).
+MIN_LINE_DRAWS = 100
+
+
 #: Fewest calibrated years a trend is forecast from (a line and its prediction interval
 #: need a degree of freedom): a unit with fewer is not forecast, and an input whose trend
 #: restarted fewer years ago makes its unit's prognosis unreliable.
@@ -263,6 +268,44 @@ def describe_lag(names: list, attenuation: np.ndarray) -> str:
             f"give little a year), so the yearly estimates show only part of a steady drift "
             f"({what}): the trends, their tests and the failure year understate one; a less "
             "noisy record, or the fleet calibrated jointly (5 or more units), would show it")
+
+
+def describe_bend(cfg: Config, shape: dict, years_future: np.ndarray, p_unsafe: np.ndarray,
+                  failure_year: Optional[int], p_line: Optional[np.ndarray],
+                  healthy: bool) -> str:
+    """Why a unit with no fault found but a failure year is unreliable when only its trend's
+    bend takes it there, or ``""``.
+
+    No input's slope over the record is beyond normal ageing, so the failure year rests on
+    the bent draws (the accelerating and change shapes) alone: the draws that extend a
+    straight line (``p_line``, P(unsafe) per future year among them [h], when there are
+    :data:`MIN_LINE_DRAWS` of them) stay at or under ``safety.failure_probability`` in the
+    failure year; with fewer line draws, most of the posterior (``shape``, as
+    :func:`~twinmon.calibrate.shapes.shape_summary` gives it) is on the bent shapes. Yearly
+    estimates of inputs that trade off in the likelihood bend together as they slide along
+    the trade-off (a healthy fan's belt slip and spindle drag arched up then down while its
+    filter load curved up; extended, the bends took it past its limit in year 14, and it
+    never fails); a fleet's prior of the shapes, learnt from its worn units, lends a sound
+    one their bends. The record does not confirm such a bend."""
+    if not healthy or failure_year is None or not shape:
+        return ""
+    k = int(np.flatnonzero(np.asarray(years_future) == failure_year)[0])
+    limit = cfg.safety.failure_probability
+    if p_line is not None:
+        if p_line[k] > limit:
+            return ""
+        line = f"the straight-line draws {p_line[k]:.2f}"
+    elif shape.get("line", 1.0) >= 0.5:
+        return ""
+    else:
+        line = f"a straight line {shape.get('line', 0):.2f} of the posterior"
+    return (f"prognosis unreliable: no input wears faster than normal ageing over its "
+            f"record, yet the trend's bend alone takes the unit to its limit: P(unsafe) "
+            f"{p_unsafe[k]:.2f} in year {failure_year}, {line} (accelerating "
+            f"{shape.get('accelerating', 0):.2f}, a change {shape.get('change', 0):.2f}); "
+            "estimates of inputs that trade off bend together as they slide along the "
+            "trade-off, so the failure year is not confirmed (a channel that separates the "
+            "inputs, or more years, would)")
 
 
 def recent_restarts(since: dict, years: np.ndarray) -> dict:

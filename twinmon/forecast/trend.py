@@ -305,13 +305,18 @@ def acceleration_test(years: np.ndarray, values: np.ndarray, direction: int) -> 
 
 
 def shape_gate(cfg: Config, since: dict, years: np.ndarray, mean: np.ndarray,
-               trends: dict) -> str:
-    """Why a unit's straight-line trends cannot be trusted, or ``""``.
+               trends: dict) -> tuple[str, Optional[str]]:
+    """Why a unit's straight-line trends cannot be trusted, or ``""``, and the input that
+    accelerates the most surely (None when none does).
 
-    Only inputs whose slope test found abnormal drift are tested (a sound input's bend does
-    not move the failure year, and testing only those keeps healthy units out): each for
-    acceleration in its degrading direction over its current part's years
-    (:func:`acceleration_test`), at ``forecast.shape_alpha`` divided by the number tested.
+    When an input's slope test found abnormal drift, only those inputs are tested (a sound
+    input's estimates may bend beside a fast fault, the inputs trading off in the
+    likelihood, without moving the failure year); when none did, every input is (wear that
+    starts late keeps the slope over the whole record within normal ageing while it runs
+    to the limit: a pump coefficient ageing normally for 6 years, then falling 0.2 a year,
+    was "healthy, no action" and failed in year 14). Each for acceleration in its degrading
+    direction over its current part's years (:func:`acceleration_test`), at
+    ``forecast.shape_alpha`` divided by the number tested.
 
     Parameters
     ----------
@@ -326,10 +331,12 @@ def shape_gate(cfg: Config, since: dict, years: np.ndarray, mean: np.ndarray,
     """
     alpha = cfg.forecast.shape_alpha
     if alpha <= 0:
-        return ""
+        return "", None
     names = list(trends)
+    drifting = any(trends[n].rejects for n in names)
     tested = [i for i, n in enumerate(names)
-              if trends[n].rejects and (years >= since[n]).sum() >= SHAPE_MIN_YEARS]
+              if (trends[n].rejects or not drifting)
+              and (years >= since[n]).sum() >= SHAPE_MIN_YEARS]
     found = []
     for i in tested:
         n = names[i]
@@ -338,8 +345,8 @@ def shape_gate(cfg: Config, since: dict, years: np.ndarray, mean: np.ndarray,
         if p < alpha / len(tested):
             found.append((p, n, int(years[seg][0]), int(years[seg][-1])))
     if not found:
-        return ""
+        return "", None
     p, n, a, b = min(found)
     return (f"{n}'s yearly estimates accelerate over years {a}-{b} (one-sided test of a "
             f"quadratic term, p = {p:.2g}): the straight-line trend understates its wear and "
-            "the failure may come earlier than forecast")
+            "the failure may come earlier than forecast"), n

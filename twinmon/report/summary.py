@@ -14,7 +14,8 @@ from ..repairs import FoundRepair
 from .common import plain
 from .fleet import FleetView, overview_lines
 from .load import Inputs
-from .unit_summary import UnitSummary, trailing_run
+from ..safety import trailing_run
+from .unit_summary import UnitSummary
 
 
 @dataclass
@@ -249,10 +250,13 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
     elif uf is not None:
         comps = faulty_components(cfg, uf)
         s.root_cause = uf.root_cause
-        s.health = ("healthy" if not comps else
-                    "unsafe: " + " and ".join(comps) + " (a level, not a drift)"
-                    if getattr(uf, "level_cause", None) else
-                    "degrading: " + " and ".join(comps))
+        watch = list(getattr(uf, "watch", None) or ())
+        s.health = ("unsafe: " + " and ".join(comps) + " (a level, not a drift)"
+                    if comps and getattr(uf, "level_cause", None) else
+                    "degrading: " + " and ".join(comps) if comps else
+                    "wear accelerating: " + " and ".join(watch) if watch else "healthy")
+        # A part whose wear speeds up with its slope still normal: inspect it.
+        found, comps = comps, comps or watch
         if uf.forced:
             s.health += " (FORCED: the twin misses the plant)"
             why.append("FORCED: " + uf.status_reason)
@@ -305,7 +309,7 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
                       if sh.get("change_year") is not None else f", a change {sh['change']:.2f}")
             why.append(f"trend shape on the current segment: straight line {sh['line']:.2f}, "
                        f"accelerating {sh['accelerating']:.2f}{change}")
-        if not comps:
+        if not found:
             pmin = min(t.p_value for t in uf.trends.values())
             why.append(f"every input drifts within normal ageing (tests of the slopes, all "
                        f"p >= {np.floor(pmin * 100) / 100:.2f})")

@@ -7,17 +7,8 @@ from typing import Optional
 
 import numpy as np
 
+from ..safety import trailing_run  # noqa: F401  (re-exported: the report's helpers)
 from .common import pct, state_words, withheld_words
-
-
-def trailing_run(years, flags) -> Optional[int]:
-    """The first of the last ``years`` in a row whose ``flags`` hold, or None when the last
-    one's does not (``years`` [n], ``flags`` [n] bool, in year order)."""
-    flags = np.asarray(flags, bool)
-    if not flags.size or not flags[-1]:
-        return None
-    off = np.flatnonzero(~flags)
-    return int(np.asarray(years)[off[-1] + 1 if off.size else 0])
 
 
 @dataclass
