@@ -80,6 +80,16 @@ def test_set_overrides_apply_before_validation():
     ("model.inputs.pump_coef.low=5", r"model.inputs.pump_coef.high: must be greater than low"),
     ("reduce.variance_threshold=.nan", r"reduce.variance_threshold: expected a finite number"),
     ("novalue", r"expected KEY.PATH=VALUE"),
+    # Mistakes a new model's config makes that would otherwise pass silently.
+    ("model.inputs.pump_coef.variable=motor.D",
+     r"model.inputs.pump_coef.variable: is also model.inputs.motor_damping's variable"),
+    ("model.inputs.pump_coef.component=both",
+     r"model.inputs.pump_coef.component: is a word the verdicts use .*, got 'both'"),
+    ("model.fixed={pump.b2: 3.0}", r"model.inputs.pump_coef.variable: is held by model.fixed"),
+    ("model.channels={sensor.m_flow: {units: kg/s}}",
+     r"model.channels.sensor.m_flow: is model.output.variable"),
+    ("diagnose.windows={late: {start: 60, stop: 80}}",
+     r"diagnose.windows.late: holds no sample of the record \(model.output.times: 2 to 50 s\)"),
 ])
 def test_bad_values_name_file_path_and_value(override, message):
     with pytest.raises(ConfigError, match=message) as exc:
@@ -183,3 +193,16 @@ def test_default_diagnose_windows_split_the_record_in_thirds():
     t = cfg.model.output.times.times
     counts = [int(np.sum((t >= v.start) & (t < v.stop))) for v in w.values()]
     assert sum(counts) == t.size and min(counts) >= 8
+
+
+def test_fabricated_trajectories_name_a_misspelt_input_and_a_missing_one(tmp_path):
+    base = {"extends": str(CONFIGS / "pump.yaml"), "fabricate": {"units": {"U": {
+        "trajectories": {"motor_damping": {"start": 10.0},
+                         "pump_cof": {"start": 3.6}}}}}}
+    with pytest.raises(ConfigError, match=r"fabricate.units.U.trajectories.pump_cof: not an "
+                                          r"input of the model \(did you mean pump_coef\?\)"):
+        load_config(write_yaml(tmp_path / "a.yaml", base))
+    del base["fabricate"]["units"]["U"]["trajectories"]["pump_cof"]
+    with pytest.raises(ConfigError, match=r"trajectories.pump_coef: missing: every input needs "
+                                          r"a trajectory \(given for\), got \['motor_damping'\]"):
+        load_config(write_yaml(tmp_path / "b.yaml", base))

@@ -91,7 +91,7 @@ def test_missing_trajectory_is_a_config_error(tmp_path, fmu_path):
     p = write_yaml(tmp_path / "bad.yaml", {
         "extends": str(CONFIGS / "pump.yaml"),
         "fabricate": {"units": {"A": {"trajectories": {"motor_damping": {"start": 10.0}}}}}})
-    with pytest.raises(ConfigError, match=r"fabricate.units.A.trajectories.pump_coef: required"):
+    with pytest.raises(ConfigError, match=r"fabricate.units.A.trajectories.pump_coef: missing: every input needs"):
         fabricate(load_config(p), tmp_path / "o.h5", tmp_path / "t.h5")
     assert not (tmp_path / "o.h5").exists()
 

@@ -124,6 +124,11 @@ class EffectSpec:
             yield "baseline", f"must lie in [{self.low}, {self.high}]", self.baseline
 
 
+#: Words a unit's verdict (root cause) may be besides a component: a component may not be
+#: called so.
+VERDICT_WORDS = ("healthy", "both", "ambiguous", "withheld")
+
+
 @dataclass(frozen=True)
 class ModelConfig:
     """Which FMU, which inputs are calibrated, what is observed."""
@@ -148,6 +153,25 @@ class ModelConfig:
         if self.output.name in self.channels:
             yield "channels", f"{self.output.name!r} is the output's own channel name", \
                 self.output.name
+        if self.output.variable in self.channels:
+            yield f"channels.{self.output.variable}", "is model.output.variable, recorded " \
+                "already as the output", self.output.variable
+        owner: dict[str, str] = {}
+        for name, spec in self.inputs.items():
+            # Two inputs on one FMU variable: one of them would do nothing (a dead dimension
+            # of the design, a trend the data cannot see).
+            if spec.variable in owner:
+                yield f"inputs.{name}.variable", f"is also model.inputs.{owner[spec.variable]}" \
+                    "'s variable", spec.variable
+            owner.setdefault(spec.variable, name)
+            if spec.variable in self.fixed:
+                yield f"inputs.{name}.variable", "is held by model.fixed too", spec.variable
+            word = spec.component or name
+            if word in VERDICT_WORDS:
+                # The verdicts' own words: "both" named a single component's fault.
+                yield (f"inputs.{name}.component" if spec.component else f"inputs.{name}"), \
+                    f"is a word the verdicts use ({', '.join(VERDICT_WORDS)}): choose " \
+                    "another component name", word
 
     @property
     def channel_units(self) -> dict[str, str]:

@@ -6,6 +6,7 @@ they are left out of that YAML.
 """
 from __future__ import annotations
 
+import difflib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Mapping, Optional
@@ -80,8 +81,27 @@ class Config:
                 if ch not in self.model.channels:
                     yield f"{section}.channels.{i}", "not a key of model.channels (channels: " \
                         f"{', '.join(self.model.channels) or 'none'})", ch
+        times = self.model.output.times.times
+        for name, w in self.diagnose.windows.items():
+            if not np.any((times >= w.start) & (times < w.stop)):
+                yield f"diagnose.windows.{name}", "holds no sample of the record " \
+                    f"(model.output.times: {times[0]:g} to {times[-1]:g} s)", [w.start, w.stop]
         comps = self.model.components
+        inputs = list(self.model.inputs)
         for unit, spec in (self.fabricate.units if self.fabricate else {}).items():
+            # A misspelt input first (its closest name), then one left out.
+            for key in spec.trajectories:
+                if key not in self.model.inputs:
+                    near = difflib.get_close_matches(key, inputs, n=1, cutoff=0.5)
+                    yield f"fabricate.units.{unit}.trajectories.{key}", \
+                        "not an input of the model" + (f" (did you mean {near[0]}?)" if near
+                                                       else f" (inputs: {', '.join(inputs)})"), \
+                        key
+            for name in inputs:
+                if name not in spec.trajectories:
+                    yield f"fabricate.units.{unit}.trajectories.{name}", \
+                        "missing: every input needs a trajectory (given for)", \
+                        sorted(spec.trajectories)
             for i, ev in enumerate(spec.events):
                 if ev.component not in comps:
                     yield f"fabricate.units.{unit}.events.{i}.component", \
