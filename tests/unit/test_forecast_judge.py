@@ -619,3 +619,35 @@ def test_a_failure_year_from_the_bend_alone_is_not_confirmed():
     why = describe_bend(cfg, {"line": 0.2, "accelerating": 0.7, "change": 0.1}, fut, p_all,
                         14, None, True)
     assert "a straight line 0.20 of the posterior (accelerating 0.70, a change 0.10)" in why
+
+
+def test_a_part_beyond_normal_ageing_the_safe_way_is_named_not_called_normal():
+    """An input drifting far beyond its band, but away from the limit: no risk by the
+    indicator, so no fault; the plan does not call it normal ageing and asks to check it."""
+    from twinmon.config import load_config
+    from twinmon.forecast.plan import maintenance_plan
+    from twinmon.forecast.trend import Trend, safe_way, slope_test
+    from ..conftest import CONFIGS
+    cfg = load_config(CONFIGS / "pump.yaml")
+
+    def trend(slope, se, rate, tol, direction, comp):
+        t = Trend(intercept=0.0, slope=slope, slope_se=se, slope_ci=(slope, slope),
+                  residual_std=0.1, n=10, x_mean=5.5, sxx=82.5, component=comp)
+        return slope_test(t, rate, tol, direction, cfg.forecast.alpha)
+    # The motor's damping falls 1/yr (its degrading direction is up); the pump ages normally.
+    trends = {"motor_damping": trend(-1.0, 0.1, 0.0, 0.25, +1, "motor"),
+              "pump_coef": trend(-0.02, 0.01, -0.02, 0.03, -1, "pump")}
+    assert not trends["motor_damping"].rejects
+    away = safe_way(trends, cfg.forecast.alpha)
+    assert list(away) == ["motor_damping"] and away["motor_damping"] < 1e-4
+    plan = maintenance_plan(trends, np.arange(11, 18), np.zeros(7), None, 10, 0.0,
+                            cfg.safety, cfg=cfg)
+    assert plan.startswith("No action for safety: no component wears towards the limit")
+    assert "pump within normal ageing" in plan and "motor within" not in plan
+    assert "motor_damping drifts -1/yr, beyond normal ageing (+0 +- 0.25/yr) but away from " \
+        "the limit" in plan and plan.endswith("check the motor.")
+    # Within its band, or beyond it towards the limit (a fault, not this): nothing.
+    trends["motor_damping"] = trend(-0.1, 0.1, 0.0, 0.25, +1, "motor")
+    assert safe_way(trends, cfg.forecast.alpha) == {}
+    trends["motor_damping"] = trend(1.0, 0.1, 0.0, 0.25, +1, "motor")
+    assert safe_way(trends, cfg.forecast.alpha) == {}

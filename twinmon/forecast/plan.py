@@ -14,6 +14,7 @@ import numpy as np
 from ..config import Config
 from .attribution import AMBIGUOUS, Attribution
 from .detection import IndicatorDrift
+from .trend import safe_way
 
 
 def no_fault_due(years_future: np.ndarray, p_unsafe: np.ndarray, limit: float) -> str:
@@ -91,7 +92,17 @@ def maintenance_plan(trends: dict, years_future: np.ndarray,
     # An ambiguous attribution lists the candidates, most probable first.
     join = " or the " if attribution is not None and attribution.verdict == AMBIGUOUS \
         else " and the "
+    # A part beyond normal ageing the safe way is no risk by the indicator, nor normal.
+    away = safe_way(trends, cfg.forecast.alpha) if cfg is not None else {}
+    odd = {c for c, ts in comps.items() if any(n in away for n, _ in ts)}
+    sound = [c for c in sound if c not in odd]
     sound_txt = (f"; {' and '.join(sound)} within normal ageing" if sound else "")
+    if away:
+        sound_txt += "; " + "; ".join(
+            f"{n} drifts {trends[n].slope:+.3g}/yr, beyond normal ageing "
+            f"({trends[n].normal_rate:+.3g} +- {trends[n].tolerance:.3g}/yr) but away from "
+            f"the limit (p = {p:.2g}): no risk by this indicator, yet not normal ageing -- "
+            f"check the {trends[n].component or n}" for n, p in away.items())
     limit = safety.failure_probability
     if failure_year is not None:
         k = int(np.flatnonzero(years_future == failure_year)[0])
@@ -109,6 +120,10 @@ def maintenance_plan(trends: dict, years_future: np.ndarray,
         return (f"Inspect the {join.join(faulty)} at the next planned stop: "
                 f"degrading faster than normal ageing [{evidence}], though P(unsafe) stays "
                 f"<= {limit:.2f} through year {horizon_end} (max {pmax:.2f}){sound_txt}.")
+    if away:
+        return (f"No action for safety: no component wears towards the limit faster than "
+                f"normal ageing; P(unsafe) stays <= {limit:.2f} through year {horizon_end} "
+                f"(max {pmax:.2f}){sound_txt}.")
     return (f"No action: all components within normal ageing; P(unsafe) stays <= {limit:.2f} "
             f"through year {horizon_end} (max {pmax:.2f}). Re-check at next year's recording.")
 

@@ -234,6 +234,26 @@ def slope_test(trend: Trend, normal_rate: float, tolerance: float, direction: in
     return trend
 
 
+def safe_way(trends: dict, alpha: float) -> dict:
+    """The inputs whose slope lies beyond normal ageing on the side *away* from their
+    degrading direction: ``{name: p}``, one-sided at ``alpha`` divided by the number of
+    inputs with a known direction (Student t, the trend's own dof).
+
+    Detection tests wear towards the limit only, so such a part is no risk by the health
+    indicator; but it is not ageing normally either (a fan's belt slip rising 0.5 %/yr
+    against a band of 0.05 +- 0.1 lowered the power drawn, the indicator, and read "within
+    normal ageing"). The plan and the report name it instead of calling it normal."""
+    known = [n for n, t in trends.items() if t.direction]
+    out = {}
+    for n in known:
+        t = trends[n]
+        p = slope_p_value(t.slope, t.slope_se, t.dof, t.normal_rate, t.tolerance,
+                          -t.direction)
+        if p < alpha / len(known):
+            out[n] = p
+    return out
+
+
 def posterior_slope_test(trend: Trend, draws: np.ndarray, normal_rate: float,
                          tolerance: float, direction: int, alpha: float) -> Trend:
     """:func:`slope_test` for a jointly calibrated unit: from its posterior's slope draws.

@@ -14,6 +14,7 @@ from ..repairs import FoundRepair
 from .common import plain
 from .fleet import FleetView, overview_lines
 from .load import Inputs
+from ..forecast.trend import safe_way
 from ..safety import trailing_run
 from .unit_summary import UnitSummary
 
@@ -277,6 +278,9 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
             s.unsafe_since = trailing_run(uf.years_observed,
                                           np.asarray(uf.p_unsafe_observed) > limit)
         what = " and the ".join(comps) if comps else None
+        # Parts beyond normal ageing the safe way: no risk by the indicator, nor normal.
+        away = safe_way(uf.trends, cfg.forecast.alpha)
+        away_comps = list(dict.fromkeys(uf.trends[n].component or n for n in away))
         if uf.failure_year is not None:
             s.p_unsafe = float(uf.p_unsafe[int(np.flatnonzero(yf == uf.failure_year)[0])])
             now = s.unsafe_since is not None or uf.failure_year <= last + 1
@@ -287,6 +291,8 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
         else:
             s.p_unsafe = float(np.max(uf.p_unsafe)) if uf.p_unsafe.size else 0.0
             s.action = (f"inspect the {what} at the next planned stop" if what
+                        else f"check the {' and the '.join(away_comps)} at the next planned "
+                        "stop (beyond normal ageing, though away from the limit)" if away_comps
                         else "no action; re-check at next year's recorded transient")
         for r in (FoundRepair(**d) for d in uf.repairs):
             # A repair nobody recorded: the trend restarts there, and the record should say so.
@@ -309,10 +315,17 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
                       if sh.get("change_year") is not None else f", a change {sh['change']:.2f}")
             why.append(f"trend shape on the current segment: straight line {sh['line']:.2f}, "
                        f"accelerating {sh['accelerating']:.2f}{change}")
-        if not found:
+        for n, p in away.items():
+            t = uf.trends[n]
+            why.append(f"{n} drifts {t.slope:+.3g}/yr, beyond normal ageing {t.normal_rate:+.3g} "
+                       f"+- {t.tolerance:.3g}/yr but away from the limit (p = {p:.1g}): no risk "
+                       f"by the {ind.name}, yet not normal ageing")
+        if not found and not away:
             pmin = min(t.p_value for t in uf.trends.values())
             why.append(f"every input drifts within normal ageing (tests of the slopes, all "
                        f"p >= {np.floor(pmin * 100) / 100:.2f})")
+        elif not found:
+            why.append("no input wears towards the limit faster than normal ageing")
             if uf.status == "ok":
                 # How large a fault 'healthy' rules out (an unreliable unit's reason says
                 # it already when that is too large).
