@@ -679,3 +679,23 @@ def test_a_unit_unsafe_already_is_said_so_not_given_next_year():
                        root_cause="withheld", measured_unsafe_since=1)
     assert failure_cell(held) == "withheld, measured unsafe since 1"
     assert "measured unsafe since year 1" in risk_reasons(held, 0.05)
+
+
+def test_several_faults_are_named_by_their_components():
+    """A verdict on several components names them (a model of three components: 'both'
+    alone would not say which two)."""
+    from twinmon.forecast.attribution import attribute
+    from twinmon.report.common import state_words
+    assert state_words("both", "", ["spindle", "vee-belt"]) == "spindle and vee-belt faults"
+    assert state_words("both") == "several faults"
+    assert state_words("pump", "", ["pump"]) == "pump fault"
+    # The attribution records the components it names.
+    from twinmon.forecast.trend import Trend
+    rng = np.random.default_rng(0)
+    draws = np.column_stack([rng.normal(2.0, 0.1, 4000), rng.normal(-0.3, 0.01, 4000),
+                             rng.normal(0.0, 0.01, 4000)])
+    tl = [Trend(0.0, float(m), 0.1, (0, 0), 0.1, 10, 5.5, 82.5) for m in draws.mean(axis=0)]
+    att = attribute(tl, ["a", "b", "c"], ["belt", "spindle", "filter"], np.eye(3) * 1e-4,
+                    np.zeros(3), np.array([0.25, 0.03, 0.03]), [+1, -1, +1], 0.8,
+                    rng, draws=draws)
+    assert att.verdict == "both" and att.named == ["belt", "spindle"], att

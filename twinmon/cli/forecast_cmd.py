@@ -75,7 +75,9 @@ def forecast(config_path, overrides, posterior, surrogate, output, truth, worker
             continue
         label = {"withheld": " [FORCED: the twin misses the plant]",
                  "unreliable": " [UNRELIABLE]"}.get(u.status, "")
-        say(f"{unit}: {u.root_cause}{label}; failure year (P(unsafe) > {limit:g}) {fy}{true}; "
+        cause = (" and ".join(u.attribution.named) if u.root_cause == "both" and
+                 u.attribution is not None and u.attribution.named else u.root_cause)
+        say(f"{unit}: {cause}{label}; failure year (P(unsafe) > {limit:g}) {fy}{true}; "
             f"{tests}; FMU share {100 * u.fmu_fraction:.1f} %"
             + (f", limit-state model {100 * u.model_fraction:.1f} %" if u.model_fraction else ""))
         say(f"  plan: {u.plan}")

@@ -72,7 +72,7 @@ def _write_unit(f, cfg: Config, unit: str, u: UnitForecast, names: list) -> None
         at["attribution"] = artifacts.json_attr(
             {"verdict": a.verdict, "probabilities": a.probabilities, "sets": a.sets,
              "separating_channel": a.separating_channel,
-             "channel_scores": a.channel_scores})
+             "channel_scores": a.channel_scores, "named": list(a.named)})
     at.update(failure_year=-1 if u.failure_year is None else u.failure_year, plan=u.plan,
               fmu_fraction=u.fmu_fraction, model_fraction=u.model_fraction,
               fmu_failures=u.fmu_failures)

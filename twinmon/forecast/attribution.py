@@ -54,6 +54,8 @@ class Attribution:
     channel_scores: dict = field(default_factory=dict)
     #: Mean slope vector [d] of the draws of the two leading sets (for the separating channel).
     leading_slopes: Optional[np.ndarray] = None
+    #: The components the verdict names (one, or several for ``both``); empty otherwise.
+    named: list = field(default_factory=list)
 
     def describe(self) -> str:
         if not self.probabilities:
@@ -122,7 +124,7 @@ def attribute(trends: list, names: list, components: list, C: np.ndarray,
     # the data cannot say whether it is one component or several.
     doubt = [c for c in comps if 0.5 <= probs[c] < confidence]
     if sure and not doubt:
-        return Attribution(sure[0] if len(sure) == 1 else SEVERAL, probs, sets)
+        return Attribution(sure[0] if len(sure) == 1 else SEVERAL, probs, sets, named=sure)
     ranked = sorted((s for s in sets if s in means), key=sets.get, reverse=True)
     lead = np.array([means[s] for s in ranked[:2]]) if len(ranked) >= 2 else None
     return Attribution(AMBIGUOUS, probs, sets, leading_slopes=lead)

@@ -193,7 +193,8 @@ class UnitForecast:
                              "probabilities": {c: round(v, 3) for c, v in
                                                self.attribution.probabilities.items()},
                              "sets": {c: round(v, 3) for c, v in self.attribution.sets.items()},
-                             "separating_channel": self.attribution.separating_channel or None}
+                             "separating_channel": self.attribution.separating_channel or None,
+                             "named": list(self.attribution.named)}
                             if self.attribution is not None else None),
             "fmu_fraction": round(self.fmu_fraction, 4),
             "model_fraction": round(self.model_fraction, 4),

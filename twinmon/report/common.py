@@ -125,10 +125,17 @@ class Words:
         return text + (" or its twin leaves the physical domain" if self.has_nonphysical else "")
 
 
-def state_words(root_cause: Optional[str], reason: str = "") -> str:
-    """``healthy``, ``<component> fault``, ``several faults`` (root cause ``both``), or
-    ``prognosis withheld`` and why: the twin misses the plant, or (``reason``, the
-    forecast's status reason, says so) the estimates sit on the design box's edge."""
+def named(uf) -> list:
+    """The components a forecast's verdict names (its attribution's), or []."""
+    att = getattr(uf, "attribution", None)
+    return list(getattr(att, "named", None) or ()) if att is not None else []
+
+
+def state_words(root_cause: Optional[str], reason: str = "", components=()) -> str:
+    """``healthy``, ``<component> fault``, ``<a> and <b> faults`` (root cause ``both``, its
+    ``components``; ``several faults`` without them), or ``prognosis withheld`` and why: the
+    twin misses the plant, or (``reason``, the forecast's status reason, says so) the
+    estimates sit on the design box's edge."""
     if root_cause is None:
         return "unknown"
     if root_cause == "withheld":
@@ -136,7 +143,7 @@ def state_words(root_cause: Optional[str], reason: str = "") -> str:
     if root_cause == "healthy":
         return "healthy"
     if root_cause == "both":
-        return "several faults"
+        return " and ".join(components) + " faults" if components else "several faults"
     if root_cause == "ambiguous":
         return "degrading, component ambiguous"
     return f"{root_cause} fault"

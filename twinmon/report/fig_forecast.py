@@ -6,7 +6,8 @@ from typing import Optional
 
 import numpy as np
 
-from .common import LIMIT_COLOUR, Figures, indicator_limit_line, input_label, pct, state_words
+from .common import (LIMIT_COLOUR, Figures, indicator_limit_line, input_label, named, pct,
+                     state_words)
 from .load import Inputs, truth_at
 
 
@@ -44,7 +45,7 @@ def fig_trends(figs: Figures, inp: Inputs, colours: dict) -> None:
                     color=LIMIT_COLOUR if t.rejects else "k",
                     bbox={"fc": "white", "alpha": 0.8, "lw": 0})
             if j == 0:
-                ax.set_title(f"{unit}: {state_words(u.root_cause, u.status_reason)}", color=c,
+                ax.set_title(f"{unit}: {state_words(u.root_cause, u.status_reason, named(u))}", color=c,
                              fontweight="bold")
             if j == len(names) - 1:
                 ax.set_xlabel("year of service")
@@ -138,7 +139,7 @@ def fig_marginals(figs: Figures, inp: Inputs, colours: dict) -> list[str]:
                 ax.set_xlim(x0, x1)
             ax.set_xlabel(input_label(cfg, name))
             ax.set_ylabel("probability density")
-            ax.set_title(f"{unit} ({state_words(u.root_cause, u.status_reason)}): {name}",
+            ax.set_title(f"{unit} ({state_words(u.root_cause, u.status_reason, named(u))}): {name}",
                          color=colours[unit], fontsize=10)
             ax.grid(alpha=0.3)
             if j == 0:
@@ -229,7 +230,7 @@ def fig_indicator_forecast(figs: Figures, inp: Inputs, colours: dict,
         ax.axvline(yo[-1] + 0.5, color="grey", ls=":", lw=1)
         _zoom(ax, data_o, data_f, ind.limit, ttr, cap)
         ax.set_ylabel(w.ind_axis)
-        ax.set_title(f"{unit} ({state_words(u.root_cause, u.status_reason)}): "
+        ax.set_title(f"{unit} ({state_words(u.root_cause, u.status_reason, named(u))}): "
                      + failure_words(u, int(yf[-1])) + "; numbers: P(unsafe) per future year",
                      color=c, fontsize=10, loc="left")
         ax.grid(alpha=0.3, axis="y")

@@ -258,6 +258,7 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
                     "wear accelerating: " + " and ".join(watch) if watch else "healthy")
         # A part whose wear speeds up with its slope still normal: inspect it.
         found, comps = comps, comps or watch
+        s.components = [c for c in found if " (ambiguous)" not in c]
         if uf.forced:
             s.health += " (FORCED: the twin misses the plant)"
             why.append("FORCED: " + uf.status_reason)

@@ -65,6 +65,8 @@ class UnitSummary:
     name: str
     health: str = "unknown"
     root_cause: Optional[str] = None
+    #: The components the verdict names (several for root cause ``both``).
+    components: list = field(default_factory=list)
     failure_year: Optional[int] = None
     median_failure_year: Optional[int] = None
     p_unsafe: Optional[float] = None
@@ -107,7 +109,7 @@ class UnitSummary:
             return "prognosis withheld"
         if self.root_cause is None and self.health != "unknown":
             return self.health              # not forecast, and why (too few years)
-        words = state_words(self.root_cause, self.status_reason)
+        words = state_words(self.root_cause, self.status_reason, self.components)
         return f"{words} (forced)" if self.forced else \
             f"{words} (unreliable)" if self.status == "unreliable" else words
 
@@ -148,6 +150,7 @@ class UnitSummary:
     def as_dict(self) -> dict:
         return {
             "health": self.health, "root_cause": self.root_cause,
+            "components": list(self.components),
             "failure_year": self.failure_year,
             "median_failure_year": self.median_failure_year, "p_unsafe": self.p_unsafe,
             "last_year": self.last_year, "horizon_end": self.horizon_end,
