@@ -148,6 +148,31 @@ def check_model(cfg: Config) -> None:
             need(f"fabricate.truth_variables.{name}", name, values, "a recordable output")
 
 
+def unit_mismatches(cfg: Config) -> list[str]:
+    """Where the config's units differ from those the FMU declares for the same variable
+    (inputs, output, channels), one line each; variables the FMU declares no unit for are
+    not compared. Spellings are compared after removing blanks, ``.`` and ``*`` between
+    symbols and case (``N.m`` = ``N*m`` = ``n m``): a unit written another way is not
+    flagged, a different unit is (``W`` against ``kW`` would label kilowatts as watts)."""
+    from .fmu import describe_fmu
+    info = describe_fmu(cfg.model.fmu)
+
+    def norm(u: str) -> str:
+        return "".join(ch for ch in u.lower() if ch not in " .*")
+    pairs = [(f"model.inputs.{k}.units", s.variable, s.units)
+             for k, s in cfg.model.inputs.items()]
+    pairs.append(("model.output.units", cfg.model.output.variable, cfg.model.output.units))
+    pairs += [(f"model.channels.{k}.units", k, c.units) for k, c in cfg.model.channels.items()]
+    out = []
+    for where, var, units in pairs:
+        v = info.variables.get(var)
+        if v is None or not v.unit or not units or norm(v.unit) == norm(units):
+            continue
+        out.append(f"{cfg.source}: {where}: {units!r}, but {info.path.name} declares "
+                   f"{v.unit!r} for {var}: the report labels its values with the config's")
+    return out
+
+
 def spec_for(cfg: Config, outputs: Sequence[str] | None = None,
              times: np.ndarray | None = None) -> SimulationSpec:
     """Simulation spec of the config's FMU (built from sources if need be)."""

@@ -22,6 +22,23 @@ def test_every_shipped_config_passes_in_seconds(config):
     assert res.exit_code == 0 and res.seconds <= 10.0
     # the limit is reachable in each shipped box: no warning about it
     assert not [w for w in res.warnings if "reached nowhere" in w], res.warnings
+    # and every unit the config states is the one its FMU declares
+    assert not [w for w in res.warnings if " declares " in w], res.warnings
+
+
+def test_a_unit_other_than_the_fmus_is_a_warning(tmp_path):
+    """The report labels values with the config's units: a channel in W whose FMU
+    declares kW would be off by a thousand, silently. Another spelling is not flagged."""
+    cfg = write_yaml(tmp_path / "dc.yaml", {
+        "extends": str(CONFIGS / "dcdrive.yaml"),
+        "model": {"output": {"units": "rpm"},
+                  "inputs": {"bearing_friction": {"units": "N*m*s/rad"}}}})
+    res = check(cfg)
+    assert res.ok
+    bad = [w for w in res.warnings if " declares " in w]
+    assert len(bad) == 1, res.warnings
+    assert "dc.yaml: model.output.units: 'rpm', but DCDrive.fmu declares 'rad/s' for " \
+        "tacho.w" in bad[0]
 
 
 def test_box_points_are_the_nominal_point_and_the_corners():
