@@ -258,6 +258,13 @@ def stop_pool(pool) -> None:
             p.kill()
             p.join(1)
     pool.shutdown(wait=False, cancel_futures=True)
+    # Let the pool's manager thread finish closing its wake-up pipe now: left to race with
+    # the interpreter's exit hook, which writes to that pipe, it printed "Exception ignored
+    # ... OSError: Bad file descriptor" after a one-line error (Python 3.11's check of the
+    # pipe and its write are not atomic).
+    manager = getattr(pool, "_executor_manager_thread", None)   # no public API either
+    if manager is not None:
+        manager.join(2.0)
     _drop_scratch(pool)
 
 
