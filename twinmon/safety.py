@@ -273,4 +273,8 @@ class Indicator:
             if value is not None and np.isinf(value) and self.spec.kind == "time_to_reach":
                 return "never reached"
             return "n/a"
-        return with_units(f"{value:.3g}", self.units)
+        # Three significant digits, or as many as the integer part of the value or the limit
+        # has (4339 beside a limit of 4335, not 4.34e+03).
+        big = max(abs(float(value)), abs(float(self.limit)), 1.0)
+        digits = max(3, int(np.floor(np.log10(big))) + 1)
+        return with_units(f"{value:.{digits}g}", self.units)

@@ -651,3 +651,39 @@ def test_a_part_beyond_normal_ageing_the_safe_way_is_named_not_called_normal():
     assert safe_way(trends, cfg.forecast.alpha) == {}
     trends["motor_damping"] = trend(1.0, 0.1, 0.0, 0.25, +1, "motor")
     assert safe_way(trends, cfg.forecast.alpha) == {}
+
+
+def test_an_input_beyond_normal_alone_is_watched_not_called_normal():
+    """A unit judged healthy while one input's own slope test rejects: no fault is named
+    (the unit's tests together did not confirm it), but the part is watched, and named
+    first when the unit has a failure year."""
+    from twinmon.config import load_config
+    from twinmon.forecast.detection import IndicatorDrift
+    from twinmon.forecast.plan import unconfirmed
+    from twinmon.forecast.trend import Trend, slope_test
+    from ..conftest import CONFIGS
+    cfg = load_config(CONFIGS / "pump.yaml")
+
+    def trend(slope, se, rate, tol, direction, comp):
+        t = Trend(intercept=0.0, slope=slope, slope_se=se, slope_ci=(slope, slope),
+                  residual_std=0.1, n=10, x_mean=5.5, sxx=82.5, component=comp)
+        return slope_test(t, rate, tol, direction, cfg.forecast.alpha)
+    trends = {"motor_damping": trend(0.55, 0.12, 0.0, 0.25, +1, "motor"),
+              "pump_coef": trend(-0.02, 0.01, -0.02, 0.03, -1, "pump")}
+    assert trends["motor_damping"].rejects and not trends["pump_coef"].rejects
+    drift = IndicatorDrift(years=np.arange(1, 11), values=np.zeros(10), slope=0.1,
+                           slope_se=0.05, dof=8, normal_slope=0.0,
+                           normal_halfwidth=np.array([0.1]), gradient=np.ones(2), sense=1,
+                           p_value=0.06, abnormal=False)
+    drift.p_inputs = 0.07
+    fut, p = np.arange(11, 18), np.array([0.0, 0.0, 0.06, 0.2, 0.4, 0.6, 0.7])
+    watch, plan = unconfirmed(cfg, trends, drift, 13, fut, p)
+    assert watch == {"motor": "its slope alone beyond normal ageing"}
+    assert plan.startswith("Inspect the motor first: motor_damping's slope +0.55/yr (p = ")
+    assert "not once the unit's inputs are tested together (indicator p = 0.06, inputs " \
+        "jointly p = 0.07): no fault is named" in plan
+    watch, plan = unconfirmed(cfg, trends, drift, None, fut, np.zeros(7))
+    assert plan.startswith("No action for safety: P(unsafe) stays <= 0.05 through year 17")
+    assert plan.endswith("watch the motor (next year's record will tell).")
+    trends["motor_damping"] = trend(0.1, 0.12, 0.0, 0.25, +1, "motor")
+    assert unconfirmed(cfg, trends, drift, 13, fut, p) is None

@@ -339,7 +339,7 @@ def _read_unit(f, unit: str, path: Path, names: list, arrays: bool = True) -> Un
         shape=json.loads(g.attrs["trend_shape"]) if "trend_shape" in g.attrs else {},
         trend_fit=json.loads(g.attrs["trend_fit"]) if "trend_fit" in g.attrs else {},
         level_cause=json.loads(g.attrs["level_cause"]) if "level_cause" in g.attrs else {},
-        watch=json.loads(g.attrs["watch"]) if "watch" in g.attrs else [],
+        watch=json.loads(g.attrs["watch"]) if "watch" in g.attrs else {},
         drift=_drift_from(json.loads(g.attrs["detection"])) if "detection" in g.attrs else None,
         attribution=(Attribution(**json.loads(g.attrs["attribution"]))
                      if "attribution" in g.attrs else None),

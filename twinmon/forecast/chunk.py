@@ -27,7 +27,8 @@ from .detection import gradient_from, gradient_points, mid_state
 from .judge import (MIN_LINE_DRAWS, MIN_TREND_YEARS, STATUS_OK, STATUS_UNRELIABLE, STATUS_WITHHELD,
                     describe_bend, describe_blind, describe_lag, describe_restart,
                     history_slope_draws, judge, prognosis_status, recent_restarts)
-from .plan import level_cause, level_plan, maintenance_plan, restore_points
+from .plan import (level_cause, level_plan, maintenance_plan, restore_points,
+                   unconfirmed)
 from .pooling import ShapePriors, _pool_unit
 from .predictive import (residual_correlation, sample_predictive, sample_state,
                          state_interval, state_predictive)
@@ -388,11 +389,33 @@ def _finish_unit(cfg: Config, unit: str, up, p: dict, twin: TwinResult,
     uf.plan = maintenance_plan(trends, p["fut"], p_unsafe, fyear,
                                int(p["years"][-1]), float(p_obs[-1]), cfg.safety,
                                drift=drift, attribution=attribution, cfg=cfg)
+    # The straight-line trends may not follow the wear: accelerating wear makes the line's
+    # failure year late with intervals that look sure (a posterior that averaged the
+    # accelerating shape in, calibrate.shapes, has weighed it already).
+    shape, accel = ("", None) if p["shapes"] else shape_gate(
+        cfg, p["since_by_input"], p["years"], p["mean"], trends,
+        every=uf.root_cause == HEALTHY and not levels)
     if levels:
         comps = list(dict.fromkeys(cfg.model.inputs[n].component or n for n in levels))
         uf.root_cause = comps[0] if len(comps) == 1 else SEVERAL
         uf.level_cause = levels
         uf.plan = level_plan(cfg, levels, float(p_obs[-1]), int(p["years"][-1]))
+    elif uf.root_cause == HEALTHY and accel:
+        # No fault found, but a part's wear speeds up: that part is the one to look at,
+        # not "no action".
+        comp = cfg.model.inputs[accel].component or accel
+        uf.watch = {comp: "wear accelerating"}
+        uf.plan = (f"Inspect the {comp} at the next planned stop: no input's slope over the "
+                   "record is beyond normal ageing, but its wear accelerates; on the "
+                   f"straight-line trends P(unsafe) stays <= "
+                   f"{cfg.safety.failure_probability:.2f} through year {int(p['fut'][-1])} "
+                   f"(max {float(np.max(p_unsafe)):.2f})." if fyear is None else
+                   f"Inspect the {comp} first: its wear accelerates, though no input's slope "
+                   f"over the record is beyond normal ageing. {uf.plan}")
+    elif uf.root_cause == HEALTHY:
+        lone = unconfirmed(cfg, trends, drift, fyear, p["fut"], p_unsafe)
+        if lone:
+            uf.watch, uf.plan = lone[0], lone[1] + ("" if fyear is None else f" {uf.plan}")
     uf.repairs = [r.as_dict() for r in p["repairs"]]
     uf.shape = p["shape"]
     told = describe_shape(uf.shape) if uf.root_cause != HEALTHY else ""
@@ -402,28 +425,8 @@ def _finish_unit(cfg: Config, unit: str, up, p: dict, twin: TwinResult,
     if found:
         uf.plan = f"{found[0].upper()}{found[1:]}; its trend restarts there. {uf.plan}"
     uf.status, uf.status_reason = prognosis_status(up, cfg, fit_windows)
-    if uf.status == STATUS_OK and not p["shapes"]:
-        # The twin fits, but the trend may not: accelerating wear makes the line's
-        # failure year late with intervals that look sure. A posterior that averaged the
-        # accelerating shape in (calibrate.shapes) has already weighed it.
-        shape, accel = shape_gate(cfg, p["since_by_input"], p["years"], p["mean"], trends)
-        if shape:
-            uf.status, uf.status_reason = STATUS_UNRELIABLE, shape
-            if uf.root_cause == HEALTHY:
-                # No slope beyond normal ageing, but a part's wear speeds up: that part is
-                # the one to look at, not "no action".
-                comp = cfg.model.inputs[accel].component or accel
-                uf.watch = [comp]
-                if fyear is None:
-                    uf.plan = (f"Inspect the {comp} at the next planned stop: no input's "
-                               "slope over the record is beyond normal ageing, but its wear "
-                               f"accelerates; on the straight-line trends P(unsafe) stays <= "
-                               f"{cfg.safety.failure_probability:.2f} through year "
-                               f"{int(p['fut'][-1])} (max {float(np.max(p_unsafe)):.2f}).")
-                else:
-                    uf.plan = (f"Inspect the {comp} first: its wear accelerates, though no "
-                               f"input's slope over the record is beyond normal ageing. "
-                               f"{uf.plan}")
+    if uf.status == STATUS_OK and shape:
+        uf.status, uf.status_reason = STATUS_UNRELIABLE, shape
     if uf.status == STATUS_OK and p.get("attenuation") is not None:
         lag = describe_lag(names, p["attenuation"])
         if lag:
@@ -469,6 +472,7 @@ def _finish_unit(cfg: Config, unit: str, up, p: dict, twin: TwinResult,
             # A twin that misses the data predicts nothing about the plant.
             uf.failure_year, uf.root_cause, uf.plan = None, STATUS_WITHHELD, \
                 uf.status_reason[0].upper() + uf.status_reason[1:] + "."
+            uf.watch = {}
     elif uf.status == STATUS_UNRELIABLE:
         uf.plan = f"{uf.plan} ({uf.status_reason}.)"
     return uf, sg.stop

@@ -197,3 +197,38 @@ def level_plan(cfg: Config, levels: dict, p_unsafe_now: float, last_year: int) -
                else " -- together put the unit past its limit")
             + "; no input wears faster than normal ageing, so the level dates from before "
             "the record or from a step in it.")
+
+
+def unconfirmed(cfg: Config, trends: dict, drift: Optional[IndicatorDrift],
+                failure_year: Optional[int], years_future: np.ndarray,
+                p_unsafe: np.ndarray) -> Optional[tuple[dict, str]]:
+    """A unit judged healthy although an input's own slope test rejects: the unit's tests
+    together (the indicator's drift, the inputs' slopes jointly: a test per input would
+    find one of several inputs beyond its band by chance) did not confirm it, so no fault is
+    named; but its part is the one to watch, and with a failure year the first to inspect
+    (a fan's belt slip rising 0.3/yr, p = 0.02 alone, was "healthy: overhaul the unit", and
+    its belt failed). Returns ``({component: why}, plan)``, or None when no input rejects.
+    The plan replaces a plan without a failure year, and comes first in one with it."""
+    lone = [n for n, t in trends.items() if t.rejects]
+    if not lone:
+        return None
+    comps = list(dict.fromkeys(trends[n].component or n for n in lone))
+    tests = ""
+    if drift is not None:
+        parts = [f"{what} p = {v:.2g}" for what, v in
+                 (("indicator", drift.p_value), ("inputs jointly", drift.p_inputs))
+                 if np.isfinite(v)]
+        tests = f" ({', '.join(parts)})" if parts else ""
+    alone = "; ".join(f"{n}'s slope {trends[n].slope:+.3g}/yr (p = {trends[n].p_value:.2g})"
+                      for n in lone)
+    said = (f"{alone} is beyond normal ageing alone, not once the unit's inputs are tested "
+            f"together{tests}: no fault is named")
+    limit = cfg.safety.failure_probability
+    if failure_year is None:
+        horizon = int(years_future[-1]) if np.size(years_future) else 0
+        plan = (f"No action for safety: P(unsafe) stays <= {limit:.2f} through year {horizon} "
+                f"(max {float(np.max(p_unsafe)) if np.size(p_unsafe) else 0.0:.2f}); {said}; "
+                f"watch the {' and the '.join(comps)} (next year's record will tell).")
+    else:
+        plan = f"Inspect the {' and the '.join(comps)} first: {said}."
+    return {c: "its slope alone beyond normal ageing" for c in comps}, plan

@@ -325,7 +325,7 @@ def acceleration_test(years: np.ndarray, values: np.ndarray, direction: int) -> 
 
 
 def shape_gate(cfg: Config, since: dict, years: np.ndarray, mean: np.ndarray,
-               trends: dict) -> tuple[str, Optional[str]]:
+               trends: dict, every: bool = True) -> tuple[str, Optional[str]]:
     """Why a unit's straight-line trends cannot be trusted, or ``""``, and the input that
     accelerates the most surely (None when none does).
 
@@ -336,7 +336,9 @@ def shape_gate(cfg: Config, since: dict, years: np.ndarray, mean: np.ndarray,
     to the limit: a pump coefficient ageing normally for 6 years, then falling 0.2 a year,
     was "healthy, no action" and failed in year 14). Each for acceleration in its degrading
     direction over its current part's years (:func:`acceleration_test`), at
-    ``forecast.shape_alpha`` divided by the number tested.
+    ``forecast.shape_alpha`` divided by the number tested. ``every`` False: the drifting
+    inputs only, always (a unit already judged unsafe at a part's level: a sound input's
+    bend beside it moves nothing).
 
     Parameters
     ----------
@@ -353,7 +355,7 @@ def shape_gate(cfg: Config, since: dict, years: np.ndarray, mean: np.ndarray,
     if alpha <= 0:
         return "", None
     names = list(trends)
-    drifting = any(trends[n].rejects for n in names)
+    drifting = any(trends[n].rejects for n in names) or not every
     tested = [i for i, n in enumerate(names)
               if (trends[n].rejects or not drifting)
               and (years >= since[n]).sum() >= SHAPE_MIN_YEARS]

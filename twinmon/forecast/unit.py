@@ -107,9 +107,11 @@ class UnitForecast:
     #: limit (:func:`~.plan.level_cause`: ``{input: {"value", "nominal", "restored",
     #: "safe"}}``; its components are the root cause); empty otherwise.
     level_cause: dict = field(default_factory=dict)
-    #: Components to inspect though no fault was found: a part whose wear accelerates with
-    #: its slope over the record within normal ageing (:func:`~.trend.shape_gate`).
-    watch: list = field(default_factory=list)
+    #: Components to watch though no fault was found, each with why: a part whose wear
+    #: accelerates with its slope over the record within normal ageing
+    #: (:func:`~.trend.shape_gate`), or whose own slope test rejects where the unit's tests
+    #: together do not (:func:`~.plan.unconfirmed`).
+    watch: dict = field(default_factory=dict)
 
     #: Set by :meth:`slim`: the figures kept when the Monte Carlo arrays are dropped.
     _slim: Optional[dict] = field(default=None, repr=False)
@@ -210,7 +212,7 @@ class UnitForecast:
         if self.level_cause:
             d["level_cause"] = {n: dict(v) for n, v in self.level_cause.items()}
         if self.watch:
-            d["watch"] = list(self.watch)
+            d["watch"] = dict(self.watch)
         if self.has_truth:
             d["true_failure_year"] = self.true_failure_year
             d["truth_source"] = self.truth_source

@@ -39,10 +39,14 @@ def fig_trends(figs: Figures, inp: Inputs, colours: dict) -> None:
             ax.axvline(yo[-1] + 0.5, color="grey", ls=":", lw=1)
             # The slope in the corner the line leaves free.
             up = t.slope >= 0
+            # Beyond normal ageing alone, where the unit's tests together found no fault:
+            # not the fault's red.
+            lone = t.rejects and u.root_cause == "healthy"
             ax.text(0.03 if up else 0.97, 0.95, f"slope {t.slope:+.3g}/yr"
-                    + ("\nabnormal (p = %.1g)" % t.p_value if t.rejects else ""),
+                    + (("\nbeyond normal alone (p = %.1g)" if lone else "\nabnormal (p = %.1g)")
+                       % t.p_value if t.rejects else ""),
                     transform=ax.transAxes, ha="left" if up else "right", va="top", fontsize=9,
-                    color=LIMIT_COLOUR if t.rejects else "k",
+                    color="darkorange" if lone else LIMIT_COLOUR if t.rejects else "k",
                     bbox={"fc": "white", "alpha": 0.8, "lw": 0})
             if j == 0:
                 ax.set_title(f"{unit}: {state_words(u.root_cause, u.status_reason, named(u))}", color=c,

@@ -251,11 +251,13 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
     elif uf is not None:
         comps = faulty_components(cfg, uf)
         s.root_cause = uf.root_cause
-        watch = list(getattr(uf, "watch", None) or ())
+        watched = dict(getattr(uf, "watch", None) or {})
+        watch = list(watched)
         s.health = ("unsafe: " + " and ".join(comps) + " (a level, not a drift)"
                     if comps and getattr(uf, "level_cause", None) else
                     "degrading: " + " and ".join(comps) if comps else
-                    "wear accelerating: " + " and ".join(watch) if watch else "healthy")
+                    "no fault confirmed; watch: " + "; ".join(
+                        f"{c} ({why})" for c, why in watched.items()) if watch else "healthy")
         # A part whose wear speeds up with its slope still normal: inspect it.
         found, comps = comps, comps or watch
         s.components = [c for c in found if " (ambiguous)" not in c]
@@ -321,7 +323,10 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
             why.append(f"{n} drifts {t.slope:+.3g}/yr, beyond normal ageing {t.normal_rate:+.3g} "
                        f"+- {t.tolerance:.3g}/yr but away from the limit (p = {p:.1g}): no risk "
                        f"by the {ind.name}, yet not normal ageing")
-        if not found and not away:
+        if not found and any(t.rejects for t in uf.trends.values()):
+            why.append("not confirmed once the unit's inputs are tested together: no fault "
+                       "is named")
+        elif not found and not away:
             pmin = min(t.p_value for t in uf.trends.values())
             why.append(f"every input drifts within normal ageing (tests of the slopes, all "
                        f"p >= {np.floor(pmin * 100) / 100:.2f})")
@@ -454,7 +459,12 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
                         + (f"; {grp['separating_channel']} would tell them apart"
                            if grp.get("separating_channel") else ""))
         elif gap.verdict == "unexplained":
-            s.action += "; the twin misses the plant and no candidate explains it: check the data"
+            # (Said as diagnose's finding: calibrate's test of each year's fit may pass, and
+            # the status says so beside it.)
+            s.action += ("; diagnose finds a gap between the twin and the plant that no "
+                         "candidate effect explains" + (", though each year's fit passes "
+                         "calibrate's test" if s.status == "ok" else "")
+                         + ": check the data")
             why.append("diagnose: a significant gap no candidate effect explains, so the "
                        "estimates may be biased")
         else:
