@@ -20,8 +20,9 @@ side of the two before (:func:`_falls`): a quadratic with a step fitted to expon
 read a fall into estimates rising every year. The test on the benchmark's repaired fleets
 found the same repairs with it (``benchmarks/repair_scan.py --family repair_hidden``, seeds
 43 and 47: 26/32 each) and the same findings with no repair on ``--family rate_change``
-(seeds 71 and 73: 2 and 3 of 44). The smallest p-value over the years tried, times their number and the number of inputs tested
-(Bonferroni), is compared with ``forecast.repair_alpha``.
+(seeds 71 and 73: 2 and 3 of 44). The smallest p-value over the years tried, times their
+number and the number of inputs tested (Bonferroni), is compared with
+``forecast.repair_alpha``.
 
 The step, not the change: a part that ages the good way within its normal band (a
 bearing's friction easing by up to its tolerance a year) makes every year's change a small

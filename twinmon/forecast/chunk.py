@@ -24,8 +24,8 @@ from ..safety import trailing_run
 from .attribution import HEALTHY, SEVERAL
 from .covariance import estimate_error_covariance, filter_attenuation
 from .detection import gradient_from, gradient_points, mid_state
-from .judge import (MIN_LINE_DRAWS, MIN_TREND_YEARS, STATUS_OK, STATUS_UNRELIABLE, STATUS_WITHHELD,
-                    describe_bend, describe_blind, describe_lag, describe_restart,
+from .judge import (MIN_LINE_DRAWS, MIN_TREND_YEARS, STATUS_OK, STATUS_UNRELIABLE,
+                    STATUS_WITHHELD, describe_bend, describe_blind, describe_lag, describe_restart,
                     history_slope_draws, judge, prognosis_status, recent_restarts)
 from .plan import (level_cause, level_plan, maintenance_plan, restore_points,
                    unconfirmed)
@@ -539,7 +539,8 @@ def _add_truth(cfg: Config, uf: UnitForecast, unit: str, truth_unit, truth_path,
     last = int(uf.years_observed[-1])
     past = np.flatnonzero(years <= last)
     seen = past.size and int(years[past[-1]]) == last
-    Xp = np.column_stack([values[n][past] for n in names]) if seen else np.empty((0, len(names)))
+    Xp = (np.column_stack([values[n][past] for n in names]) if seen
+          else np.empty((0, len(names))))
     value, bad = _true_unsafe(cfg, spec, executor, np.vstack([Xt, Xp[-1:]]))
     uf.has_truth = True
     uf.true_indicator = value[:h]

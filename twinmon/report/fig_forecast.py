@@ -49,7 +49,8 @@ def fig_trends(figs: Figures, inp: Inputs, colours: dict) -> None:
                     color="darkorange" if lone else LIMIT_COLOUR if t.rejects else "k",
                     bbox={"fc": "white", "alpha": 0.8, "lw": 0})
             if j == 0:
-                ax.set_title(f"{unit}: {state_words(u.root_cause, u.status_reason, named(u))}", color=c,
+                ax.set_title(f"{unit}: {state_words(u.root_cause, u.status_reason, named(u))}",
+                             color=c,
                              fontweight="bold")
             if j == len(names) - 1:
                 ax.set_xlabel("year of service")
@@ -143,7 +144,8 @@ def fig_marginals(figs: Figures, inp: Inputs, colours: dict) -> list[str]:
                 ax.set_xlim(x0, x1)
             ax.set_xlabel(input_label(cfg, name))
             ax.set_ylabel("probability density")
-            ax.set_title(f"{unit} ({state_words(u.root_cause, u.status_reason, named(u))}): {name}",
+            words = state_words(u.root_cause, u.status_reason, named(u))
+            ax.set_title(f"{unit} ({words}): {name}",
                          color=colours[unit], fontsize=10)
             ax.grid(alpha=0.3)
             if j == 0:
