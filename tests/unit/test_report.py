@@ -661,6 +661,11 @@ def test_a_unit_unsafe_already_is_said_so_not_given_next_year():
     assert s.time_to_failure == ("unsafe since year 6 (P(unsafe) 98 % in 10; measured unsafe "
                                  "since year 7)")
     assert s.as_dict()["unsafe_since"] == 6 and s.as_dict()["measured_unsafe_since"] == 7
+    # Past the limit at under even odds: "possibly".
+    s = UnitSummary(name="Ash", status="ok", root_cause="bearing", failure_year=11,
+                    p_unsafe=0.2, last_year=10, horizon_end=17, unsafe_since=10,
+                    p_unsafe_last=0.13)
+    assert s.time_to_failure == "possibly unsafe since year 10 (P(unsafe) 13 % in 10)"
     edge = ("prognosis withheld: the estimates lean on the design box's edge from year 1; "
             "widen model.inputs.friction.high")
     s = UnitSummary(name="Ash", status="withheld", status_reason=edge, root_cause="withheld",

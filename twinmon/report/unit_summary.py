@@ -138,8 +138,12 @@ class UnitSummary:
                 return "no forecast"
             return f"last {self.indicator} {self.last_indicator_text} (no forecast)"
         if self.unsafe_since is not None:
-            # Unsafe already: the year after the record is only the year to act by.
-            return (f"unsafe since year {self.unsafe_since} (P(unsafe) "
+            # Unsafe already: the year after the record is only the year to act by. Past the
+            # limit (safety.failure_probability) but under even odds, "unsafe" alone would
+            # overstate it.
+            maybe = "" if self.p_unsafe_last is None or self.p_unsafe_last >= 0.5 else \
+                "possibly "
+            return (f"{maybe}unsafe since year {self.unsafe_since} (P(unsafe) "
                     f"{pct(self.p_unsafe_last)} in {self.last_year}{measured})")
         if self.failure_year is not None:
             return (f"fails in year {self.failure_year} "
