@@ -19,15 +19,25 @@ def fig_trends(figs: Figures, inp: Inputs, colours: dict) -> None:
     fig = figs.new(3.6 * len(units) + 0.8, 2.9 * len(names) + 0.6)
     axes = np.atleast_2d(fig.subplots(len(names), len(units), sharey="row", sharex=True,
                                       squeeze=False))
+    try:
+        # The values the model can take (a drag is not negative): the band is held there.
+        from ..simulate import declared_range
+        rng = dict(zip(cfg.model.input_names, declared_range(cfg)))
+    except Exception:  # noqa: BLE001 -- the FMU is not needed to draw the report
+        rng = {}
     for j, name in enumerate(names):
         for i, unit in enumerate(units):
             ax = axes[j, i]
             u = fc.units[unit]
             c = colours[unit]
             yo, yf = np.asarray(u.years_observed), np.asarray(u.years_future)
-            grid = np.linspace(yo[0], yf[-1], 200)
             t = u.trends[name]
+            # The line of the part in place: fitted on its last n years (after a repair).
+            first = yo[-t.n] if 0 < t.n <= yo.size else yo[0]
+            grid = np.linspace(first, yf[-1], 200)
             mean, lo, hi, _ = t.predict(grid, conf)
+            if name in rng:
+                lo, hi = np.clip(lo, *rng[name]), np.clip(hi, *rng[name])
             ax.fill_between(grid, lo, hi, color=c, alpha=0.2, lw=0)
             ax.plot(grid, mean, "-", color=c, lw=1.5)
             ax.plot(yo, u.estimates[name], "x", color="k", ms=6, mew=1.5)
