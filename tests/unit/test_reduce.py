@@ -137,3 +137,26 @@ def test_no_cap_warning_when_the_threshold_is_reached(tmp_path):
     simulate(cfg, tmp_path / "sims.h5")
     s = reduce(cfg, tmp_path / "sims.h5", tmp_path / "sur.h5")
     assert s.variance_ratio >= 0.99 and not [w for w in s.warnings if "capped" in w]
+
+
+def test_openturns_log_lines_are_captured_and_stderr_restored(capfd):
+    """OpenTURNS' warnings during a fit (Cobyla at its evaluation limit) come back as lines
+    that reduce turns into one warning naming the modes, not as coloured text on stderr."""
+    import openturns as ot
+    from twinmon.reduce.surrogate import ot_log_captured
+    with ot_log_captured() as log:
+        ot.Log.Warn("The Cobyla algorithm failed. test")
+    assert any("Cobyla" in line for line in log), log
+    assert "Cobyla" not in capfd.readouterr().err
+
+
+def test_a_stopped_hyperparameter_search_is_one_warning_naming_the_modes(fitted):
+    from twinmon.reduce import optimiser_warning
+    _, tmp, summary = fitted
+    s = read_surrogate(tmp / "sur.h5")
+    s.optimiser_stopped = [2, 3]
+    w = optimiser_warning(s, summary.validation, "the output m_flow")
+    assert w.startswith(f"the output m_flow: the Gaussian process of mode(s) 2, 3 of "
+                        f"{s.n_modes} stopped its hyperparameter search at the evaluation "
+                        "limit")
+    assert w.endswith("% of the output's range")

@@ -95,7 +95,9 @@ def reduce(cfg: Config, simulations: str | os.PathLike, output: str | os.PathLik
     names, warnings = channels_to_reduce(cfg, sims)
     capped = cap_warning(s, cfg.reduce, val.max_range_error,
                          f"the output {cfg.model.output.name}")
-    warnings = [capped] * bool(capped) + warnings
+    warnings = [capped] * bool(capped) + [optimiser_warning(s, val, f"the output "
+                                                            f"{cfg.model.output.name}")] \
+        * bool(s.optimiser_stopped) + warnings
     # Each channel its own transform: a speed or a current may cross zero where the output
     # (learnt in log scale) does not.
     rc = dataclasses.replace(cfg.reduce, transform="auto")
@@ -112,11 +114,24 @@ def reduce(cfg: Config, simulations: str | os.PathLike, output: str | os.PathLik
                              f"channel {ch}")
         if capped:
             warnings.append(capped)
+        if fitted[ch][0].optimiser_stopped:
+            warnings.append(optimiser_warning(*fitted[ch], f"channel {ch}"))
     write_surrogate(output, s, val, cfg, [simulations], channels=fitted)
     return ReduceSummary(s.n_modes, s.variance_ratio, val, int(ok.sum()), str(output),
                          {ch: {"modes": c.n_modes, "variance_ratio": c.variance_ratio,
                                "transform": c.transform, "test": v.as_dict()}
                           for ch, (c, v) in fitted.items()}, warnings)
+
+
+def optimiser_warning(s: "Surrogate", val: "Validation", what: str) -> str:
+    """A warning that the hyperparameter search of some modes of ``what``'s surrogate
+    stopped at its evaluation limit (OpenTURNS' Cobyla): their fit is kept, and its test
+    error says whether that matters."""
+    modes = ", ".join(map(str, s.optimiser_stopped))
+    return (f"{what}: the Gaussian process of mode(s) {modes} of {s.n_modes} stopped its "
+            "hyperparameter search at the evaluation limit (OpenTURNS Cobyla); the fit is "
+            f"kept: its largest test error is {100 * val.max_range_error:.3g} % of the "
+            "output's range")
 
 
 def cap_warning(s: "Surrogate", rc: ReduceConfig, max_range_error: float | None = None,

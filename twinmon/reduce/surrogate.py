@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -252,23 +253,56 @@ def fit_surrogate(X: np.ndarray, Y: np.ndarray, time: np.ndarray, bounds: np.nda
     Xu = (X - lo) / (hi - lo)
     d = X.shape[1]
     scales, amps, coefs = np.zeros((K, d)), np.zeros(K), []
+    stopped = []
     for k in range(K):
         y = xi_all[:, k]
         fitter = ot.GaussianProcessFitter(ot.Sample(Xu), ot.Sample(y[:, None]),
                                           _kernel(rc.kernel, d), _basis(rc.trend, d))
         # Scales on the unit box: from a fifth of a grid cell to ten box widths.
         fitter.setOptimizationBounds(ot.Interval([1e-2] * d, [10.0] * d))
-        fitter.run()
+        with ot_log_captured() as log:
+            fitter.run()
+        if any("Cobyla" in line for line in log):
+            stopped.append(k + 1)
         r = fitter.getResult()
         cov = r.getCovarianceModel()
         scales[k] = np.array(cov.getScale())
         amps[k] = float(cov.getAmplitude()[0])
         coefs.append(np.array(r.getTrendCoefficients()).ravel())
-    return Surrogate(input_names=list(input_names), bounds=np.asarray(bounds, float),
-                     time=np.asarray(time, float), mean=mean, basis=basis, eigenvalues=eig,
-                     truncation_var=truncation_var, X_train=Xu, xi_train=xi_all[:, :K],
-                     kernel=rc.kernel, trend=rc.trend, scales=scales, amplitudes=amps,
-                     trend_coefs=coefs, transform=transform, units=units)
+    s = Surrogate(input_names=list(input_names), bounds=np.asarray(bounds, float),
+                  time=np.asarray(time, float), mean=mean, basis=basis, eigenvalues=eig,
+                  truncation_var=truncation_var, X_train=Xu, xi_train=xi_all[:, :K],
+                  kernel=rc.kernel, trend=rc.trend, scales=scales, amplitudes=amps,
+                  trend_coefs=coefs, transform=transform, units=units)
+    #: The modes (1-based) whose hyperparameter search stopped at its evaluation limit (not
+    #: stored: reduce says so once, as a warning).
+    s.optimiser_stopped = stopped
+    return s
+
+
+@contextmanager
+def ot_log_captured():
+    """OpenTURNS' log lines written inside the block, as a list of str filled when it ends,
+    instead of on stderr: there they came with terminal colour codes into pipes and logs,
+    whatever ``-q`` said, and without the mode or channel they concern."""
+    import os
+    import tempfile
+
+    import openturns as ot
+    fd, path = tempfile.mkstemp(prefix="twinmon-otlog-", suffix=".txt")
+    os.close(fd)
+    lines: list[str] = []
+    ot.Log.SetFile(path)
+    try:
+        yield lines
+    finally:
+        ot.Log.Flush()
+        ot.Log.SetFile("")            # back to stderr
+        try:
+            with open(path, errors="replace") as f:
+                lines += [ln.strip() for ln in f if ln.strip()]
+        finally:
+            os.unlink(path)
 
 
 @dataclass
