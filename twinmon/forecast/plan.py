@@ -94,7 +94,9 @@ def maintenance_plan(trends: dict, years_future: np.ndarray,
         else " and the "
     # A part beyond normal ageing the safe way is no risk by the indicator, nor normal.
     away = safe_way(trends, cfg.forecast.alpha) if cfg is not None else {}
-    odd = {c for c, ts in comps.items() if any(n in away for n, _ in ts)}
+    # (Nor is a part whose own slope test rejects where the unit's tests together named no
+    # fault: unconfirmed says so.)
+    odd = {c for c, ts in comps.items() if any(n in away or t.rejects for n, t in ts)}
     sound = [c for c in sound if c not in odd]
     sound_txt = (f"; {' and '.join(sound)} within normal ageing" if sound else "")
     if away:
