@@ -109,6 +109,22 @@ def test_an_input_without_component_is_named_by_its_own_name():
 # ---------------------------------------------------------------------------------------
 # Adding to an existing file
 # ---------------------------------------------------------------------------------------
+def test_add_events_keeps_the_files_permissions(tmp_path):
+    """The edit replaces the file by a copy: the copy has the original's mode (plant data
+    kept private stays private), and a read-only file is refused (for a user it binds)."""
+    import os
+    p = tmp_path / "o.h5"
+    write_observations(p, _obs())
+    os.chmod(p, 0o600)
+    add_events(p, {"A": [Event(3, "bearing")]}, COMPONENTS)
+    assert oct(os.stat(p).st_mode & 0o777) == oct(0o600)
+    os.chmod(p, 0o400)
+    if os.access(p, os.W_OK):
+        pytest.skip("root writes a file whatever its mode")
+    with pytest.raises(OSError, match="read-only"):
+        add_events(p, {"A": [Event(4, "winding")]}, COMPONENTS)
+
+
 def test_add_events_in_place_keeps_everything_else(tmp_path):
     out = tmp_path / "o.h5"
     write_observations(out, _obs([Event(4, "winding")]), config="x: 1", seed=7)
@@ -202,7 +218,7 @@ def test_cli_import_add_and_list(tmp_path):
     res = CliRunner().invoke(main, ["import-csv", str(data), "-c", str(cfg), "-o", str(out),
                                     "--events", str(ev)])
     assert res.exit_code == 0, res.output
-    assert "1 events" in res.stderr
+    assert "1 event -> " in res.stderr
     res = CliRunner().invoke(main, ["events", "add", str(out), "-c", str(cfg), "--unit", "P-2",
                                     "--year", "2", "--component", "winding", "--note", "WO 9"])
     assert res.exit_code == 0, res.output

@@ -72,6 +72,9 @@ def test_import_csv_strips_a_bom_and_rejects_latin1_and_foreign_columns(tmp_path
     ("unit,year,time,m_flow\nA,1,2\n", r"line 2: 3 fields, expected 4"),
     ("unit,year,time,m_flow\nA,1,inf,1\n", r"line 2: column 'time' is 'inf', expected a finite"),
     ("", r"line 1: file is empty"),
+    # A calendar year: refused here as every reader refuses it, with what to write instead.
+    ("unit,year,time,m_flow\nA,2014,2,1\n", r"line 2: column 'year' is 2014, expected a year "
+                                             r"of service from 1 to 1000 \(a calendar year\?"),
 ])
 def test_import_csv_errors_name_the_line(tmp_path, text, message):
     out = tmp_path / "o.h5"

@@ -16,6 +16,11 @@ from ..errors import ArtifactError, ReadError, TwinmonError
 from .schema import READABLE, schema_name
 
 
+def _a(word: str) -> str:
+    """``word`` with its article: "an observations", "a forecast"."""
+    return ("an " if word[:1].lower() in "aeiou" else "a ") + word
+
+
 def open_artifact(path: str | os.PathLike, kind: str) -> h5py.File:
     """Open an artifact read-only after checking it exists and has the expected schema.
 
@@ -26,15 +31,15 @@ def open_artifact(path: str | os.PathLike, kind: str) -> h5py.File:
     """
     path = Path(path)
     if not path.exists():
-        raise ArtifactError(f"{path}: file not found (expected a {kind} artifact)")
+        raise ArtifactError(f"{path}: file not found (expected {_a(kind)} artifact)")
     if path.is_dir():
-        raise ArtifactError(f"{path}: is a folder (expected a {kind} artifact file)")
+        raise ArtifactError(f"{path}: is a folder (expected {_a(kind)} artifact file)")
     if not os.access(path, os.R_OK):
         raise ReadError(f"{path}: permission denied (cannot read the {kind} artifact)")
     try:
         f = _ArtifactFile(path, "r")
     except OSError:
-        raise ArtifactError(f"{path}: not a readable HDF5 file (expected a {kind} artifact)") from None
+        raise ArtifactError(f"{path}: not a readable HDF5 file (expected {_a(kind)} artifact)") from None
     f.twinmon_path = path
     found = f.attrs.get("schema", None)
     if isinstance(found, bytes):

@@ -94,8 +94,10 @@ def import_csv(csv_file, config_path, overrides, output, noise_std, events, as_j
     if as_json:
         emit_json(summary)
     else:
-        say(f"import-csv: {len(obs.units)} units, {obs.time.size} samples per start-up"
-            + (f", {n_events} events" if events is not None else "") + f" -> {output}")
+        n_units = len(obs.units)
+        say(f"import-csv: {n_units} unit{'s' * (n_units != 1)}, {obs.time.size} samples per "
+            "start-up" + (f", {n_events} event{'s' * (n_events != 1)}" if events is not None
+                          else "") + f" -> {output}")
 
 
 @main.group()

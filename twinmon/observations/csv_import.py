@@ -14,13 +14,20 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from ..errors import InputDataError
+# The largest year of service, the limit every reader checks: a larger one is a calendar year
+# or a typo.
+from ..plausibility import MAX_YEAR
 from .file import validate_observations, write_observations
 from .records import Event, Observations, UnitObservations
 
 
 KEY_COLUMNS = ("unit", "year", "time")
-#: Years are small integers; a larger one is a typo (and would overflow int64 on writing).
-MAX_YEAR = 10_000
+
+
+def _calendar_hint(year: int) -> str:
+    """A hint for a year that looks like a calendar year."""
+    return (" (a calendar year? write the year of service: 1 for the first year the unit "
+            "ran)" if 1900 <= year <= 2200 else "")
 
 
 def import_csv(csv_path: str | os.PathLike, out_path: str | os.PathLike, output: str,
@@ -102,7 +109,8 @@ def import_csv(csv_path: str | os.PathLike, out_path: str | os.PathLike, output:
             time = _parse_float(row[col["time"]], csv_path, lineno, "time", allow_empty=False)
             if not 1 <= year <= MAX_YEAR:
                 raise InputDataError(f"{csv_path}: line {lineno}: column 'year' is {year}, "
-                                     f"expected a year of service from 1 to {MAX_YEAR}")
+                                     f"expected a year of service from 1 to {MAX_YEAR}"
+                                     + _calendar_hint(year))
             values = [_parse_float(row[col[c]], csv_path, lineno, c, allow_empty=True)
                       for c in chan_cols]
             per = rows.setdefault((unit, year), {})
@@ -219,7 +227,8 @@ def read_events_csv(path: str | os.PathLike, components: Sequence[str] | None = 
             year = _parse_int(cell["year"], path, lineno, "year")
             if not 1 <= year <= MAX_YEAR:
                 raise InputDataError(f"{path}: line {lineno}: column 'year' is {year}, "
-                                     f"expected a year of service from 1 to {MAX_YEAR}")
+                                     f"expected a year of service from 1 to {MAX_YEAR}"
+                                     + _calendar_hint(year))
             if components is not None and cell["component"] not in components:
                 raise InputDataError(f"{path}: line {lineno}: component {cell['component']!r} "
                                      "is not a component of the config's model.inputs "

@@ -47,6 +47,10 @@ def add_events(path: str | os.PathLike, events: Mapping[str, Sequence[Event]],
     """
     import shutil
     path = Path(path)
+    if path.exists() and not os.access(path, os.W_OK):
+        # Replaced by a rename, a read-only file would be rewritten all the same.
+        raise OSError(13, "cannot write: the file is read-only (not writable by you)",
+                      str(path))
     with artifacts.output_lock(path, "twinmon events add"):
         obs = read_observations(path)
         for unit, evs in events.items():
@@ -68,6 +72,9 @@ def add_events(path: str | os.PathLike, events: Mapping[str, Sequence[Event]],
         tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
         try:
             shutil.copyfile(path, tmp)
+            # The copy keeps the original's permissions (plant data is not made readable by
+            # others by an edit).
+            shutil.copymode(path, tmp)
             with h5py.File(tmp, "r+") as f:
                 for unit in events:
                     g = f[f"units/{unit}"]
