@@ -85,3 +85,15 @@ def test_a_unit_unsafe_before_its_first_cut_is_named_not_hidden():
     assert d["units_reaching_unsafe"] == 0 and d["units_unsafe_before_cuts"] == {"Early": 1}
     assert list(early.pairs()) == []          # past its end of life: nothing to cover
     assert np.isnan(s.alpha_lambda)
+
+
+def test_a_forecast_made_before_a_recorded_repair_is_not_scored_after_it():
+    """The cut-5 forecast of a unit whose part was replaced in year 8 says nothing of the
+    new part: its years 8 on are left out (counted apart), its years 6-7 kept."""
+    import dataclasses
+    b = _unit(range(1, 11), [5, 6, 8], 0.0, 1.0, [0.5] * 10)
+    assert len(list(b.pairs())) == 3 + 3 + 2 and b.across_repairs() == 0
+    r = dataclasses.replace(b, repairs=(8,))
+    kept = [(int(b.cuts[c]), y) for c, _, y in r.pairs()]
+    assert kept == [(5, 6), (5, 7), (6, 7), (8, 9), (8, 10)]
+    assert r.across_repairs() == 3

@@ -45,7 +45,9 @@ def backtest(config_path, overrides, posterior, surrogate, observations, output,
     c = int(round(100 * s.confidence))
     say(f"coverage of the {c} % prediction intervals of the {ind.name}: "
         f"{100 * s.coverage:.0f} % of {s.n_pairs} later observations; median abs. error "
-        f"{ind.fmt(s.indicator_mae)}")
+        f"{ind.fmt(s.indicator_mae)}"
+        + (f" ({s.across_repairs} later observation(s) after a recorded repair not scored "
+           "against the forecasts made before it)" if s.across_repairs else ""))
     if len(s.by_record) > 1:
         # Short records are where the intervals fail first: each length on its own.
         say("  by years of record at the forecast: " + ", ".join(
