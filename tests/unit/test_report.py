@@ -704,3 +704,20 @@ def test_several_faults_are_named_by_their_components():
                     np.zeros(3), np.array([0.25, 0.03, 0.03]), [+1, -1, +1], 0.8,
                     rng, draws=draws)
     assert att.verdict == "both" and att.named == ["belt", "spindle"], att
+
+
+def test_recorded_maintenance_is_said_in_the_report():
+    """A repair the user recorded (events add, import-csv) is in the unit's reasons, with
+    its note; from the posterior's copy when the observations are not given."""
+    from types import SimpleNamespace
+    from twinmon.observations import Event, Observations, UnitObservations
+    from twinmon.report.summary import recorded_events
+    u = UnitObservations(np.arange(1, 11), {"speed": np.ones((10, 3))}, {"speed": 3.0},
+                         [Event(8, "bearing", note="WO 77")])
+    obs = Observations(np.array([0.1, 0.2, 0.3]), {"D": u}, output="speed")
+    assert recorded_events(SimpleNamespace(obs=obs), "D", None) == [
+        "bearing replaced in year 8 (WO 77) as recorded: its trend restarts there"]
+    post = SimpleNamespace(events=[(6, "winding", "repaired")])
+    assert recorded_events(SimpleNamespace(obs=None), "D", post) == [
+        "winding repaired in year 6 as recorded: its trend restarts there"]
+    assert recorded_events(SimpleNamespace(obs=None), "D", None) == []

@@ -10,12 +10,12 @@ import numpy as np
 from ..config import Config
 from ..forecast.judge import box_bound_of, describe_power
 from ..forecast.plan import no_fault_due
+from ..forecast.trend import safe_way
 from ..repairs import FoundRepair
+from ..safety import trailing_run
 from .common import plain
 from .fleet import FleetView, overview_lines
 from .load import Inputs
-from ..forecast.trend import safe_way
-from ..safety import trailing_run
 from .unit_summary import UnitSummary
 
 
@@ -165,6 +165,20 @@ def calibration_diagnostics(inp: Inputs) -> dict:
     return {"units": units, "warnings": warnings}
 
 
+def recorded_events(inp: Inputs, unit: str, post) -> list[str]:
+    """One phrase per maintenance event recorded for ``unit`` (the observations', with
+    their notes; else the posterior's copy): "bearing replaced in year 8 (WO 77): its trend
+    restarts there"."""
+    u = inp.obs.units.get(unit) if inp.obs is not None else None
+    if u is not None:
+        events = [(e.year, e.component, e.action, e.note) for e in u.events]
+    else:
+        events = [(int(e[0]), str(e[1]), str(e[2]) if len(e) > 2 else "replaced", "")
+                  for e in (getattr(post, "events", None) or ())]
+    return [f"{c} {a} in year {y}" + (f" ({n})" if n else "") + " as recorded: its trend "
+            "restarts there" for y, c, a, n in events]
+
+
 def faulty_components(cfg: Config, uf) -> list[str]:
     """Components the forecast's attribution names, with their probabilities when the data
     cannot tell which ("pump 0.62 or motor 0.38"); for forecasts made before attribution,
@@ -297,6 +311,9 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
                         else f"check the {' and the '.join(away_comps)} at the next planned "
                         "stop (beyond normal ageing, though away from the limit)" if away_comps
                         else "no action; re-check at next year's recorded transient")
+        for text in recorded_events(inp, unit, post):
+            # The user's own records: the trends restart there.
+            why.append(text)
         for r in (FoundRepair(**d) for d in uf.repairs):
             # A repair nobody recorded: the trend restarts there, and the record should say so.
             why.append(f"{r.headline()}: the trend restarts there")
