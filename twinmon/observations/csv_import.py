@@ -106,7 +106,10 @@ def import_csv(csv_path: str | os.PathLike, out_path: str | os.PathLike, output:
             if not unit:
                 raise InputDataError(f"{csv_path}: line {lineno}: column 'unit' is empty")
             year = _parse_int(row[col["year"]], csv_path, lineno, "year")
+            # To 12 significant digits: an export's float noise (0.30000000000000004) is the
+            # same time as another unit's 0.3.
             time = _parse_float(row[col["time"]], csv_path, lineno, "time", allow_empty=False)
+            time = float(f"{time:.12g}")
             if not 1 <= year <= MAX_YEAR:
                 raise InputDataError(f"{csv_path}: line {lineno}: column 'year' is {year}, "
                                      f"expected a year of service from 1 to {MAX_YEAR}"
@@ -127,10 +130,16 @@ def import_csv(csv_path: str | os.PathLike, out_path: str | os.PathLike, output:
     for key, grid in grids.items():
         if grid != ref:
             extra = sorted(set(grid) ^ set(ref))[0]
-            line = rows[key][extra][0] if extra in rows[key] else rows[ref_key][extra][0]
+            this = f"unit {key[0]!r} year {key[1]}"
+            other = f"unit {ref_key[0]!r} year {ref_key[1]}"
+            if extra in rows[key]:
+                raise InputDataError(
+                    f"{csv_path}: line {rows[key][extra][0]}: {this} has a row at time "
+                    f"{extra:g} that {other} has not (its time grid differs)")
+            own = sorted(line for line, _ in rows[key].values())
             raise InputDataError(
-                f"{csv_path}: line {line}: unit {key[0]!r} year {key[1]} has a time grid "
-                f"unlike unit {ref_key[0]!r} year {ref_key[1]} (time {extra:g} in only one)")
+                f"{csv_path}: lines {own[0]}-{own[-1]}: {this} has no row at time {extra:g}, "
+                f"which {other} has (line {rows[ref_key][extra][0]}; its time grid differs)")
     time = np.array(ref)
     per_unit = {}
     for unit in dict.fromkeys(k[0] for k in rows):
