@@ -74,6 +74,10 @@ def test_import_csv_strips_a_bom_and_rejects_latin1_and_foreign_columns(tmp_path
     ("unit,year,time,m_flow\nA,1,2\n", r"line 2: 3 fields, expected 4"),
     ("unit,year,time,m_flow\nA,1,inf,1\n", r"line 2: column 'time' is 'inf', expected a finite"),
     ("", r"line 1: file is empty"),
+    ("unit;year;time;m_flow\nA;1;2;1\n", r"missing column 'unit' .*; the file is separated "
+                                         r"by semicolons"),
+    ("unit,year,time [s],m_flow\nA,1,2,1\n", r"missing column 'time' .*; write the bare "
+                                              r"names"),
     # A calendar year: refused here as every reader refuses it, with what to write instead.
     ("unit,year,time,m_flow\nA,2014,2,1\n", r"line 2: column 'year' is 2014, expected a year "
                                              r"of service from 1 to 1000 \(a calendar year\?"),

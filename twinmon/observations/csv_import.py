@@ -24,6 +24,17 @@ from .records import Event, Observations, UnitObservations
 KEY_COLUMNS = ("unit", "year", "time")
 
 
+def _header_hint(header: list) -> str:
+    """What a header that misses a column probably is: semicolon-separated (a spreadsheet
+    in a locale with decimal commas), or names carrying their units."""
+    if len(header) == 1 and ";" in header[0]:
+        return ("; the file is separated by semicolons: save it as CSV with commas between "
+                "fields and points as decimal marks")
+    if any("[" in h or "(" in h for h in header):
+        return "; write the bare names (units go in the config, not the header)"
+    return ""
+
+
 def _calendar_hint(year: int) -> str:
     """A hint for a year that looks like a calendar year."""
     return (" (a calendar year? write the year of service: 1 for the first year the unit "
@@ -83,7 +94,7 @@ def import_csv(csv_path: str | os.PathLike, out_path: str | os.PathLike, output:
         missing = [c for c in required if c not in header]
         if missing:
             raise InputDataError(f"{csv_path}: line 1: missing column {missing[0]!r} "
-                                 f"(header is {','.join(header)})")
+                                 f"(header is {','.join(header)})" + _header_hint(header))
         if len(set(header)) != len(header):
             dup = next(h for h in header if header.count(h) > 1)
             raise InputDataError(f"{csv_path}: line 1: column {dup!r} appears twice")
@@ -214,7 +225,7 @@ def read_events_csv(path: str | os.PathLike, components: Sequence[str] | None = 
         missing = [c for c in EVENT_COLUMNS[:3] if c not in header]
         if missing:
             raise InputDataError(f"{path}: line 1: missing column {missing[0]!r} "
-                                 f"(header is {','.join(header)})")
+                                 f"(header is {','.join(header)})" + _header_hint(header))
         unknown = [h for h in header if h not in EVENT_COLUMNS]
         if unknown:
             raise InputDataError(f"{path}: line 1: unknown column {unknown[0]!r} (columns: "
