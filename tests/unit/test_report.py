@@ -666,6 +666,8 @@ def test_a_unit_unsafe_already_is_said_so_not_given_next_year():
                     p_unsafe=0.2, last_year=10, horizon_end=17, unsafe_since=10,
                     p_unsafe_last=0.13)
     assert s.time_to_failure == "possibly unsafe since year 10 (P(unsafe) 13 % in 10)"
+    from twinmon.report.fleet import failure_cell
+    assert failure_cell(s) == "possibly unsafe since 10"
     edge = ("prognosis withheld: the estimates lean on the design box's edge from year 1; "
             "widen model.inputs.friction.high")
     s = UnitSummary(name="Ash", status="withheld", status_reason=edge, root_cause="withheld",

@@ -62,7 +62,7 @@ def risk_reasons(s: UnitSummary, limit: float) -> list[str]:
     """Why a unit needs a look (empty: it does not)."""
     why = []
     if s.unsafe_since is not None:
-        why.append(f"unsafe since year {s.unsafe_since}")
+        why.append(f"{s.maybe}unsafe since year {s.unsafe_since}")
     elif s.failure_year is not None:
         why.append(f"fails in year {s.failure_year}")
     elif s.p_unsafe_max is not None and s.p_unsafe_max > limit:
@@ -133,7 +133,7 @@ def is_fleet(cfg: Config, n_units: int) -> bool:
 def failure_cell(s: UnitSummary) -> str:
     """``year 14 (+3)``: the failure year and the years after the last observation."""
     if s.unsafe_since is not None:
-        return f"unsafe since {s.unsafe_since}"
+        return f"{s.maybe}unsafe since {s.unsafe_since}"
     if s.status == "withheld" and not s.forced:
         return ("withheld, measured unsafe since " f"{s.measured_unsafe_since}"
                 if s.measured_unsafe_since is not None else "withheld")

@@ -124,6 +124,12 @@ class UnitSummary:
             f"; median after year {self.horizon_end}"
 
     @property
+    def maybe(self) -> str:
+        """``"possibly "`` before "unsafe since" while the last year's P(unsafe) is past
+        the limit but under even odds ("unsafe" alone would overstate it), else ""."""
+        return "" if self.p_unsafe_last is None or self.p_unsafe_last >= 0.5 else "possibly "
+
+    @property
     def time_to_failure(self) -> str:
         """e.g. ``"fails in year 14 (P(unsafe) 12 % in 14; median year 15)"`` (the median
         year where it differs from the year to act by)."""
@@ -141,9 +147,7 @@ class UnitSummary:
             # Unsafe already: the year after the record is only the year to act by. Past the
             # limit (safety.failure_probability) but under even odds, "unsafe" alone would
             # overstate it.
-            maybe = "" if self.p_unsafe_last is None or self.p_unsafe_last >= 0.5 else \
-                "possibly "
-            return (f"{maybe}unsafe since year {self.unsafe_since} (P(unsafe) "
+            return (f"{self.maybe}unsafe since year {self.unsafe_since} (P(unsafe) "
                     f"{pct(self.p_unsafe_last)} in {self.last_year}{measured})")
         if self.failure_year is not None:
             return (f"fails in year {self.failure_year} "
