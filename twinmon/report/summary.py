@@ -167,8 +167,8 @@ def calibration_diagnostics(inp: Inputs) -> dict:
 
 def recorded_events(inp: Inputs, unit: str, post) -> list[str]:
     """One phrase per maintenance event recorded for ``unit`` (the observations', with
-    their notes; else the posterior's copy): "bearing replaced in year 8 (WO 77): its trend
-    restarts there"."""
+    their notes; else the posterior's copy): "bearing replaced in year 8 (WO 77) as
+    recorded: its trend restarts there"."""
     u = inp.obs.units.get(unit) if inp.obs is not None else None
     if u is not None:
         events = [(e.year, e.component, e.action, e.note) for e in u.events]
@@ -272,7 +272,8 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
                     "degrading: " + " and ".join(comps) if comps else
                     "no fault confirmed; watch: " + "; ".join(
                         f"{c} ({why})" for c, why in watched.items()) if watch else "healthy")
-        # A part whose wear speeds up with its slope still normal: inspect it.
+        # A part watched though no fault is confirmed (its wear accelerating, or its own
+        # slope beyond normal ageing alone) is the one the action names.
         found, comps = comps, comps or watch
         s.components = [c for c in found if " (ambiguous)" not in c]
         if uf.forced:
@@ -349,12 +350,12 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
                        f"p >= {np.floor(pmin * 100) / 100:.2f})")
         elif not found:
             why.append("no input wears towards the limit faster than normal ageing")
-            if uf.status == "ok":
-                # How large a fault 'healthy' rules out (an unreliable unit's reason says
-                # it already when that is too large).
-                power = describe_power(cfg, uf.drift)
-                if power:
-                    why.append(power)
+        if not found and uf.status == "ok":
+            # How large a fault 'healthy' rules out (an unreliable unit's reason says it
+            # already when that is too large).
+            power = describe_power(cfg, uf.drift)
+            if power:
+                why.append(power)
         why.append(f"P(unsafe) from {uf.n_samples} Monte Carlo draws of the {ind.name} "
                    f"per year through the twin; failure = first year above {100 * limit:g} %")
     elif post is not None and unit in getattr(inp.forecast, "too_few_years", {}):
