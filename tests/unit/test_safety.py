@@ -65,3 +65,16 @@ def test_a_dimensionless_indicator_prints_no_unit(tmp_path):
     ind = Indicator.from_config(cfg)
     assert ind.fmt(4.1) == "4.1" and ind.rule == "settled speed below 2.2"
     assert with_units("3", "rad/s") == "3 rad/s" and with_units("3", "") == "3"
+
+
+def test_indicator_values_keep_the_limits_digits(tmp_path):
+    """Beside a limit of 4335, 4339 (not 4.34e+03, which cannot be compared with it); three
+    significant digits where the limit is small."""
+    from twinmon.config import load_config
+    from twinmon.safety import Indicator
+    from ..conftest import CONFIGS, write_yaml
+    cfg = load_config(write_yaml(tmp_path / "dc.yaml", {
+        "extends": str(CONFIGS / "dcdrive.yaml"), "safety": {"unsafe_if": {"below": 4335.0}}}))
+    ind = Indicator.from_config(cfg)
+    assert ind.fmt(4339.2) == "4339 rad/s" and ind.fmt(12345.6) == "12346 rad/s"
+    assert Indicator.from_config(load_config(CONFIGS / "pump.yaml")).fmt(14.53) == "14.5 s"
