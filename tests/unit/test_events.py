@@ -325,3 +325,34 @@ def test_calibrate_rejects_an_event_of_an_unknown_component(tmp_path):
                                              r"is not a component"):
         calibrate(cfg, tmp_path / "r.h5", tmp_path / "o.h5", tmp_path / "p.h5")
     assert not (tmp_path / "p.h5").exists()
+
+
+def test_remove_an_event_recorded_by_mistake(tmp_path):
+    """events remove takes one event out in place (the rest of the file kept, the removal
+    recorded in edits); an event that is not there is refused with the unit's events, the
+    file unchanged; the unit's last event gone leaves no dataset, as files without any."""
+    import json
+    from twinmon.observations import remove_events
+    out = tmp_path / "o.h5"
+    write_observations(out, _obs([Event(3, "bearing", note="WO 1"), Event(4, "winding")]))
+    obs = remove_events(out, "A", 3, "bearing")
+    assert obs.units["A"].events == [Event(4, "winding")]
+    assert read_observations(out).units["A"].events == [Event(4, "winding")]
+    with h5py.File(out) as f:
+        edits = json.loads(f.attrs["edits"])
+    assert edits[-1]["command"] == "events remove"
+    assert edits[-1]["events"] == {"A": [{"year": 3, "component": "bearing",
+                                          "action": "replaced", "note": "WO 1"}]}
+    digest = file_sha256(out)
+    with pytest.raises(InputDataError, match=r"/units/A/events: no event for 'bearing' in "
+                                             r"year 3 \(the unit's events: year 4 winding\)"):
+        remove_events(out, "A", 3, "bearing")
+    with pytest.raises(InputDataError, match=r"no unit 'Z'"):
+        remove_events(out, "Z", 4, "winding")
+    assert file_sha256(out) == digest
+    remove_events(out, "A", 4, "winding")
+    with h5py.File(out) as f:
+        assert "events" not in f["units/A"]
+    res = CliRunner().invoke(main, ["events", "remove", str(out), "--unit", "A", "--year", "4",
+                                    "--component", "winding"])
+    assert res.exit_code == 4 and "no event for 'winding' in year 4" in res.output

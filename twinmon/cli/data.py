@@ -127,6 +127,21 @@ def events_add(observations, config_path, overrides, unit, year, component, acti
                                 f"{observations}")
 
 
+@events.command("remove")
+@click.argument("observations", type=click.Path())
+@click.option("--unit", required=True, help="Unit name, as in the file.")
+@click.option("--year", required=True, type=int, help="Year of the event to remove.")
+@click.option("--component", required=True, help="Its component.")
+@json_option
+def events_remove(observations, unit, year, component, as_json):
+    """Remove one event from OBSERVATIONS in place (atomic: on any error the file is
+    unchanged), e.g. one recorded by mistake."""
+    from ..observations import remove_events
+    obs = remove_events(observations, unit, year, component.strip())
+    _print_events(obs, as_json, f"events remove: {unit} year {year}: {component} -> "
+                                f"{observations}")
+
+
 @events.command("list")
 @click.argument("observations", type=click.Path())
 @json_option

@@ -23,7 +23,7 @@ check against the config), file.py (write, read and validate a file), csv_import
 measurements and events), edit.py (events added to a file in place).
 """
 from .csv_import import EVENT_COLUMNS, KEY_COLUMNS, MAX_YEAR, import_csv, read_events_csv
-from .edit import add_events
+from .edit import add_events, remove_events
 from .events import check_events, put_events, read_events
 from .file import read_observations, validate_observations, write_observations
 from .records import EVENTS, Event, Observations, UnitObservations
@@ -31,5 +31,6 @@ from .records import EVENTS, Event, Observations, UnitObservations
 __all__ = [
     "EVENTS", "EVENT_COLUMNS", "Event", "KEY_COLUMNS", "MAX_YEAR", "Observations",
     "UnitObservations", "add_events", "check_events", "import_csv", "put_events", "read_events",
-    "read_events_csv", "read_observations", "validate_observations", "write_observations",
+    "read_events_csv", "read_observations", "remove_events", "validate_observations",
+    "write_observations",
 ]

@@ -1,5 +1,6 @@
-"""In-place edits of an observations file: :func:`add_events` (``twinmon events add``),
-atomic, recorded in the file's ``edits`` attribute."""
+"""In-place edits of an observations file: :func:`add_events` (``twinmon events add``) and
+:func:`remove_events` (``twinmon events remove``), atomic, recorded in the file's ``edits``
+attribute."""
 from __future__ import annotations
 
 import dataclasses
@@ -45,12 +46,8 @@ def add_events(path: str | os.PathLike, events: Mapping[str, Sequence[Event]],
         An unknown unit or component, a year outside the unit's (first, last] recorded
         years, an event already recorded.
     """
-    import shutil
     path = Path(path)
-    if path.exists() and not os.access(path, os.W_OK):
-        # Replaced by a rename, a read-only file would be rewritten all the same.
-        raise OSError(13, "cannot write: the file is read-only (not writable by you)",
-                      str(path))
+    _writable(path)
     with artifacts.output_lock(path, "twinmon events add"):
         obs = read_observations(path)
         for unit, evs in events.items():
@@ -67,35 +64,82 @@ def add_events(path: str | os.PathLike, events: Mapping[str, Sequence[Event]],
                     raise InputDataError(f"{path}: /units/{unit}/{EVENTS}: year {e.year}: an "
                                          f"event for {e.component!r} is already recorded")
             u.events = sorted([*u.events, *evs], key=lambda e: e.year)
-        validate_observations(obs)
-        artifacts.remove_stale_temporaries(path)
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-        try:
-            shutil.copyfile(path, tmp)
-            # The copy keeps the original's permissions (plant data is not made readable by
-            # others by an edit).
-            shutil.copymode(path, tmp)
-            with h5py.File(tmp, "r+") as f:
-                for unit in events:
-                    g = f[f"units/{unit}"]
-                    if EVENTS in g:
-                        del g[EVENTS]
-                    put_events(g, obs.units[unit].events)
-                raw = f.attrs.get("edits", "[]")
-                edits = json.loads(raw.decode() if isinstance(raw, bytes) else raw)
-                added = {u: [dataclasses.asdict(e) for e in evs] for u, evs in events.items()}
-                edits.append({"time": artifacts.utc_now(), "command": "events add",
-                              "events": added})
-                f.attrs["edits"] = json.dumps(edits)
-            back = read_observations(tmp, obs.output or None)
-            if any(back.units[u].events != obs.units[u].events for u in events):
-                raise ArtifactError(f"{path}: the events read back differ from those written")
-            os.replace(tmp, path)
-        except OSError as exc:
-            reason = exc.strerror or str(exc).splitlines()[0]
-            raise OSError(exc.errno, f"cannot write: {reason}", str(path)) from None
-        finally:
-            if tmp.exists():
-                tmp.unlink()
+        _rewrite(path, obs, events, "events add")
     obs.path = path
     return obs
+
+
+def remove_events(path: str | os.PathLike, unit: str, year: int,
+                  component: str) -> Observations:
+    """Remove one maintenance event (``unit``, ``year``, ``component``) from an observations
+    file, in place and atomically as :func:`add_events` adds one (an event recorded by
+    mistake: without this the file had to be imported again). The root attribute ``edits``
+    records the removal.
+
+    Raises
+    ------
+    InputDataError
+        An unknown unit, or no such event (the message lists the unit's events).
+    """
+    path = Path(path)
+    _writable(path)
+    with artifacts.output_lock(path, "twinmon events remove"):
+        obs = read_observations(path)
+        u = obs.units.get(unit)
+        if u is None:
+            raise InputDataError(f"{path}: no unit {unit!r} (units: {', '.join(obs.units)})")
+        gone = [e for e in u.events if (e.year, e.component) == (year, component)]
+        if not gone:
+            have = ", ".join(f"year {e.year} {e.component}" for e in u.events) or "none"
+            raise InputDataError(f"{path}: /units/{unit}/{EVENTS}: no event for {component!r} "
+                                 f"in year {year} (the unit's events: {have})")
+        u.events = [e for e in u.events if e not in gone]
+        _rewrite(path, obs, {unit: gone}, "events remove")
+    obs.path = path
+    return obs
+
+
+def _writable(path: Path) -> None:
+    if path.exists() and not os.access(path, os.W_OK):
+        # Replaced by a rename, a read-only file would be rewritten all the same.
+        raise OSError(13, "cannot write: the file is read-only (not writable by you)",
+                      str(path))
+
+
+def _rewrite(path: Path, obs: Observations, changed: Mapping[str, Sequence[Event]],
+             command: str) -> None:
+    """Write ``obs``'s events of the units in ``changed`` into ``path``: into a copy beside
+    it, read back, then renamed over it (on any error the original is untouched); the
+    change is appended to the root attribute ``edits``."""
+    import shutil
+    validate_observations(obs)
+    artifacts.remove_stale_temporaries(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        shutil.copyfile(path, tmp)
+        # The copy keeps the original's permissions (plant data is not made readable by
+        # others by an edit).
+        shutil.copymode(path, tmp)
+        with h5py.File(tmp, "r+") as f:
+            for unit in changed:
+                g = f[f"units/{unit}"]
+                if EVENTS in g:
+                    del g[EVENTS]
+                if obs.units[unit].events:          # none: no dataset, as files without
+                    put_events(g, obs.units[unit].events)
+            raw = f.attrs.get("edits", "[]")
+            edits = json.loads(raw.decode() if isinstance(raw, bytes) else raw)
+            edits.append({"time": artifacts.utc_now(), "command": command,
+                          "events": {u: [dataclasses.asdict(e) for e in evs]
+                                     for u, evs in changed.items()}})
+            f.attrs["edits"] = json.dumps(edits)
+        back = read_observations(tmp, obs.output or None)
+        if any(back.units[u].events != obs.units[u].events for u in changed):
+            raise ArtifactError(f"{path}: the events read back differ from those written")
+        os.replace(tmp, path)
+    except OSError as exc:
+        reason = exc.strerror or str(exc).splitlines()[0]
+        raise OSError(exc.errno, f"cannot write: {reason}", str(path)) from None
+    finally:
+        if tmp.exists():
+            tmp.unlink()
