@@ -152,9 +152,9 @@ def _check_model(cfg: Config, res: CheckResult) -> None:
     from .fmu import FMUModel
     from .safety import Indicator
     from .simulate import check_model, design_outputs, spec_for, unit_mismatches
-    check_model(cfg)
+    info = check_model(cfg)
     res.checked.append(f"every name in {cfg.source.name} matches the FMU")
-    res.warnings += unit_mismatches(cfg)
+    res.warnings += unit_mismatches(cfg, info)
     spec = spec_for(cfg, outputs=design_outputs(cfg))
     ind = Indicator.from_config(cfg)
     points = box_points(cfg)

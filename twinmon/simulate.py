@@ -80,8 +80,9 @@ def design_outputs(cfg: Config) -> list[str]:
     return list(dict.fromkeys(twin_outputs(cfg) + list(cfg.model.channels)))
 
 
-def check_model(cfg: Config) -> None:
-    """Check every FMU variable the config names against the FMU's model description.
+def check_model(cfg: Config):
+    """Check every FMU variable the config names against the FMU's model description, and
+    return that description (:class:`~twinmon.fmu.FMUInfo`).
 
     Done once, before any run and in this process, so that a typo or a foreign FMU ends the
     command with one line instead of failing in every worker.
@@ -146,16 +147,19 @@ def check_model(cfg: Config) -> None:
     if fab is not None:
         for name in fab.truth_variables:
             need(f"fabricate.truth_variables.{name}", name, values, "a recordable output")
+    return info
 
 
-def unit_mismatches(cfg: Config) -> list[str]:
+def unit_mismatches(cfg: Config, info=None) -> list[str]:
     """Where the config's units differ from those the FMU declares for the same variable
     (inputs, output, channels), one line each; variables the FMU declares no unit for are
     not compared. Spellings are compared after removing blanks, ``.`` and ``*`` between
     symbols and case (``N.m`` = ``N*m`` = ``n m``): a unit written another way is not
-    flagged, a different unit is (``W`` against ``kW`` would label kilowatts as watts)."""
-    from .fmu import describe_fmu
-    info = describe_fmu(cfg.model.fmu)
+    flagged, a different unit is (``W`` against ``kW`` would label kilowatts as watts).
+    ``info``: the FMU's description when already read (:func:`check_model` returns it)."""
+    if info is None:
+        from .fmu import describe_fmu
+        info = describe_fmu(cfg.model.fmu)
 
     def norm(u: str) -> str:
         return "".join(ch for ch in u.lower() if ch not in " .*")
@@ -184,13 +188,13 @@ def spec_for(cfg: Config, outputs: Sequence[str] | None = None,
                           fmi_type=cfg.model.fmi_type, fixed=dict(cfg.model.fixed))
 
 
-def declared_range(cfg: Config) -> np.ndarray:
+def declared_range(cfg: Config, build: bool = True) -> np.ndarray:
     """The range the FMU's model description declares for each input (``min``, ``max``),
     shape [d, 2], -inf / inf where it declares none: beyond it a value is not a state of
     the model (FMI forbids setting it; a hand-written FMU may run it anyway, slowly or to a
-    failure)."""
+    failure). ``build``: as :func:`~twinmon.fmu.describe_fmu`'s."""
     from .fmu import describe_fmu
-    info = describe_fmu(cfg.model.fmu)
+    info = describe_fmu(cfg.model.fmu, build=build)
     out = np.tile([-np.inf, np.inf], (len(cfg.model.inputs), 1))
     for i, spec in enumerate(cfg.model.inputs.values()):
         v = info.variables.get(spec.variable)

@@ -26,11 +26,11 @@ from .reading import LazyUnits, get, get_shape, open_artifact, verify_artifact
 from .schema import READABLE, SCHEMAS, schema_name
 from .temporaries import remove_stale_temporaries
 from .writing import (COMPACT_LIBVER, check_outputs_not_inputs, file_type, json_attr, put,
-                      same_file, set_attrs, write_artifact)
+                      replacing, same_file, set_attrs, write_artifact)
 
 __all__ = ["COMPACT_LIBVER", "SCHEMAS", "READABLE", "schema_name", "file_sha256",
            "input_records", "write_artifact", "same_file", "check_outputs_not_inputs",
            "lock_path", "output_lock", "locks_output", "remove_stale_temporaries", "utc_now",
            "set_provenance", "open_artifact", "put", "get", "get_shape", "LazyUnits",
            "read_provenance", "is_up_to_date", "check_same_version", "verify_artifact",
-           "json_attr", "set_attrs", "file_type"]
+           "json_attr", "set_attrs", "file_type", "replacing"]

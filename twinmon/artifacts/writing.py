@@ -63,31 +63,39 @@ def write_artifact(path: str | os.PathLike, kind: str, *, config: str = "",
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     records = input_records(inputs)  # hash before writing: an input may be overwritten
-    with output_lock(path, f"twinmon ({kind})"):
-        remove_stale_temporaries(path)
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-        try:
-            if base is not None:
-                import shutil
-                verify_artifact(base, kind)
-                shutil.copyfile(base, tmp)
-            mode = "r+" if base is not None else "w"
-            with h5py.File(tmp, mode, **({"libver": COMPACT_LIBVER} if compact else {})) as f:
-                set_provenance(f, kind, config=config, records=records, seed=seed)
-                for key, value in (extra_attrs or {}).items():
-                    f.attrs[key] = value
-                yield f
-            from ..interrupts import raise_if_interrupted
-            raise_if_interrupted()      # a Ctrl-C swallowed while writing: not made final
-            os.replace(tmp, path)
-        except OSError as exc:
-            # Name the artifact, not the hidden temporary file, and keep HDF5's multi-line
-            # internals out of the message.
-            reason = exc.strerror or str(exc).splitlines()[0]
-            raise OSError(exc.errno, f"cannot write: {reason}", str(path)) from None
-        finally:
-            if tmp.exists():
-                tmp.unlink()
+    with output_lock(path, f"twinmon ({kind})"), replacing(path) as tmp:
+        if base is not None:
+            import shutil
+            verify_artifact(base, kind)
+            shutil.copyfile(base, tmp)
+        mode = "r+" if base is not None else "w"
+        with h5py.File(tmp, mode, **({"libver": COMPACT_LIBVER} if compact else {})) as f:
+            set_provenance(f, kind, config=config, records=records, seed=seed)
+            for key, value in (extra_attrs or {}).items():
+                f.attrs[key] = value
+            yield f
+        from ..interrupts import raise_if_interrupted
+        raise_if_interrupted()      # a Ctrl-C swallowed while writing: not made final
+
+
+@contextlib.contextmanager
+def replacing(path: Path) -> Iterator[Path]:
+    """A temporary file beside ``path`` (yielded; stale ones from killed runs removed
+    first), renamed over ``path`` when the block ends normally and removed otherwise, so
+    that ``path`` is either the old file or the whole new one. Call it under
+    :func:`~.locks.output_lock`. An ``OSError`` names ``path``, not the hidden temporary
+    file, in one line (HDF5's multi-line internals kept out)."""
+    remove_stale_temporaries(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    except OSError as exc:
+        reason = exc.strerror or str(exc).splitlines()[0]
+        raise OSError(exc.errno, f"cannot write: {reason}", str(path)) from None
+    finally:
+        if tmp.exists():
+            tmp.unlink()
 
 
 def same_file(a: str | os.PathLike, b: str | os.PathLike) -> bool:

@@ -230,7 +230,7 @@ class FMUInfo:
                [v for v in vs if v.causality == "local"]
 
 
-def describe_fmu(path) -> FMUInfo:
+def describe_fmu(path, build: bool = True) -> FMUInfo:
     """Read an FMU's model description: its version, interfaces and variables.
 
     Parameters
@@ -238,6 +238,9 @@ def describe_fmu(path) -> FMUInfo:
     path : Path or str
         A ``.fmu`` file, or an FMU source folder (built and cached first, see
         :func:`resolve_fmu`).
+    build : bool
+        False: a source folder's own ``modelDescription.xml`` is read, nothing is built
+        (for a reader of the variables alone, such as the report).
 
     Returns
     -------
@@ -251,7 +254,7 @@ def describe_fmu(path) -> FMUInfo:
         truncated or corrupt, without ``modelDescription.xml``, or an invalid one.
     """
     p = Path(path)
-    fmu = resolve_fmu(p) if p.is_dir() else p
+    fmu = resolve_fmu(p) if p.is_dir() and build else p
     md = _read_model_description(fmu)
     variables = {}
     for v in md.modelVariables:

@@ -27,8 +27,8 @@ from .detection import gradient_from, gradient_points, mid_state
 from .judge import (MIN_LINE_DRAWS, MIN_TREND_YEARS, STATUS_OK, STATUS_UNRELIABLE,
                     STATUS_WITHHELD, describe_bend, describe_blind, describe_lag, describe_restart,
                     history_slope_draws, judge, prognosis_status, recent_restarts)
-from .plan import (level_cause, level_plan, maintenance_plan, restore_points,
-                   unconfirmed)
+from .plan import (accelerating, level_cause, level_plan, maintenance_plan,
+                   restore_points, unconfirmed)
 from .pooling import ShapePriors, _pool_unit
 from .predictive import (residual_correlation, sample_predictive, sample_state,
                          state_interval, state_predictive)
@@ -403,15 +403,7 @@ def _finish_unit(cfg: Config, unit: str, up, p: dict, twin: TwinResult,
     elif uf.root_cause == HEALTHY and accel:
         # No fault found, but a part's wear speeds up: that part is the one to look at,
         # not "no action".
-        comp = cfg.model.inputs[accel].component or accel
-        uf.watch = {comp: "wear accelerating"}
-        uf.plan = (f"Inspect the {comp} at the next planned stop: no input's slope over the "
-                   "record is beyond normal ageing, but its wear accelerates; on the "
-                   f"straight-line trends P(unsafe) stays <= "
-                   f"{cfg.safety.failure_probability:.2f} through year {int(p['fut'][-1])} "
-                   f"(max {float(np.max(p_unsafe)):.2f})." if fyear is None else
-                   f"Inspect the {comp} first: its wear accelerates, though no input's slope "
-                   f"over the record is beyond normal ageing. {uf.plan}")
+        uf.watch, uf.plan = accelerating(cfg, accel, fyear, p["fut"], p_unsafe, uf.plan)
     elif uf.root_cause == HEALTHY:
         lone = unconfirmed(cfg, trends, drift, fyear, p["fut"], p_unsafe)
         if lone:

@@ -234,3 +234,22 @@ def unconfirmed(cfg: Config, trends: dict, drift: Optional[IndicatorDrift],
     else:
         plan = f"Inspect the {' and the '.join(comps)} first: {said}."
     return {c: "its slope alone beyond normal ageing" for c in comps}, plan
+
+
+def accelerating(cfg: Config, name: str, failure_year: Optional[int],
+                 years_future: np.ndarray, p_unsafe: np.ndarray, plan: str
+                 ) -> tuple[dict, str]:
+    """A unit with no fault found whose input ``name`` accelerates
+    (:func:`~.trend.shape_gate`): the part to watch ``{component: why}`` and the plan, which
+    names it (first, before ``plan``, when the unit has a failure year; in place of
+    ``plan``'s "no action" otherwise)."""
+    comp = cfg.model.inputs[name].component or name
+    if failure_year is None:
+        return {comp: "wear accelerating"}, (
+            f"Inspect the {comp} at the next planned stop: no input's slope over the record is "
+            "beyond normal ageing, but its wear accelerates; on the straight-line trends "
+            f"P(unsafe) stays <= {cfg.safety.failure_probability:.2f} through year "
+            f"{int(years_future[-1])} (max {float(np.max(p_unsafe)):.2f}).")
+    return {comp: "wear accelerating"}, (
+        f"Inspect the {comp} first: its wear accelerates, though no input's slope over the "
+        f"record is beyond normal ageing. {plan}")

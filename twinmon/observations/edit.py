@@ -113,9 +113,7 @@ def _rewrite(path: Path, obs: Observations, changed: Mapping[str, Sequence[Event
     change is appended to the root attribute ``edits``."""
     import shutil
     validate_observations(obs)
-    artifacts.remove_stale_temporaries(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
+    with artifacts.replacing(path) as tmp:
         shutil.copyfile(path, tmp)
         # The copy keeps the original's permissions (plant data is not made readable by
         # others by an edit).
@@ -136,10 +134,3 @@ def _rewrite(path: Path, obs: Observations, changed: Mapping[str, Sequence[Event
         back = read_observations(tmp, obs.output or None)
         if any(back.units[u].events != obs.units[u].events for u in changed):
             raise ArtifactError(f"{path}: the events read back differ from those written")
-        os.replace(tmp, path)
-    except OSError as exc:
-        reason = exc.strerror or str(exc).splitlines()[0]
-        raise OSError(exc.errno, f"cannot write: {reason}", str(path)) from None
-    finally:
-        if tmp.exists():
-            tmp.unlink()

@@ -21,8 +21,9 @@ def fig_trends(figs: Figures, inp: Inputs, colours: dict) -> None:
                                       squeeze=False))
     try:
         # The values the model can take (a drag is not negative): the band is held there.
+        # (From the model description as it is: the report builds no FMU.)
         from ..simulate import declared_range
-        rng = dict(zip(cfg.model.input_names, declared_range(cfg)))
+        rng = dict(zip(cfg.model.input_names, declared_range(cfg, build=False)))
     except Exception:  # noqa: BLE001 -- the FMU is not needed to draw the report
         rng = {}
     for j, name in enumerate(names):
