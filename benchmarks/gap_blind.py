@@ -134,6 +134,9 @@ def main(argv=None):
     ap.add_argument("-v", "--verbose", action="count", default=0,
                     help="list the cases missed (-vv: every case)")
     ap.add_argument("--config", default=str(ROOT / "configs" / "fleet_gap.yaml"))
+    ap.add_argument("--noise-unrecorded", action="store_true",
+                    help="observations without their noise level (and no "
+                         "calibrate.noise_std): diagnose estimates it from the data")
     args = ap.parse_args(argv)
 
     base = load_config(args.config)
@@ -147,7 +150,10 @@ def main(argv=None):
     units, labels = build_cases(base, rng, args.cases, args.nulls, args.out_of_list,
                                 args.years, mags)
     raw["fabricate"] = {"years": args.years, "noise_std": sigma,
-                        "seed": int(rng.integers(1 << 30)), "units": units}
+                        "seed": int(rng.integers(1 << 30)), "units": units,
+                        "record_noise": not args.noise_unrecorded}
+    if args.noise_unrecorded:
+        raw.setdefault("calibrate", {})["noise_std"] = None
     cfg = config_from_mapping(raw, Path(args.config))
 
     with tempfile.TemporaryDirectory(prefix="gap-blind-") as tmp:
@@ -230,7 +236,8 @@ def report(cfg, summary, labels, gaps, wall, wall3, args, mags):
 
     print(f"gap_blind: {n_eff} effect cases with gap >= 3 sigma ({len(below)} below, "
           f"excluded), {len(nulls)} null, {len(ool)} out-of-list; {args.years} years each, "
-          f"onset years 2..{args.years - 1}, noise 1 % of nominal, seed {args.seed}")
+          f"onset years 2..{args.years - 1}, noise 1 % of nominal, seed {args.seed}"
+          + (", noise level not recorded (estimated)" if args.noise_unrecorded else ""))
     print("smallest magnitude with a 3-sigma gap at nominal inputs: " + ", ".join(
         f"{n} {'/'.join(f'{lo:.3g}' for lo, _ in s)}" for n, s in mags.items() if s))
     w = max(len(c) for c in cols)

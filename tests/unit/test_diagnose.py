@@ -15,7 +15,8 @@ from click.testing import CliRunner
 from twinmon import artifacts
 from twinmon.config import config_from_mapping, load_config
 from twinmon.diagnose import (JointFit, Twin, candidate_names, diagnose, diagnose_unit,
-                              estimate_noise, ljung_box, pooled_onset_pvalues, read_gap)
+                              estimate_noise, ljung_box, noise_sf, plateau_noise,
+                              pooled_onset_pvalues, read_gap)
 from twinmon.errors import ArtifactError, ConfigError, InputDataError, Interrupted, SimulationError
 from twinmon.fabricate import fabricate
 from twinmon.fmu import resolve_fmu
@@ -84,6 +85,43 @@ def test_estimate_noise_from_the_plateau():
     assert estimate_noise(y, t, 24.0) == pytest.approx(4.0, rel=0.2)
     with pytest.raises(InputDataError):
         estimate_noise(np.full((1, t.size), 1.0), t, 24.0)
+
+
+def test_plateau_noise_counts_its_degrees_of_freedom():
+    # The spread of the estimate is that of a chi-square with the dof it reports.
+    rng = np.random.default_rng(3)
+    t = np.arange(0.0, 3.01, 0.1)
+    est = [plateau_noise(rng.standard_normal((6, t.size)), t, 2.0) for _ in range(1500)]
+    s2 = np.array([s for s, _ in est]) ** 2
+    dof = est[0][1]
+    assert 25 < dof < 35                          # 6 years x 9 differences, half their number
+    assert np.mean(s2) == pytest.approx(1.0, abs=0.03)
+    assert 2.0 / np.var(s2) == pytest.approx(dof, rel=0.15)
+    # A spike is an outlier, not noise; missing samples cost their differences.
+    y = rng.standard_normal((6, t.size))
+    y_spiked = y.copy()
+    y_spiked[2, 25] += 40.0
+    assert plateau_noise(y_spiked, t, 2.0)[0] == pytest.approx(plateau_noise(y, t, 2.0)[0],
+                                                               rel=0.1)
+    y[:, 26] = np.nan
+    assert plateau_noise(y, t, 2.0)[1] < dof
+
+
+def test_noise_sf_is_the_f_test_for_one_estimated_channel():
+    from scipy import stats
+    t = np.array([180.0, 250.0, 320.0])
+    np.testing.assert_allclose(noise_sf(t, [[200.0]] * 3, [40.0]),
+                               stats.f.sf(t / 200.0, 200, 40), rtol=1e-9)
+    # Known noise: the chi-square test.
+    np.testing.assert_allclose(noise_sf(t, [[150.0, 50.0]] * 3, [np.inf, np.inf]),
+                               stats.chi2.sf(t, 200), rtol=1e-12)
+    # A known channel beside an estimated one: against simulation.
+    rng = np.random.default_rng(0)
+    n = 400_000
+    total = rng.chisquare(25, n) + 30.0 / rng.chisquare(30, n) * rng.chisquare(25, n)
+    for x in (60.0, 80.0, 100.0):
+        assert noise_sf([x], [[25.0, 25.0]], [np.inf, 30.0])[0] == pytest.approx(
+            np.mean(total > x), rel=0.05)
 
 
 # -- the twin --------------------------------------------------------------------------------
@@ -194,6 +232,21 @@ def test_null_unit_gives_no_gap(cfg, fmu, twin):
     assert g.window_rms_before.shape == (3, len(cfg.diagnose.windows))
     assert 0.6 < g.rms_before < 1.4
     assert len(g.candidates) == len(cfg.model.effects)
+
+
+def test_an_estimated_noise_level_is_not_read_as_a_gap(cfg, fmu, twin):
+    # Eight clean years whitened by a noise level 20 % low, as an unlucky estimate from
+    # the plateau's few samples gives: taken as known, the residuals look 1.56 times too
+    # large in every year, a gap; with the estimate's degrees of freedom counted, none.
+    rng = np.random.default_rng(5)
+    years = np.arange(1, 9)
+    flows = np.array([twin.run(np.array([10.0 + 0.2 * k, 3.7 - 0.02 * k]))["sensor.m_flow"]
+                      for k in range(8)]) + SIGMA * rng.standard_normal((8, 25))
+    args = (cfg, fmu, "U", cfg.model.output.times.times, years, {"m_flow": flows},
+            {"m_flow": 0.8 * SIGMA})
+    assert diagnose_unit(*args).verdict != "none"
+    g = diagnose_unit(*args, noise_dof={"m_flow": 20.0})
+    assert g.verdict == "none" and g.p_gap > 0.05
 
 
 def test_diagnose_writes_gap_and_reads_back(tmp_path):

@@ -45,7 +45,8 @@ Layout: each step has its file, over one small state object.
                    intervals, before/after twins, projected failure year
 ``twin.py``        :class:`Twin`: the FMU with normalised parameters, whitened outputs
 ``fit.py``         :class:`JointFit`, :class:`FitResult`: least squares through the FMU
-``stats.py``       :func:`ljung_box`, :func:`pooled_onset_pvalues`, :func:`estimate_noise`
+``stats.py``       :func:`ljung_box`, :func:`pooled_onset_pvalues`, :func:`plateau_noise`,
+                   :func:`noise_sf` (tests with estimated noise levels)
 ``result.py``      :class:`UnitGap`: one unit's diagnosis (``--json`` via ``as_dict``)
 ``artifact.py``    :func:`write_gap`, :func:`read_gap`, :class:`GapFile` (``gap.h5``)
 ``update.py``      ``--update``: :class:`~.update.YearCache` (per-year base fit and screening
@@ -54,6 +55,7 @@ Layout: each step has its file, over one small state object.
 """
 from __future__ import annotations
 
+import math
 import os
 import time as _time
 from dataclasses import dataclass
@@ -70,7 +72,7 @@ from .artifact import SECTIONS, GapFile, read_gap, write_gap
 from .fit import FD_STEP, FitResult, JointFit
 from .result import VERDICTS, UnitGap
 from .state import UnitState
-from .stats import estimate_noise, ljung_box, pooled_onset_pvalues
+from .stats import estimate_noise, ljung_box, noise_sf, plateau_noise, pooled_onset_pvalues
 from .twin import SNAP, Twin, release_spare
 from .unit import run_unit
 from .update import YearCache, plan_update, unit_digests
@@ -78,7 +80,7 @@ from .update import YearCache, plan_update, unit_digests
 __all__ = ["diagnose", "diagnose_unit", "candidate_names", "DiagnoseSummary", "SECTIONS",
            "VERDICTS", "FD_STEP", "SNAP", "Twin", "JointFit", "FitResult", "UnitGap",
            "GapFile", "write_gap", "read_gap", "YearCache", "ljung_box",
-           "pooled_onset_pvalues", "estimate_noise"]
+           "pooled_onset_pvalues", "estimate_noise", "plateau_noise", "noise_sf"]
 
 
 @dataclass
@@ -122,16 +124,22 @@ def no_candidates_hint(cfg: Config) -> str:
             "calibrated model (`twinmon init MODEL.fmu` lists the candidates)")
 
 
-def _unit_sigma(cfg: Config, uo, time: np.ndarray) -> dict:
-    # Noise not recorded: estimated where the transient is calmest, the last window.
+def _unit_sigma(cfg: Config, uo, time: np.ndarray) -> tuple[dict, dict]:
+    """Each channel's noise standard deviation (channel units) and the degrees of freedom it
+    carries: ``inf`` where the observations (or ``calibrate.noise_std``, the output's) record
+    it; where not, estimated where the transient is calmest, the last window, and its few
+    degrees of freedom counted by the tests (:func:`.stats.noise_sf`)."""
     plateau = list(cfg.diagnose_windows().values())[-1].start
-    sig = {}
+    sig, dof = {}, {}
     for ch, arr in uo.channels.items():
         s = uo.noise_std.get(ch)
         if s is None and ch == cfg.model.output.name and cfg.calibrate.noise_std is not None:
             s = cfg.calibrate.noise_std
-        sig[ch] = float(s) if s is not None else estimate_noise(arr, time, plateau)
-    return sig
+        if s is not None:
+            sig[ch], dof[ch] = float(s), math.inf
+        else:
+            sig[ch], dof[ch] = plateau_noise(arr, time, plateau)
+    return sig, dof
 
 
 def _whitened(cfg: Config, channels: dict, noise_std: dict) -> tuple[list, np.ndarray]:
@@ -145,7 +153,8 @@ def _whitened(cfg: Config, channels: dict, noise_std: dict) -> tuple[list, np.nd
 
 def diagnose_unit(cfg: Config, fmu_path, unit: str, time: np.ndarray, years: np.ndarray,
                   channels: dict, noise_std: dict, twin: Twin | None = None,
-                  posterior: tuple | None = None, kept: YearCache | None = None) -> UnitGap:
+                  posterior: tuple | None = None, kept: YearCache | None = None,
+                  noise_dof: dict | None = None) -> UnitGap:
     """Diagnose one unit.
 
     Parameters
@@ -172,6 +181,9 @@ def diagnose_unit(cfg: Config, fmu_path, unit: str, time: np.ndarray, years: np.
         Records of the unit's first years from an earlier ``gap.h5`` (``--update``; their
         digests checked by :func:`~.update.plan_update`): their base fit and screening are
         not run again.
+    noise_dof : dict of str to float, optional
+        Degrees of freedom of each channel's noise level where it was estimated (the tests
+        count them); a channel not in it (or ``inf``) has its noise known.
     """
     chans, Y = _whitened(cfg, channels, noise_std)
     names = candidate_names(cfg)
@@ -179,7 +191,8 @@ def diagnose_unit(cfg: Config, fmu_path, unit: str, time: np.ndarray, years: np.
     if own:
         twin = Twin(cfg, fmu_path, chans, time, noise_std, names)
     try:
-        return run_unit(UnitState(twin, cfg, unit, years, Y, posterior, kept), names)
+        nu = [float((noise_dof or {}).get(c, math.inf)) for c in chans]
+        return run_unit(UnitState(twin, cfg, unit, years, Y, posterior, kept, nu), names)
     finally:
         if own:
             twin.close()
@@ -283,7 +296,8 @@ def diagnose(cfg: Config, observations: str | os.PathLike, output: str | os.Path
         from ..calibrate import read_posterior
         post = read_posterior(posterior)
         lineage.check_made_for_model(posterior, "posterior", cfg.section_yaml("model"))
-    sigma = {u: _unit_sigma(cfg, uo, obs.time) for u, uo in obs.units.items()}
+    noise = {u: _unit_sigma(cfg, uo, obs.time) for u, uo in obs.units.items()}
+    sigma = {u: n[0] for u, n in noise.items()}
     kept, update_info = {}, None
     if update:
         digests = {}
@@ -295,7 +309,7 @@ def diagnose(cfg: Config, observations: str | os.PathLike, output: str | os.Path
     # the config, without what the workers do not read (each job pickles its own copy).
     wcfg = cfg.for_workers()
     jobs = [(wcfg, fmu, u, obs.time, uo.years, uo.channels, sigma[u],
-             None, _posterior_for(posterior, post, cfg, u, uo.years), kept.get(u))
+             None, _posterior_for(posterior, post, cfg, u, uo.years), kept.get(u), noise[u][1])
             for u, uo in obs.units.items()]
     n_workers = workers if workers is not None else cfg.diagnose.workers
     n_workers = min(n_workers or os.cpu_count() or 1, len(jobs))

@@ -19,12 +19,11 @@ Every function takes the unit's :class:`~twinmon.diagnose.state.UnitState` ``s``
 from __future__ import annotations
 
 import numpy as np
-from scipy import stats
 
 from ..errors import SimulationError
 from .fit import JointFit
 from .state import UnitState
-from .stats import ljung_box, pooled_onset_pvalues
+from .stats import ljung_box
 
 
 # -- the base twin -----------------------------------------------------------------------------
@@ -72,7 +71,7 @@ def year_tests(s: UnitState, rows, lev, n_par):
     parameters per year."""
     chi2 = np.array([float(r @ r) for r in rows])
     dof = np.maximum(np.array([r.size for r in rows]) - n_par, 1)
-    p_chi2 = stats.chi2.sf(chi2, dof)
+    p_chi2 = s.p_excess(chi2, s.channel_counts, dof)
     p_lb = np.array([ljung_box(output_part(s, r / np.sqrt(1 + h), k), s.dc.ljung_box_lags)
                      for k, (r, h) in enumerate(zip(rows, lev))])
     return chi2, dof, p_chi2, p_lb
@@ -93,7 +92,10 @@ def detect(s: UnitState) -> None:
     s.p_chi2_before, s.p_lb_before = p_chi2, p_lb
     p_year = np.minimum(1.0, 2 * s.n_y * np.minimum(p_chi2, p_lb))
     s.significant_years = p_year < a
-    p_pool = np.minimum(1.0, s.n_y * pooled_onset_pvalues(chi2, dof))
+    # From each possible onset on, the years pooled.
+    p_pool = np.minimum(1.0, s.n_y * s.p_excess(
+        np.cumsum(chi2[::-1])[::-1], np.cumsum(s.channel_counts[::-1], axis=0)[::-1],
+        np.maximum(np.cumsum(dof[::-1])[::-1], 1)))
     s.detected_onset = int(s.years[int(np.argmin(p_pool))])
     # Bonferroni over the two families (per-year tests, pooled-from-onset tests).
     s.p_omnibus = float(min(1.0, 2 * min(p_year.min(), p_pool.min())))
@@ -158,7 +160,10 @@ def where(s: UnitState, z_before: np.ndarray, aff: np.ndarray) -> tuple:
     for j, name in enumerate(s.win_names):
         z = z_before[aff][:, s.win_masks[j]]
         z = z[np.isfinite(z)]
-        if z.size and stats.chi2.sf(float(z @ z), z.size) * len(s.win_names) < s.dc.alpha:
+        # The output channel's samples alone (its noise level may be an estimate).
+        counts = np.zeros((1, len(s.noise_dof)))
+        counts[0, 0] = z.size
+        if z.size and s.p_excess(float(z @ z), counts, z.size) * len(s.win_names) < s.dc.alpha:
             where_w.append(name)
     return where_w, where_y
 

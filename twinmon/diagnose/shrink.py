@@ -126,7 +126,8 @@ def shrink(s: UnitState, idn: Identification) -> Shrink:
     chi2_a, dof_a_y, p_chi2_a, p_lb_a = year_tests(s, after_rows, after_lev, s.d)
     k_aff = np.flatnonzero(aff)
     p_rem_year = min(1.0, 2 * len(k_aff) * float(np.minimum(p_chi2_a, p_lb_a)[k_aff].min()))
-    p_rem_pool = float(stats.chi2.sf(chi2_a[k_aff].sum(), max(dof_a, 1)))
+    p_rem_pool = float(s.p_excess(chi2_a[k_aff].sum(), s.channel_counts[k_aff].sum(axis=0),
+                                  max(dof_a, 1)))
     remaining = min(p_rem_year, p_rem_pool) < s.dc.alpha
 
     if not significant:

@@ -12,8 +12,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy import stats
 
 from ..config import Config
+from .stats import noise_sf
 from .twin import Twin
 
 
@@ -35,6 +37,9 @@ class UnitState:
     kept : YearCache, optional
         Per-year records of the unit's first years from an earlier ``gap.h5``
         (``diagnose --update``): their base fit and initial screening are taken from it.
+    noise_dof : sequence of float, optional
+        Per channel (the order of ``twin.channels``), the degrees of freedom of its noise
+        level: ``inf`` (the default) where it is known, finite where it was estimated.
     """
 
     # -- filled by locate.fit_base: the base twin (degradation inputs only, year by year) ----
@@ -65,7 +70,7 @@ class UnitState:
     p_omnibus: float
 
     def __init__(self, twin: Twin, cfg: Config, unit: str, years: np.ndarray,
-                 Y: np.ndarray, posterior=None, kept=None):
+                 Y: np.ndarray, posterior=None, kept=None, noise_dof=None):
         self.twin, self.cfg, self.dc = twin, cfg, cfg.diagnose
         self.unit = unit
         self.years = np.asarray(years)
@@ -81,3 +86,21 @@ class UnitState:
         self.win_names = list(windows)
         t = twin.time
         self.win_masks = [(t >= w.start) & (t < w.stop) for w in windows.values()]
+        n_ch = len(twin.channels)
+        self.noise_dof = (np.full(n_ch, np.inf) if noise_dof is None
+                          else np.asarray(noise_dof, float))
+        #: Non-missing samples per year and channel, [n_y, n_ch].
+        self.channel_counts = np.isfinite(Y).reshape(self.n_y, n_ch, -1).sum(axis=2)
+
+    def p_excess(self, stat, counts, dof) -> np.ndarray:
+        """p-values of sums of squared whitened residuals ``stat`` [k] with ``dof`` [k]
+        degrees of freedom, over samples ``counts`` [k, n_ch] per channel: the chi-square
+        test, or where a channel's noise level was estimated the test that counts the
+        estimate's degrees of freedom (:func:`~.stats.noise_sf`)."""
+        stat = np.asarray(stat, float)
+        if not np.isfinite(self.noise_dof).any():
+            return stats.chi2.sf(stat, dof)
+        counts = np.atleast_2d(np.asarray(counts, float))
+        total = np.maximum(counts.sum(axis=1, keepdims=True), 1.0)
+        shared = counts * (np.atleast_1d(np.asarray(dof, float))[:, None] / total)
+        return noise_sf(np.atleast_1d(stat), shared, self.noise_dof).reshape(stat.shape)
