@@ -17,6 +17,7 @@ from twinmon.config import config_from_mapping, load_config
 from twinmon.diagnose import (JointFit, Twin, candidate_names, diagnose, diagnose_unit,
                               estimate_noise, ljung_box, noise_sf, plateau_noise,
                               pooled_onset_pvalues, read_gap)
+from twinmon.diagnose.text import summary_line
 from twinmon.errors import ArtifactError, ConfigError, InputDataError, Interrupted, SimulationError
 from twinmon.fabricate import fabricate
 from twinmon.fmu import resolve_fmu
@@ -247,6 +248,9 @@ def test_an_estimated_noise_level_is_not_read_as_a_gap(cfg, fmu, twin):
     assert diagnose_unit(*args).verdict != "none"
     g = diagnose_unit(*args, noise_dof={"m_flow": 20.0})
     assert g.verdict == "none" and g.p_gap > 0.05
+    # The line says how well the noise level is known.
+    assert g.noise_dof == 20.0 and g.as_dict()["noise"]["estimated_dof"] == 20.0
+    assert "noise estimated from the record to +-16 %" in summary_line("U", g)
 
 
 def test_diagnose_writes_gap_and_reads_back(tmp_path):

@@ -56,9 +56,10 @@ _ATTRS = ("verdict", "onset", "rms_before", "rms_after", "closed_percent", "delt
           "separating_channel", "absorbed_share", "p_gap", "noise_std", "failure_year_before",
           "failure_year_after", "fmu_runs", "wall_time")
 _JSON_ATTRS = ("effects", "group", "where_windows", "where_years", "estimate",
-               "separation_scores", "candidates", "effect_onsets", "groups", "hidden")
+               "separation_scores", "candidates", "effect_onsets", "groups", "hidden",
+               "noise_dof")
 #: Values a file written before them lacks, and what they are then.
-_OPTIONAL = {"groups": [], "hidden": {}}
+_OPTIONAL = {"groups": [], "hidden": {}, "noise_dof": None}
 
 
 #: Arrays of ``_ARRAYS`` indexed by candidate (ranking order); the others by year.
@@ -112,7 +113,10 @@ def write_gap(path, results: dict, cfg: Config, time: np.ndarray, inputs) -> Non
                                        it: read as []), hidden ({effect: {value, gap,
                                        visible, channel, channel_score}}: candidates the
                                        degradation inputs take up on the recorded
-                                       channels; absent in older files: read as {})
+                                       channels; absent in older files: read as {}),
+                                       noise_dof (the output's noise level's degrees of
+                                       freedom where diagnose estimated it, else null;
+                                       absent in older files: read as null)
         /units/<U>/cache               compound [n_y], gzip: per-year records for diagnose
                                        --update (:func:`.update.write_cache`): digest,
                                        base_u [d], base_rows [m], base_jac [m, d], base_lev [m]

@@ -108,6 +108,10 @@ class UnitGap:
     #: kept years' base fit and screening not included).
     fmu_runs: int = 0
     wall_time: float = 0.0
+    #: Degrees of freedom of the output's noise level ``noise_std`` where it was estimated
+    #: from the record (:func:`~twinmon.diagnose.stats.plateau_noise`); None where the
+    #: observations or the config gave it.
+    noise_dof: Optional[float] = None
 
     def as_dict(self) -> dict:
         """The ``--json`` entry of this unit (the documented gap schema, plus a few extra keys)."""
@@ -128,6 +132,8 @@ class UnitGap:
             "bic_gain": _num(self.delta_bic_final),
             "absorbed_share": _num(self.absorbed_share),
             "p_gap": _num(self.p_gap),
+            "noise": {"std": _num(self.noise_std),
+                      "estimated_dof": _num(self.noise_dof) if self.noise_dof else None},
             "failure_year": {"before": self.failure_year_before,
                              "after": self.failure_year_after},
             "ranking": [{"effect": c, "delta_bic": _num(b), "screen": _num(s)}

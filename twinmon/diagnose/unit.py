@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import time as _time
 
+import numpy as np
+
 from . import hidden, identify, locate, shrink
 from .result import UnitGap
 from .state import UnitState
@@ -72,4 +74,5 @@ def run_unit(s: UnitState, candidates: list) -> UnitGap:
                        else {}),
         groups=groups, hidden=blind,
         cache=YearCache.of(s, idn.screened),
+        noise_dof=float(s.noise_dof[0]) if np.isfinite(s.noise_dof[0]) else None,
         fmu_runs=s.twin.runs - runs0, wall_time=_time.perf_counter() - t0)
