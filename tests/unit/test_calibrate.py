@@ -9,8 +9,9 @@ import pytest
 from click.testing import CliRunner
 
 from twinmon.calibrate import (Prior, _noise_for, calibrate, calibrate_unit, ess,
-                               estimate_noise, find_map, make_log_density, read_posterior,
-                               sample_posterior, split_rhat, write_posterior, year_prior)
+                               estimate_noise, estimate_noise_checked, find_map,
+                               make_log_density, read_posterior, sample_posterior, split_rhat,
+                               write_posterior, year_prior)
 from twinmon.calibrate.posterior import thin_indices
 from twinmon.config import load_config
 from twinmon.errors import ArtifactError, InputDataError
@@ -196,6 +197,23 @@ def test_estimated_noise_recovers_the_true_level(setup):
     s = estimate_noise(sur, cfg, flows)
     # 250 samples, 20 fitted parameters: the std estimate has ~5 % relative sd.
     assert abs(s / NOISE - 1) < 0.15
+    assert not estimate_noise_checked(sur, cfg, flows).structured
+
+
+def test_a_smooth_misfit_is_not_taken_for_noise(setup):
+    # Half the years carry a smooth shift of the plateau the twin cannot follow (a fouled
+    # pipe): the pooled residuals read it as noise, their second differences do not.
+    cfg, _, _, sur = setup
+    rng = np.random.default_rng(4)
+    X = np.column_stack([rng.uniform(8, 20, 10), rng.uniform(3.0, 3.8, 10)])
+    flows = _observe(sur, X, seed=9)
+    t = np.asarray(sur.time, float)
+    flows[5:] -= 6 * NOISE / (1 + np.exp(-(t - t[12]) / 3.0))
+    est = estimate_noise_checked(sur, cfg, flows)
+    assert est.residual_std > 1.4 * NOISE
+    assert est.structured and est.p_structure < cfg.calibrate.fit_alpha
+    assert est.std == est.difference_std and abs(est.std / NOISE - 1) < 0.2
+    assert "hold more than noise" in est.warning("U", "m_flow", "kg/s")
 
 
 def _posterior(cfg, sur, n_years=2, seed=0):

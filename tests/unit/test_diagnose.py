@@ -106,6 +106,13 @@ def test_plateau_noise_counts_its_degrees_of_freedom():
                                                                rel=0.1)
     y[:, 26] = np.nan
     assert plateau_noise(y, t, 2.0)[1] < dof
+    # Five differences, three of them alike: their MAD (0.15) is no scale to cut at.
+    d2 = np.array([-6.09, 3.54, -4.71, 3.62, 3.64])
+    y = np.zeros(7)
+    for k, d in enumerate(d2):
+        y[k + 2] = d + 2 * y[k + 1] - y[k]
+    s, dof = plateau_noise(y[None], np.arange(7.0), 0.0)
+    assert s == pytest.approx(np.sqrt(np.mean((d2 - np.median(d2)) ** 2) / 6)) and dof < 4
 
 
 def test_noise_sf_is_the_f_test_for_one_estimated_channel():

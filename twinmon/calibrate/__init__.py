@@ -89,7 +89,8 @@ from ..observations import check_events, read_observations
 from ..plausibility import check_observations
 from .base import Method, Sampler, Work
 from .channels import StackedSurrogate, channel_noise, select_channels, stacked_rows
-from .density import LogDensity, Prior, estimate_noise, find_map, make_log_density
+from .density import (LogDensity, NoiseEstimate, Prior, estimate_noise, estimate_noise_checked,
+                      find_map, make_log_density)
 from .diagnostics import ess, split_rhat
 from .fit import FIT_FIELDS, STATUS_EDGE, STATUS_MISFIT, STATUS_OK, STATUS_UNCONVERGED, year_fit
 from .methods import method_named
@@ -101,10 +102,10 @@ from .update import Kept, plan_update, year_digests
 
 __all__ = [
     "ACCEPTANCE_RANGE", "FIT_FIELDS", "SECTIONS", "SEED_OFFSET", "STATUS_EDGE", "STATUS_MISFIT",
-    "STATUS_OK", "STATUS_UNCONVERGED", "CalibrateSummary", "LogDensity", "Method", "Posterior",
-    "Prior", "Sampler", "UnitPosterior", "Work", "calibrate", "calibrate_unit",
-    "diagnostics_warnings", "ess", "estimate_noise", "find_map", "fit_warnings",
-    "make_log_density", "plan_chains", "read_posterior", "resolve_method", "run_chain",
+    "STATUS_OK", "STATUS_UNCONVERGED", "CalibrateSummary", "LogDensity", "Method",
+    "NoiseEstimate", "Posterior", "Prior", "Sampler", "UnitPosterior", "Work", "calibrate",
+    "calibrate_unit", "diagnostics_warnings", "ess", "estimate_noise", "estimate_noise_checked",
+    "find_map", "fit_warnings", "make_log_density", "plan_chains", "read_posterior", "resolve_method", "run_chain",
     "sample_posterior", "split_rhat", "truth_check", "write_posterior", "year_fit",
     "year_prior",
 ]
@@ -328,17 +329,22 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
     name, method_reason = resolve_method(cfg, len(obs.units))
     method = method_named(name)
     sampler = method.sampler(cfg.calibrate.sampler)
-    runs, channel_info = {}, {}
+    runs, channel_info, noise_warnings = {}, {}, []
     # Each unit's run carries the config to the workers' tasks (a Dask scheduler holds
     # every submitted task until it runs): without what they do not read.
     wcfg = cfg.for_workers()
+    out = cfg.model.output
     for unit, u in obs.units.items():
         noise, source = _noise_for(cfg, u)
         y = obs.output_of(unit)
         if noise is None:
-            noise = estimate_noise(surrogate, cfg, y)
+            est = estimate_noise_checked(surrogate, cfg, y)
+            noise = est.std
+            if est.structured:
+                noise_warnings.append(est.warning(unit, out.name, out.units))
         if channels:  # one noise per channel, records side by side
-            noise, channel_info[unit] = channel_noise(cfg, u, model, noise, source)
+            noise, channel_info[unit] = channel_noise(cfg, u, model, noise, source, unit,
+                                                      noise_warnings)
             y = stacked_rows(u, model, cfg.model.output.name)
         runs[unit] = method.start(model, wcfg, u.years, y, noise, _unit_seed(cfg, unit),
                                   source, getattr(u, "events", []))
@@ -389,7 +395,7 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
                 emit(unit)
     posterior = {unit: posterior[unit] for unit in runs}
     windows = list(cfg.diagnose_windows())
-    warnings = channel_warnings + fit_warnings(posterior, names, windows, cfg) + \
+    warnings = channel_warnings + noise_warnings + fit_warnings(posterior, names, windows, cfg) + \
         diagnostics_warnings(posterior, names, cfg)
     check = truth_check(posterior, truth, names) if truth is not None else None
     return CalibrateSummary(names, posterior, warnings, str(output), check, windows,

@@ -26,7 +26,7 @@ import numpy as np
 
 from ..config import Config
 from ..errors import ArtifactError, InputDataError
-from .density import estimate_noise
+from .density import estimate_noise_checked
 
 
 class StackedSurrogate:
@@ -169,7 +169,8 @@ def load_surrogate(path: str | os.PathLike, output: str, channels: list[str]):
 
 
 def channel_noise(cfg: Config, unit_obs, stack: StackedSurrogate, output_noise: float,
-                  output_source: str) -> tuple[np.ndarray, dict]:
+                  output_source: str, unit: str = "",
+                  warnings: Optional[list] = None) -> tuple[np.ndarray, dict]:
     """Noise standard deviation of each stacked channel for one unit.
 
     Parameters
@@ -180,6 +181,11 @@ def channel_noise(cfg: Config, unit_obs, stack: StackedSurrogate, output_noise: 
         The output's noise (output units), already resolved (file, config or estimated).
     output_source : str
         Where it came from.
+    unit : str
+        The unit's name, for the warnings.
+    warnings : list, optional
+        Gets a line for each channel whose estimated noise level had to be taken from the
+        residuals' second differences (:meth:`~.density.NoiseEstimate.warning`).
 
     Returns
     -------
@@ -194,7 +200,11 @@ def channel_noise(cfg: Config, unit_obs, stack: StackedSurrogate, output_noise: 
         if ch in unit_obs.noise_std:
             s, src = float(unit_obs.noise_std[ch]), "file"
         else:
-            s, src = estimate_noise(stack.parts[ch], cfg, unit_obs.channels[ch]), "estimated"
+            est = estimate_noise_checked(stack.parts[ch], cfg, unit_obs.channels[ch])
+            s, src = est.std, "estimated"
+            if est.structured and warnings is not None:
+                warnings.append(est.warning(unit, ch,
+                                            cfg.model.channels[ch].units))
         std.append(s)
         info[ch] = {"std": s, "source": src}
     return np.array(std), info

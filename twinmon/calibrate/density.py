@@ -191,24 +191,100 @@ def find_map(ld: LogDensity) -> tuple[np.ndarray, np.ndarray]:
     return x, np.linalg.inv(H)
 
 
-def estimate_noise(surrogate, cfg: Config, flows: np.ndarray) -> float:
+#: How far the residuals' excess over their second differences' level must lie beyond the
+#: surrogate's own error (its predictive sd at the fits, a multiple of it) to be called
+#: structure: a smooth surrogate error is in the residuals too, and on data all but
+#: noise-free it is all they hold.
+STRUCTURE_SURROGATE_SD = 3.0
+
+
+@dataclass(frozen=True)
+class NoiseEstimate:
+    """The noise level of one unit's output (or channel) estimated from its own records.
+
+    Attributes
+    ----------
+    std : float
+        The level calibrate uses (output units): ``residual_std``, or ``difference_std``
+        where the residuals hold structure (``structured``).
+    residual_std : float
+        From the pooled residuals of each year's least-squares fit.
+    difference_std, difference_dof : float
+        From the second differences of those residuals (NaN when too few).
+    p_structure : float
+        p-value of ``residual_std^2 / difference_std^2`` (F test; NaN when not made).
+    structured : bool
+    """
+
+    std: float
+    residual_std: float
+    difference_std: float = float("nan")
+    difference_dof: float = float("nan")
+    p_structure: float = float("nan")
+    structured: bool = False
+
+    def warning(self, unit: str, channel: str, units: str = "") -> str:
+        """The line that says a unit's residuals hold structure ("" when they do not)."""
+        if not self.structured:
+            return ""
+        u = f" {units}" if units and units != "1" else ""
+        return (f"{unit}: the residuals of {channel} hold more than noise (RMS "
+                f"{self.residual_std:.4g}{u} against {self.difference_std:.4g}{u} from their "
+                f"second differences, p = {self.p_structure:.2g}): the twin misses the plant "
+                f"somewhere; the noise level is taken as {self.difference_std:.4g}{u}, so the "
+                f"years it misses fail the fit check (record the noise level, or run "
+                f"diagnose)")
+
+
+def estimate_noise_checked(surrogate, cfg: Config, flows: np.ndarray) -> NoiseEstimate:
     """Output noise standard deviation (output units) of one unit from its own data.
 
     Each year is fitted by least squares (no prior) over the box; the residuals of all the
     unit's years are pooled, with ``d`` degrees of freedom taken per year:
     ``s^2 = sum RSS / (n_obs - d * n_y)``.
+
+    A twin that misses the plant (an unmodelled effect) leaves a smooth, structured residual
+    that this ``s`` takes in as noise: the fit check, in units of ``s``, then passes every
+    year (a fouled pipe, 6 years of 10, read as noise 8.0 kg/s against a true 4.0). The
+    second differences of the residuals (:func:`~twinmon.diagnose.stats.plateau_noise` over
+    every sample) cancel what is smooth: where ``s`` exceeds their level by an F test at
+    the fit check's own level (``calibrate.fit_alpha``), and by more than
+    :data:`STRUCTURE_SURROGATE_SD` of the surrogate's predictive sd, the noise level is
+    theirs.
     """
+    from scipy.special import fdtrc
+
+    from ..diagnose.stats import plateau_noise
+    from ..errors import InputDataError
     flows = np.atleast_2d(flows)
     bounds = cfg.model.bounds
     d = len(bounds)
-    rss, dof = 0.0, 0
-    for row in flows:
+    rss, dof, sur_var = 0.0, 0, []
+    resid = np.full(flows.shape, np.nan)
+    for k, row in enumerate(flows):
         # Unit variance: find_map is then the plain (bounded) least-squares fit.
         ld = make_log_density(surrogate, row, 1.0, Prior.uniform(bounds))
         x, _ = find_map(ld)
-        rss += float(np.sum(ld.residuals(x) ** 2))
+        r = ld.residuals(x)
+        resid[k, ld.mask] = r
+        rss += float(np.sum(r ** 2))
         dof += int(ld.mask.sum()) - d
+        sur_var.append(float(np.mean(surrogate.predict_var(x[None, :])[0, ld.mask])))
     if dof <= 0:
         raise CalibrationError(f"too few samples ({dof + d * len(flows)}) to estimate the noise "
                                "level; set calibrate.noise_std")
-    return float(np.sqrt(rss / dof))
+    s_r = float(np.sqrt(rss / dof))
+    try:
+        s_d, nu = plateau_noise(resid, np.arange(flows.shape[1], dtype=float), -np.inf)
+    except InputDataError:
+        return NoiseEstimate(s_r, s_r)
+    p = float(fdtrc(dof, nu, s_r ** 2 / s_d ** 2))
+    excess = s_r ** 2 - s_d ** 2
+    structured = bool(p < cfg.calibrate.fit_alpha
+                      and excess > STRUCTURE_SURROGATE_SD ** 2 * float(np.mean(sur_var)))
+    return NoiseEstimate(s_d if structured else s_r, s_r, s_d, nu, p, structured)
+
+
+def estimate_noise(surrogate, cfg: Config, flows: np.ndarray) -> float:
+    """The noise level of :func:`estimate_noise_checked` (output units)."""
+    return estimate_noise_checked(surrogate, cfg, flows).std

@@ -44,12 +44,17 @@ def pooled_onset_pvalues(chi2: np.ndarray, dof: np.ndarray) -> np.ndarray:
     return chi2_sf(c, np.maximum(d, 1))
 
 
+#: Second differences :func:`plateau_noise` needs before it drops outliers.
+TRIM_MIN = 20
+
+
 def plateau_noise(y: np.ndarray, time: np.ndarray, start: float) -> tuple[float, float]:
     """Noise standard deviation from the second differences of the samples after ``start``
     (s), where the transient is nearly flat, and the degrees of freedom the estimate carries.
 
-    std(d2 y) = sqrt(6) sigma for white noise. Second differences further than 5 robust
-    (MAD) deviations from their median are dropped as outliers (a spike, a glitch), and
+    std(d2 y) = sqrt(6) sigma for white noise. Of :data:`TRIM_MIN` or more second
+    differences, those further than 5 robust (MAD) deviations from their median are dropped
+    as outliers (a spike, a glitch), and
     sigma is the RMS of the others about that median: the MAD alone is 2.7 times as noisy
     (on 10 years of 11 samples, sigma/true 0.14 apart against 0.10), and too low an
     estimate reads as a gap in every year.
@@ -83,11 +88,15 @@ def plateau_noise(y: np.ndarray, time: np.ndarray, start: float) -> tuple[float,
         raise InputDataError("too few samples to estimate the noise; record noise_std")
     med = float(np.median(d2[ok]))
     mad = 1.4826 * float(np.median(np.abs(d2[ok] - med)))
-    if not mad > 0:
-        raise InputDataError("cannot estimate the noise (flat record); record noise_std")
-    with np.errstate(invalid="ignore"):
-        ok &= np.abs(d2 - med) <= 5.0 * mad
+    if ok.sum() >= TRIM_MIN and mad > 0:
+        # Few differences give a MAD that may itself be tiny (two close values of five),
+        # and quantised data one of zero:
+        # cutting at it would keep those alone.
+        with np.errstate(invalid="ignore"):
+            ok &= np.abs(d2 - med) <= 5.0 * mad
     dev = (d2 - med)[ok]
+    if not float(dev @ dev) > 0:
+        raise InputDataError("cannot estimate the noise (flat record); record noise_std")
     s = math.sqrt(float(dev @ dev) / (6.0 * dev.size))
     n = int(ok.sum())
     lag1 = int((ok[:, 1:] & ok[:, :-1]).sum())
