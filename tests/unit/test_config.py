@@ -77,6 +77,8 @@ def test_set_overrides_apply_before_validation():
     ("seed=-1", r"seed: must lie in \[0, 2\*\*32 - 1\]"),
     ("seed=1180591620717411303424", r"seed: must lie in \[0, 2\*\*32 - 1\]"),
     ("model.output.times.stop=2", r"model.output.times.stop: must be at least start \+ step"),
+    ("model.output.times.stop=49", r"model.output.times.stop: is not start \+ a whole number of "
+     r"steps \(2 \+ 23 x 2 = 48, the next 50\)"),
     ("model.inputs.pump_coef.low=5", r"model.inputs.pump_coef.high: must be greater than low"),
     ("reduce.variance_threshold=.nan", r"reduce.variance_threshold: expected a finite number"),
     ("novalue", r"expected KEY.PATH=VALUE"),
@@ -95,6 +97,12 @@ def test_bad_values_name_file_path_and_value(override, message):
     with pytest.raises(ConfigError, match=message) as exc:
         load_config(CONFIGS / "pump.yaml", [override])
     assert "\n" not in str(exc.value)
+
+
+def test_time_grid_lands_on_its_decimals():
+    from twinmon.config.model import TimeGrid
+    t = TimeGrid(0.1, 3.0, 0.1).times
+    assert t.size == 30 and 1.0 in t and t[-1] == 3.0 and t[2] == 0.3
 
 
 def test_unknown_top_level_key_is_rejected(tmp_path):

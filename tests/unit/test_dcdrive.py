@@ -153,6 +153,18 @@ def test_stall_flag(model):
     assert model.run({"winding.R": 3.0, "load.extra": 1.0})["stalled"][-1] == 1.0
 
 
+@pytest.mark.parametrize("fmu", ["dcdrive_fmu", "dcdrive3_fmu"])
+def test_a_sample_a_rounding_error_short_of_the_stall_check(fmu, request):
+    # 0.1 + 6 x 0.15 is 0.9999999999999999: the step up to the 1 s breakpoint after it is
+    # 1e-16 s long, and the solver once shrank its next step to it and stopped ("step size
+    # underflow") at the nominal point.
+    t = 0.1 + 0.15 * np.arange(20)
+    assert t[6] < 1.0
+    with FMUModel(request.getfixturevalue(fmu), ["tacho.w"], t) as m:
+        got = m.run({})["tacho.w"]
+    assert rel_err(got, reference({}, t)["tacho.w"]) < 1e-5
+
+
 @pytest.mark.parametrize("name", sorted(EFFECTS_OFF))
 def test_effect_off_gives_base_model(model, name):
     for base in ({}, {"bearing.b": 4e-3, "winding.R": 2.2}):

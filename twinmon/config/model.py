@@ -7,6 +7,7 @@ unmodelled effects that ``diagnose`` screens (:class:`EffectSpec`).
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, Optional
@@ -61,12 +62,25 @@ class TimeGrid:
         if self.stop < self.start + self.step:
             yield "stop", f"must be at least start + step ({self.start + self.step:g}): a " \
                 "transient needs two samples or more", self.stop
+        elif self.step > 0:
+            n = (self.stop - self.start) / self.step
+            if abs(n - round(n)) > 1e-6 * max(n, 1.0):
+                below = self.start + math.floor(n) * self.step
+                yield "stop", (f"is not start + a whole number of steps ({self.start:g} + "
+                               f"{math.floor(n)} x {self.step:g} = {below:.12g}, the next "
+                               f"{below + self.step:.12g}): give one of those, or a step that "
+                               f"divides {self.stop - self.start:.12g} s"), self.stop
 
     @property
     def times(self) -> np.ndarray:
-        """Sample times, shape [n_t], seconds."""
+        """Sample times, shape [n_t], seconds: ``start + k step`` rounded to 12 significant
+        digits of the grid's span, so that 0.1 + 9 x 0.1 is 1.0 and not 0.9999999999999999
+        (a sample a rounding error short of an FMU's event leaves it a step of 1e-16 s, and
+        a window ``[2, 3]`` that should hold 3.0 misses 3.0000000000000004)."""
         n = int(round((self.stop - self.start) / self.step)) + 1
-        return self.start + self.step * np.arange(n)
+        scale = max(abs(self.start), abs(self.stop))
+        decimals = 12 - int(math.ceil(math.log10(scale)))
+        return np.round(self.start + self.step * np.arange(n), decimals)
 
 
 @dataclass(frozen=True)

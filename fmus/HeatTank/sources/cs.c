@@ -111,7 +111,10 @@ static int integrate_segment(ht_sim_t *s, double tb, long *nsteps, char *msg, si
             const double hnew = h * fac;
             /* a step shortened to land on tb says little about the step size the
                solution tolerates: keep the proposal unless it must shrink */
-            if (!last || h >= s->h || hnew < s->h) s->h = hnew;
+            /* nor does a sliver up to a breakpoint a rounding error away (1e-16 s):
+               shrinking to it would leave the next step below the underflow floor */
+            const int sliver = last && h < 1e-9 * (fabs(t) + 1.0);
+            if (!sliver && (!last || h >= s->h || hnew < s->h)) s->h = hnew;
             s->t = tn;
             memcpy(s->x, xn, sizeof xn);
             memcpy(k1, k7, sizeof k7);
