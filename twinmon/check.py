@@ -194,8 +194,12 @@ def _check_model(cfg: Config, res: CheckResult) -> None:
             f"{cfg.source}: safety.unsafe_if: {ind.rule} is reached nowhere among the nominal "
             f"point and the box's corners ({ind.name} {span}): no unit can be found unsafe "
             "unless the limit lies inside the box")
-    res.checked.append(f"{ind.name} computable; limit {ind.limit:g} "
-                       f"{'reachable' if unsafe.any() else 'not reached'} in the box")
+    # A corner unsafe only as non-physical (a stalled drive) does not reach the limit.
+    by_value = ind.unsafe(vals, np.zeros(vals.size, bool)) if vals.size else unsafe
+    reach = ("reachable" if by_value.any() else
+             f"reached only where the model is non-physical ({cfg.model.nonphysical})"
+             if unsafe.any() else "not reached")
+    res.checked.append(f"{ind.name} computable; limit {ind.limit:g} {reach} in the box")
 
 
 # ---------------------------------------------------------------------------------------

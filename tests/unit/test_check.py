@@ -70,6 +70,12 @@ def test_a_limit_out_of_reach_is_a_warning(tmp_path):
     assert res.ok
     assert any("settled speed below 10 rad/s is reached nowhere" in w for w in res.warnings)
 
+    # With the stalling corner in the box, only a non-physical run crosses the limit.
+    cfg = write_yaml(tmp_path / "dc2.yaml", {"extends": str(CONFIGS / "dcdrive.yaml"),
+                                             "safety": {"unsafe_if": {"below": 10.0}}})
+    assert any("limit 10 reached only where the model is non-physical (stalled)" in c
+               for c in check(cfg).checked)
+
 
 @pytest.fixture(scope="module")
 def drive_obs(tmp_path_factory):

@@ -583,7 +583,7 @@ def test_level_cause_names_the_inputs_whose_restoration_makes_the_unit_safe():
     cfg = load_config(CONFIGS / "pump.yaml")
     state = np.array([28.5, 3.5])
     pts = restore_points(cfg, state)
-    assert np.allclose(pts, [[10.0, 3.5], [28.5, 3.61]])
+    assert np.allclose(pts, [[10.0, 3.5], [28.5, 3.61], [10.0, 3.61]])
     lv = level_cause(cfg, state, np.array([False, True]), np.array([12.0, 33.0]), 34.0)
     assert list(lv) == ["motor_damping"] and lv["motor_damping"]["safe"]
     assert lv["motor_damping"]["value"] == 28.5 and lv["motor_damping"]["nominal"] == 10.0
@@ -594,6 +594,16 @@ def test_level_cause_names_the_inputs_whose_restoration_makes_the_unit_safe():
     # A restoration that makes it worse, or a level never reached (inf), names nothing.
     assert level_cause(cfg, state, np.array([True, True]), np.array([35.0, np.inf]),
                        34.0) == {}
+    # A new unit is past the limit too (the nominal point, last): no part is to blame.
+    assert level_cause(cfg, state, np.array([True, True, True]),
+                       np.array([33.0, 31.0, 31.5]), 34.0) == {}
+    assert list(level_cause(cfg, state, np.array([True, True, False]),
+                            np.array([33.0, 31.0, 20.0]), 34.0)) == ["pump_coef", "motor_damping"]
+    from twinmon.forecast.plan import nominal_plan
+    text = nominal_plan(cfg, 31.5, 0.97, 10)
+    assert text.startswith("Check the limit: the unit is past it (P(unsafe) 0.97 in year 10), "
+                           "but so is a new unit")
+    assert "unsafe by safety.unsafe_if (above 30" in text
 
 
 def test_a_failure_year_from_the_bend_alone_is_not_confirmed():

@@ -124,6 +124,8 @@ def _write_unit(f, cfg: Config, unit: str, u: UnitForecast, names: list) -> None
         at["trend_fit"] = artifacts.json_attr(u.trend_fit)
     if u.level_cause:
         at["level_cause"] = artifacts.json_attr(u.level_cause)
+    if u.unsafe_at_nominal is not None:
+        at["unsafe_at_nominal"] = float(u.unsafe_at_nominal)
     if u.watch:
         at["watch"] = artifacts.json_attr(u.watch)
     if u.has_truth:
@@ -339,6 +341,8 @@ def _read_unit(f, unit: str, path: Path, names: list, arrays: bool = True) -> Un
         shape=json.loads(g.attrs["trend_shape"]) if "trend_shape" in g.attrs else {},
         trend_fit=json.loads(g.attrs["trend_fit"]) if "trend_fit" in g.attrs else {},
         level_cause=json.loads(g.attrs["level_cause"]) if "level_cause" in g.attrs else {},
+        unsafe_at_nominal=(float(g.attrs["unsafe_at_nominal"]) if "unsafe_at_nominal" in g.attrs
+                           else None),
         watch=json.loads(g.attrs["watch"]) if "watch" in g.attrs else {},
         drift=_drift_from(json.loads(g.attrs["detection"])) if "detection" in g.attrs else None,
         attribution=(Attribution(**json.loads(g.attrs["attribution"]))

@@ -27,7 +27,7 @@ from .detection import gradient_from, gradient_points, mid_state
 from .judge import (MIN_LINE_DRAWS, MIN_TREND_YEARS, STATUS_OK, STATUS_UNRELIABLE,
                     STATUS_WITHHELD, describe_bend, describe_blind, describe_lag, describe_restart,
                     history_slope_draws, judge, prognosis_status, recent_restarts)
-from .plan import (accelerating, level_cause, level_plan, maintenance_plan,
+from .plan import (accelerating, level_cause, level_plan, maintenance_plan, nominal_plan,
                    restore_points, unconfirmed)
 from .pooling import ShapePriors, _pool_unit
 from .predictive import (residual_correlation, sample_predictive, sample_state,
@@ -133,13 +133,19 @@ def _forecast_chunk(state: _TwinState, units: list, *, directions: dict, box_ok:
                              spec=state.spec, limit_state=state.limit_state)
         bad = back.unsafe(cfg.safety)
         for a, j in enumerate(need):
-            rows = slice(a * d, (a + 1) * d)
+            rows = slice(a * (d + 1), (a + 1) * (d + 1))
             levels = level_cause(cfg, last[a], bad[rows], back.value[rows],
                                  float(np.nanmedian(out[j].indicator_observed[-1])))
             if levels:
                 unit, up, _ = units[j]
                 out[j] = _finish_unit(cfg, unit, up, plans[j], twin, unsafe_all, offsets[j],
                                       directions, fit_windows, levels)[0]
+            elif bad[rows][-1]:
+                # A new unit is past the limit too: the limit, not a part, is at fault.
+                out[j].unsafe_at_nominal = float(back.value[rows][-1])
+                out[j].plan = nominal_plan(cfg, float(back.value[rows][-1]),
+                                           float(out[j].p_unsafe_observed[-1]),
+                                           int(out[j].years_observed[-1]))
     for (unit, _, tr), uf in zip(units, out):
         if tr is not None:
             _add_truth(cfg, uf, unit, tr, truth_path, state.spec, state.executor)

@@ -132,12 +132,27 @@ def maintenance_plan(trends: dict, years_future: np.ndarray,
 
 def restore_points(cfg: Config, state: np.ndarray) -> np.ndarray:
     """The unit's state ``state`` [d] with each input alone set back to its nominal value
-    (``model.inputs.<name>.nominal``): [d, d], row ``i`` restoring input ``i``."""
+    (``model.inputs.<name>.nominal``), and then every input: [d + 1, d], row ``i < d``
+    restoring input ``i``, row ``d`` the nominal unit."""
     names = cfg.model.input_names
-    out = np.repeat(np.asarray(state, float)[None, :], len(names), axis=0)
-    out[np.arange(len(names)), np.arange(len(names))] = [cfg.model.inputs[n].nominal
-                                                         for n in names]
+    nominal = [cfg.model.inputs[n].nominal for n in names]
+    out = np.repeat(np.asarray(state, float)[None, :], len(names) + 1, axis=0)
+    out[np.arange(len(names)), np.arange(len(names))] = nominal
+    out[-1] = nominal
     return out
+
+
+def nominal_plan(cfg: Config, value: float, p_unsafe_now: float, last_year: int) -> str:
+    """The sentence of a unit past its limit that a new unit crosses too: no part to blame,
+    the limit (``safety.unsafe_if``) is the thing to check."""
+    from ..safety import Indicator
+    ind = Indicator.from_config(cfg)
+    side = "below" if cfg.safety.unsafe_if.below is not None else "above"
+    limit = cfg.safety.unsafe_if.below if side == "below" else cfg.safety.unsafe_if.above
+    return (f"Check the limit: the unit is past it (P(unsafe) {p_unsafe_now:.2f} in year "
+            f"{last_year}), but so is a new unit -- at every input's nominal value the twin's "
+            f"{ind.name} is {ind.fmt(value)}, unsafe by safety.unsafe_if ({side} "
+            f"{ind.fmt(limit)}); no part's wear or level is to blame")
 
 
 def level_cause(cfg: Config, state: np.ndarray, unsafe: np.ndarray, value: np.ndarray,
@@ -155,8 +170,10 @@ def level_cause(cfg: Config, state: np.ndarray, unsafe: np.ndarray, value: np.nd
     ----------
     state : ndarray, shape [d]
         The unit's last estimated inputs (input units).
-    unsafe, value : ndarray, shape [d]
-        The twin's verdict and health indicator at the restored points.
+    unsafe, value : ndarray, shape [d] (or [d + 1], the nominal unit last)
+        The twin's verdict and health indicator at the restored points; with the nominal
+        unit, no input is named when it is unsafe too and no single restoration helps (a
+        limit a new unit crosses blames no part).
     current : float
         The indicator at the unit's last state (the posterior's median).
 
@@ -169,10 +186,13 @@ def level_cause(cfg: Config, state: np.ndarray, unsafe: np.ndarray, value: np.nd
     from ..safety import Indicator
     sense = Indicator.from_config(cfg).sense
     names = cfg.model.input_names
+    d = len(names)
     with np.errstate(invalid="ignore"):
-        gain = sense * (float(current) - np.asarray(value, float))
+        gain = sense * (float(current) - np.asarray(value[:d], float))
     gain = np.where(np.isnan(gain), 0.0, gain)
-    alone = [i for i in range(len(names)) if not unsafe[i]]
+    alone = [i for i in range(d) if not unsafe[i]]
+    if not alone and len(unsafe) > d and unsafe[d]:
+        return {}
     pick = alone if alone else [i for i in np.argsort(-gain) if gain[i] > 0]
     return {names[i]: {"value": float(state[i]), "nominal": cfg.model.inputs[names[i]].nominal,
                        "restored": float(value[i]), "safe": bool(not unsafe[i])}

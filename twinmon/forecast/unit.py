@@ -107,6 +107,9 @@ class UnitForecast:
     #: limit (:func:`~.plan.level_cause`: ``{input: {"value", "nominal", "restored",
     #: "safe"}}``; its components are the root cause); empty otherwise.
     level_cause: dict = field(default_factory=dict)
+    #: A unit past its limit that a new unit is past too: the twin's health indicator at
+    #: every input's nominal value (the limit, not a part, is to check); None otherwise.
+    unsafe_at_nominal: Optional[float] = None
     #: Components to watch though no fault was found, each with why: a part whose wear
     #: accelerates with its slope over the record within normal ageing
     #: (:func:`~.trend.shape_gate`), or whose own slope test rejects where the unit's tests
@@ -211,6 +214,8 @@ class UnitForecast:
             d["trend_fit"] = dict(self.trend_fit)
         if self.level_cause:
             d["level_cause"] = {n: dict(v) for n, v in self.level_cause.items()}
+        if self.unsafe_at_nominal is not None:
+            d["unsafe_at_nominal"] = float(self.unsafe_at_nominal)
         if self.watch:
             d["watch"] = dict(self.watch)
         if self.has_truth:

@@ -303,7 +303,10 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
             s.p_unsafe = float(uf.p_unsafe[int(np.flatnonzero(yf == uf.failure_year)[0])])
             now = s.unsafe_since is not None or uf.failure_year <= last + 1
             when = "now" if now else f"before year {uf.failure_year - 1} ends"
+            nominal = getattr(uf, "unsafe_at_nominal", None)
             s.action = (f"inspect the {what} {when}" if what
+                        else "check the limit (safety.unsafe_if): a new unit is past it too"
+                        if nominal is not None
                         else f"overhaul the unit {when} "
                         f"({no_fault_due(uf.years_future, uf.p_unsafe, limit)})")
         else:
