@@ -88,6 +88,11 @@ def test_set_overrides_apply_before_validation():
     ("model.inputs.pump_coef.component=both",
      r"model.inputs.pump_coef.component: is a word the verdicts use .*, got 'both'"),
     ("model.fixed={pump.b2: 3.0}", r"model.inputs.pump_coef.variable: is held by model.fixed"),
+    ("model.fixed={sensor.tau: 0.5}",
+     r"model.effects.sensor.tau.baseline: must give the calibrated model, where model.fixed "
+     r"holds sensor.tau at 0.5, got 0.0"),
+    ("model.effects={motor.D: {baseline: 10, low: 5, high: 20}}",
+     r"model.effects.motor.D: is model.inputs.motor_damping's variable, calibrated every year"),
     ("model.channels={sensor.m_flow: {units: kg/s}}",
      r"model.channels.sensor.m_flow: is model.output.variable"),
     ("diagnose.windows={late: {start: 60, stop: 80}}",

@@ -243,9 +243,9 @@ def estimate_noise_checked(surrogate, cfg: Config, flows: np.ndarray) -> NoiseEs
     unit's years are pooled, with ``d`` degrees of freedom taken per year:
     ``s^2 = sum RSS / (n_obs - d * n_y)``.
 
-    A twin that misses the plant (an unmodelled effect) leaves a smooth, structured residual
+    A twin that misses the plant leaves a smooth, structured residual
     that this ``s`` takes in as noise: the fit check, in units of ``s``, then passes every
-    year (a fouled pipe, 6 years of 10, read as noise 8.0 kg/s against a true 4.0). The
+    year (an unmodelled effect from year 6 of 10 read as noise twice the true level). The
     second differences of the residuals (:func:`~twinmon.diagnose.stats.plateau_noise` over
     every sample) cancel what is smooth: where ``s`` exceeds their level by an F test at
     the fit check's own level (``calibrate.fit_alpha``), and by more than

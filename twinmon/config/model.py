@@ -186,6 +186,15 @@ class ModelConfig:
                 yield (f"inputs.{name}.component" if spec.component else f"inputs.{name}"), \
                     f"is a word the verdicts use ({', '.join(VERDICT_WORDS)}): choose " \
                     "another component name", word
+        for name, eff in self.effects.items():
+            # A candidate gap must be off in the calibrated model: diagnose adds it to a twin
+            # whose degradation inputs it fits every year, at its baseline.
+            if name in owner:
+                yield f"effects.{name}", f"is model.inputs.{owner[name]}'s variable, " \
+                    "calibrated every year: it cannot be a candidate gap too", name
+            elif name in self.fixed and float(self.fixed[name]) != float(eff.baseline):
+                yield f"effects.{name}.baseline", f"must give the calibrated model, where " \
+                    f"model.fixed holds {name} at {self.fixed[name]:g}", eff.baseline
 
     @property
     def channel_units(self) -> dict[str, str]:
