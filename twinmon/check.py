@@ -27,7 +27,7 @@ import numpy as np
 
 from . import artifacts
 from .config import Config, load_config
-from .errors import ArtifactError, InputDataError, SimulationError, TwinmonError
+from .errors import ArtifactError, ConfigError, InputDataError, SimulationError, TwinmonError
 
 __all__ = ["CheckResult", "check", "MAX_CORNERS"]
 
@@ -159,6 +159,7 @@ def _check_model(cfg: Config, res: CheckResult) -> None:
     ind = Indicator.from_config(cfg)
     points = box_points(cfg)
     values, flags = [], []
+    log_refused = False
     with FMUModel(spec.fmu, spec.outputs, spec.times, spec.fmi_type, spec.fixed) as model:
         for label, point in points:
             params = {cfg.model.inputs[n].variable: v for n, v in point.items()}
@@ -180,6 +181,15 @@ def _check_model(cfg: Config, res: CheckResult) -> None:
             values.append(v)
             flags.append(bool(np.any(out[cfg.model.nonphysical] > 0.5))
                          if cfg.model.nonphysical else False)
+            y = np.asarray(out[cfg.model.output.variable], float)
+            if cfg.reduce.transform == "log" and np.any(y <= 0) and not log_refused:
+                # reduce would stop on it after the whole design has run.
+                j = int(np.argmax(y <= 0))
+                log_refused = True
+                res.problems.append(ConfigError(
+                    f"{cfg.source}: reduce.transform: log needs a positive output, but at the "
+                    f"{label} {cfg.model.output.name} is {y[j]:g} {cfg.model.output.units} at "
+                    f"t = {spec.times[j]:g} s; set reduce.transform: none (or auto)"))
     res.checked.append(f"the FMU runs at the nominal point and {len(points) - 1} box corners")
     vals = np.asarray(values)
     unsafe = ind.unsafe(vals, np.asarray(flags)) if vals.size else np.zeros(0, bool)

@@ -77,6 +77,21 @@ def test_a_limit_out_of_reach_is_a_warning(tmp_path):
                for c in check(cfg).checked)
 
 
+def test_a_log_transform_of_an_output_below_zero_is_refused(tmp_path):
+    # A tachometer wired the other way round reads negative speeds: reduce would stop on
+    # them after the whole design had run.
+    cfg = write_yaml(tmp_path / "neg.yaml", {
+        "extends": str(CONFIGS / "dcdrive.yaml"),
+        "model": {"fixed": {"tacho.gain": -1.0},
+                  "effects": {"tacho.gain": {"baseline": -1.0, "low": -1.1, "high": -0.9}}},
+        "safety": {"unsafe_if": {"above": -250.0, "below": None}}})
+    res = check(cfg)
+    assert not res.ok
+    assert "reduce.transform: log needs a positive output, but at the nominal point speed " \
+        "is -65" in str(res.problems[0])
+    assert check(cfg, overrides=["reduce.transform=none"]).ok
+
+
 @pytest.fixture(scope="module")
 def drive_obs(tmp_path_factory):
     """A fabricated DC drive fleet of 3 years (the config's channels, grid and units)."""

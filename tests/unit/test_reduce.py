@@ -1,6 +1,8 @@
 """reduce: Karhunen-Loeve + GP surrogate on real FMU runs; reload predicts exactly."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -44,6 +46,17 @@ def test_reloaded_surrogate_predicts_exactly_what_the_fitted_one_did(fitted):
     m1, v1 = fresh.predict_with_var(X)
     m2, v2 = loaded.predict_with_var(X)
     assert np.array_equal(m1, m2) and np.array_equal(v1, v2)
+
+
+def test_a_log_transform_of_outputs_below_zero_is_a_config_error(fitted):
+    from twinmon.errors import ConfigError
+    from twinmon.reduce import fit_surrogate
+    cfg, tmp, _ = fitted
+    sims = read_simulations(tmp / "sims.h5")
+    with pytest.raises(ConfigError, match=r"reduce.transform: log needs positive outputs, "
+                                          r"but run 0 has -"):
+        fit_surrogate(sims.X["train"], -sims.Y["train"], sims.time, sims.bounds,
+                      sims.input_names, dataclasses.replace(cfg.reduce, transform="log"))
 
 
 def test_surrogate_interpolates_training_runs_and_is_accurate_on_test_runs(fitted):

@@ -33,7 +33,7 @@ import numpy as np
 
 from .. import artifacts
 from ..config import Config, ReduceConfig
-from ..errors import ArtifactError, CalibrationError
+from ..errors import ArtifactError, CalibrationError, ConfigError
 from ..simulate import read_simulations
 from .artifact import (SECTIONS, read_channel_surrogates, read_channel_validation,
                        read_surrogate, read_validation, write_surrogate)
@@ -87,6 +87,10 @@ def reduce(cfg: Config, simulations: str | os.PathLike, output: str | os.PathLik
                               sims.input_names, rc, units)
         except CalibrationError as exc:
             raise CalibrationError(f"{simulations}: {what}{exc.message}") from None
+        except ConfigError as exc:
+            # The config's choice, not the data's: exit 3, naming the config.
+            raise ConfigError(f"{cfg.source}: {what}{exc.message} (the simulations in "
+                              f"{simulations})") from None
         s.X_test, s.Y_test = sims.X["test"][okt], Y_test
         return s, validate_surrogate(s, s.X_test, s.Y_test)
 

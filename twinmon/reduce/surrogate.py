@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..config import ReduceConfig
-from ..errors import CalibrationError
+from ..errors import CalibrationError, ConfigError
 
 
 # ---------------------------------------------------------------------------------------
@@ -223,9 +223,9 @@ def fit_surrogate(X: np.ndarray, Y: np.ndarray, time: np.ndarray, bounds: np.nda
     if transform == "log":
         if np.any(Y <= 0):
             i, j = np.argwhere(Y <= 0)[0]
-            raise CalibrationError(f"run {i} has output {Y[i, j]:g} <= 0 at t = {time[j]:g} s: "
-                                   "the log transform needs positive outputs "
-                                   "(set reduce.transform: none)")
+            raise ConfigError(f"reduce.transform: log needs positive outputs, but run {i} "
+                              f"has {Y[i, j]:g} at t = {time[j]:g} s; set reduce.transform: "
+                              "none (or auto)")
         Y = np.log(Y)
     mean = Y.mean(axis=0)
     Yc = Y - mean
