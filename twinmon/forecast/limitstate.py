@@ -499,7 +499,12 @@ def _fit_hyper(U: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, float]:
                                       ot.MaternModel([0.3] * d, [1.0], 2.5),
                                       ot.ConstantBasisFactory(d).build())
     fitter.setOptimizationBounds(ot.Interval([SCALE_BOUNDS[0]] * d, [SCALE_BOUNDS[1]] * d))
-    fitter.run()
+    # Cobyla's "maximum number of function evaluations" came to stderr in colour codes,
+    # whatever -q said: the scales it stops at serve (the model answers only the points it
+    # is sure of, by its own sd), so the line says nothing a user can act on.
+    from ..reduce.surrogate import ot_log_captured
+    with ot_log_captured():
+        fitter.run()
     cov = fitter.getResult().getCovarianceModel()
     return np.array(cov.getScale(), float), float(cov.getAmplitude()[0])
 
