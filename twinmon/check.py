@@ -155,6 +155,14 @@ def _check_model(cfg: Config, res: CheckResult) -> None:
     info = check_model(cfg)
     res.checked.append(f"every name in {cfg.source.name} matches the FMU")
     res.warnings += unit_mismatches(cfg, info)
+    for name, s in cfg.model.inputs.items():
+        if s.normal_rate_tolerance == 0 and s.degrading is not None:
+            # Half the draws of a part ageing exactly at its normal rate lie beyond it.
+            res.warnings.append(
+                f"{cfg.source}: model.inputs.{name}.normal_rate_tolerance: 0, so any drift "
+                f"of {name} beyond normal_rate ({s.normal_rate:g} {s.units} a year) counts "
+                "as wear: a part ageing normally is then half-way to a fault; give the "
+                "spread normal ageing has from unit to unit")
     spec = spec_for(cfg, outputs=design_outputs(cfg))
     ind = Indicator.from_config(cfg)
     points = box_points(cfg)
@@ -181,6 +189,8 @@ def _check_model(cfg: Config, res: CheckResult) -> None:
             values.append(v)
             flags.append(bool(np.any(out[cfg.model.nonphysical] > 0.5))
                          if cfg.model.nonphysical else False)
+            if label == "nominal point":
+                res.warnings += _direction_warnings(cfg, model, ind, spec, point, v)
             y = np.asarray(out[cfg.model.output.variable], float)
             if cfg.reduce.transform == "log" and np.any(y <= 0) and not log_refused:
                 # reduce would stop on it after the whole design has run.
@@ -210,6 +220,35 @@ def _check_model(cfg: Config, res: CheckResult) -> None:
              f"reached only where the model is non-physical ({cfg.model.nonphysical})"
              if unsafe.any() else "not reached")
     res.checked.append(f"{ind.name} computable; limit {ind.limit:g} {reach} in the box")
+
+
+def _direction_warnings(cfg: Config, model, ind, spec, nominal: dict, value: float) -> list:
+    """A warning for each input whose declared wear direction (``degrading``) moves the
+    health indicator away from its limit at the nominal point: its wear alone cannot make a
+    unit unsafe by that indicator, which is right for some parts (a slipping belt that
+    lowers the power drawn) and a sign error for others (detection and the verdicts trust
+    the declared direction: a bearing declared ``down`` made its faults "ambiguous")."""
+    out = []
+    for name, s in cfg.model.inputs.items():
+        if s.degrading is None or not np.isfinite(value):
+            continue
+        sign = 1.0 if s.degrading == "up" else -1.0
+        worn = float(np.clip(nominal[name] + sign * 0.1 * (s.high - s.low), s.low, s.high))
+        if worn == nominal[name]:
+            continue
+        try:
+            run = model.run({**{cfg.model.inputs[n].variable: v for n, v in nominal.items()},
+                             s.variable: worn})
+        except SimulationError:
+            continue
+        v = float(ind(spec.times, run[cfg.indicator_variable][None, :])[0])
+        # Towards unsafe is the indicator's sense; a move within rounding says nothing.
+        if np.isfinite(v) and ind.sense * (v - value) < -1e-9 * max(abs(value), 1.0):
+            out.append(f"{cfg.source}: model.inputs.{name}.degrading: {s.degrading}, but at "
+                       f"the nominal point {name} {worn:.4g} {s.units} moves {ind.name} "
+                       f"away from its limit ({ind.fmt(value)} -> {ind.fmt(v)}, {ind.rule}): "
+                       "its wear alone cannot make a unit unsafe; check the direction")
+    return out
 
 
 # ---------------------------------------------------------------------------------------

@@ -77,6 +77,22 @@ def test_a_limit_out_of_reach_is_a_warning(tmp_path):
                for c in check(cfg).checked)
 
 
+def test_a_wear_direction_away_from_the_limit_and_a_zero_tolerance_are_warnings(tmp_path):
+    cfg = write_yaml(tmp_path / "dir.yaml", {
+        "extends": str(CONFIGS / "dcdrive.yaml"),
+        "model": {"inputs": {"bearing_friction": {"degrading": "down"},
+                             "winding_resistance": {"normal_rate_tolerance": 0.0}}}})
+    res = check(cfg)
+    assert res.ok
+    assert any("model.inputs.bearing_friction.degrading: down, but at the nominal point "
+               "bearing_friction 0.0005 N.m.s/rad moves settled speed away from its limit "
+               "(291 rad/s -> 301 rad/s" in w for w in res.warnings)
+    assert any("model.inputs.winding_resistance.normal_rate_tolerance: 0, so any drift" in w
+               for w in res.warnings)
+    assert not any("degrading" in w or "tolerance" in w
+                   for w in check(CONFIGS / "dcdrive.yaml").warnings)
+
+
 def test_a_log_transform_of_an_output_below_zero_is_refused(tmp_path):
     # A tachometer wired the other way round reads negative speeds: reduce would stop on
     # them after the whole design had run.
