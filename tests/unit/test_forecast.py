@@ -534,6 +534,17 @@ def test_posterior_with_two_years_is_a_calibration_error(setup, tmp_path):
         forecast(cfg, path, tmp / "sur.h5", tmp_path / "fc.h5")
 
 
+def test_a_horizon_longer_than_the_record_is_a_warning(setup, tmp_path):
+    cfg, cfg_path, tmp, summary = setup
+    assert not any("forecast.horizon" in w for w in summary.warnings)
+    n = max(len(uf.years_observed) for uf in summary.units.values())
+    cfg2 = load_config(cfg_path, [f"forecast.horizon={n + 1}", "forecast.samples=100"])
+    post = write_synthetic_posterior(tmp_path / "one.h5", cfg2, {"U": HEALTHY})
+    s = forecast(cfg2, post, tmp / "sur.h5", tmp_path / "fc.h5")
+    assert any(f"forecast.horizon {n + 1} years is longer than the longest record ({n} "
+               "calibrated years)" in w for w in s.warnings)
+
+
 def test_a_unit_with_too_few_years_is_left_out_and_the_others_forecast(setup, tmp_path):
     """A fleet's unit new in service (2 years) does not stop the others' forecast: it is
     left out with a warning, named in the artifact and in --json, and the report says why
