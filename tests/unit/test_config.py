@@ -60,6 +60,23 @@ def test_extends_merges_and_keeps_fmu_path_relative_to_its_file(tmp_path):
     assert (load_config(child).model.fmu / "modelDescription.xml").exists()
 
 
+def test_null_drops_an_inherited_entry_and_set_takes_dotted_names(tmp_path):
+    child = write_yaml(tmp_path / "c.yaml", {
+        "extends": str(CONFIGS / "dcdrive.yaml"),
+        "diagnose": {"windows": {"current rise": None}},
+        "safety": {"unsafe_if": {"above": 300.0, "below": None}}})
+    cfg = load_config(child)
+    assert list(cfg.diagnose.windows) == ["acceleration", "settled"]
+    assert cfg.safety.unsafe_if.above == 300.0 and cfg.safety.unsafe_if.below is None
+    # An FMU parameter's dotted name is one key; null drops the entry there too.
+    cfg = load_config(CONFIGS / "dcdrive.yaml", ["model.effects.tacho.gain.high=1.2",
+                                                 "model.effects.supply.delay=null"])
+    assert cfg.model.effects["tacho.gain"].high == 1.2 and "supply.delay" not in cfg.model.effects
+    with pytest.raises(ConfigError, match=r"a config that extends another keeps its side "
+                                          r"unless set to null"):
+        load_config(CONFIGS / "dcdrive.yaml", ["safety.unsafe_if.above=300"])
+
+
 def test_set_overrides_apply_before_validation():
     cfg = load_config(CONFIGS / "pump.yaml", ["simulate.train_size=16", "reduce.kernel=matern32"])
     assert cfg.simulate.train_size == 16 and cfg.reduce.kernel == "matern32"

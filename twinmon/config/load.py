@@ -167,9 +167,14 @@ StrictLoader.add_implicit_resolver(
 
 
 def _merge(base: dict, top: dict) -> dict:
+    """``top`` over ``base``, mapping by mapping; ``KEY: null`` in ``top`` drops an entry the
+    base gives as a mapping (a diagnose window, a candidate effect, an input), which there
+    is no other way to remove from a config that extends another."""
     out = dict(base)
     for key, value in top.items():
-        if isinstance(value, dict) and isinstance(out.get(key), dict):
+        if value is None and isinstance(out.get(key), dict):
+            del out[key]
+        elif isinstance(value, dict) and isinstance(out.get(key), dict):
             out[key] = _merge(out[key], value)
         else:
             out[key] = value
@@ -187,15 +192,25 @@ def _apply_override(raw: dict, item: str, source: Path) -> None:
         value = yaml.load(text, Loader=StrictLoader)
     except yaml.YAMLError:
         raise ConfigError(f"--set {item!r}: value {text!r} is not valid YAML") from None
-    node = raw
-    for i, part in enumerate(parts[:-1]):
+    node, i = raw, 0
+    while True:
+        # An FMU variable's name holds dots (model.effects.tacho.gain.baseline): the longest
+        # run of parts the mapping has as a key is one key.
+        j = next((j for j in range(len(parts), i + 1, -1) if ".".join(parts[i:j]) in node),
+                 i + 1)
+        part = ".".join(parts[i:j])
+        if j == len(parts):
+            break
         child = node.get(part)
         if child is None:
             child = node[part] = {}
         if not isinstance(child, dict):
             raise ConfigError(
-                f"--set {item!r}: {'.'.join(parts[:i + 1])} is not a mapping in {source}")
-        node = child
+                f"--set {item!r}: {'.'.join(parts[:j])} is not a mapping in {source}")
+        node, i = child, j
     if parts == ["model", "fmu"] and isinstance(value, str):
         value = os.path.abspath(value)
-    node[parts[-1]] = value
+    if value is None and isinstance(node.get(part), dict):
+        del node[part]          # as KEY: null under extends: the entry is dropped
+    else:
+        node[part] = value

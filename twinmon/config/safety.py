@@ -62,7 +62,9 @@ class UnsafeIf:
 
     def _check(self):
         if (self.above is None) == (self.below is None):
-            yield "above", "give exactly one of above or below", \
+            # Both, under extends, is mostly the base's side beside the new one.
+            yield "above", "give exactly one of above or below (a config that extends " \
+                "another keeps its side unless set to null, e.g. below: null)", \
                 {"above": self.above, "below": self.below}
 
     @property
