@@ -434,6 +434,10 @@ def test_json_shape_via_cli(setup, tmp_path):
         assert u["failure_year"] is None or isinstance(u["failure_year"], int)
         assert len(u["years"]) == len(u["p_unsafe"]) == 7
         assert all(isinstance(y, int) for y in u["years"])
+        assert len(u["years_observed"]) == len(u["p_unsafe_observed"])
+        past = [y for y, p in zip(u["years_observed"], u["p_unsafe_observed"]) if p > 0.05]
+        assert u["unsafe_since"] is None if u["p_unsafe_observed"][-1] <= 0.05 \
+            else u["unsafe_since"] in past
         assert set(u["trends"]) == {"motor_damping", "pump_coef"}
         assert set(u["trends"]["pump_coef"]) >= {"slope", "slope_ci90", "intercept",
                                                  "p_value", "test", "normal_rate"}

@@ -391,7 +391,8 @@ def _finish_unit(cfg: Config, unit: str, up, p: dict, twin: TwinResult,
         indicator_observed=ind_obs, p_unsafe_observed=p_obs,
         failure_year=fyear, root_cause=attribution.verdict,
         fmu_failures=int(np.sum(twin.source[sl] == SOURCE_FAILED)),
-        drift=drift, attribution=attribution, pool_ess=p["pool_ess"])
+        drift=drift, attribution=attribution, pool_ess=p["pool_ess"],
+        unsafe_since=trailing_run(p["years"], p_obs > cfg.safety.failure_probability))
     uf.plan = maintenance_plan(trends, p["fut"], p_unsafe, fyear,
                                int(p["years"][-1]), float(p_obs[-1]), cfg.safety,
                                drift=drift, attribution=attribution, cfg=cfg)

@@ -110,6 +110,10 @@ class UnitForecast:
     #: A unit past its limit that a new unit is past too: the twin's health indicator at
     #: every input's nominal value (the limit, not a part, is to check); None otherwise.
     unsafe_at_nominal: Optional[float] = None
+    #: The first of the last recorded years in a row whose P(unsafe) is past the limit
+    #: (``safety.failure_probability``): the unit is unsafe now, since then; None when its
+    #: last year is not (``failure_year`` is a future year's, so says nothing of it).
+    unsafe_since: Optional[int] = None
     #: Components to watch though no fault was found, each with why: a part whose wear
     #: accelerates with its slope over the record within normal ageing
     #: (:func:`~.trend.shape_gate`), or whose own slope test rejects where the unit's tests
@@ -185,6 +189,9 @@ class UnitForecast:
             "root_cause": self.root_cause,
             "failure_year": self.failure_year,
             "median_failure_year": self.median_failure_year,
+            "unsafe_since": self.unsafe_since,
+            "years_observed": [int(y) for y in self.years_observed],
+            "p_unsafe_observed": [round(float(p), 4) for p in self.p_unsafe_observed],
             "years": [int(y) for y in self.years_future],
             "p_unsafe": [round(float(p), 4) for p in self.p_unsafe],
             "trends": {name: {"slope": t.slope, "slope_ci90": [t.slope_ci[0], t.slope_ci[1]],
