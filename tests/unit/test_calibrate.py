@@ -197,7 +197,8 @@ def test_estimated_noise_recovers_the_true_level(setup):
     s = estimate_noise(sur, cfg, flows)
     # 250 samples, 20 fitted parameters: the std estimate has ~5 % relative sd.
     assert abs(s / NOISE - 1) < 0.15
-    assert not estimate_noise_checked(sur, cfg, flows).structured
+    clean = estimate_noise_checked(sur, cfg, flows)
+    assert not clean.structured and clean.source == "estimated"
 
 
 def test_a_smooth_misfit_is_not_taken_for_noise(setup):
@@ -213,6 +214,7 @@ def test_a_smooth_misfit_is_not_taken_for_noise(setup):
     assert est.residual_std > 1.4 * NOISE
     assert est.structured and est.p_structure < cfg.calibrate.fit_alpha
     assert est.std == est.difference_std and abs(est.std / NOISE - 1) < 0.2
+    assert est.source == "differences"
     assert "hold more than noise" in est.warning("U", "m_flow", "kg/s")
 
 

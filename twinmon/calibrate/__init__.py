@@ -40,7 +40,9 @@ The result is ``posterior.h5`` (``twinmon.posterior/2``)::
                             posterior (joint.TREND_FIELDS): start [S, d]; intercept, slope
                             [draw, S, d]; sigma [draw, d]; rhat, ess [3, d]; acceptance [chain]
                             (NaN for laplace's weighted draws, as the years' acceptance)
-    /units/<U>.attrs noise_source  "file" | "config" | "estimated"
+    /units/<U>.attrs noise_source  "file" | "config" | "estimated" | "differences" (estimated
+                                   from the residuals' second differences: they hold more
+                                   than noise)
     /units/<U>.attrs channels      JSON {channel: {std, source}} when further channels were
                                    in the likelihood (the output first)
     /units/<U>.attrs events        JSON [[year, component, action]] (maintenance events)
@@ -339,7 +341,7 @@ def calibrate(cfg: Config, surrogate_path: str | os.PathLike,
         y = obs.output_of(unit)
         if noise is None:
             est = estimate_noise_checked(surrogate, cfg, y)
-            noise = est.std
+            noise, source = est.std, est.source
             if est.structured:
                 noise_warnings.append(est.warning(unit, out.name, out.units))
         if channels:  # one noise per channel, records side by side

@@ -192,7 +192,8 @@ def channel_noise(cfg: Config, unit_obs, stack: StackedSurrogate, output_noise: 
     std : ndarray, shape [n_ch]
         Channel units, in stacking order.
     info : dict
-        Channel -> ``{"std": float, "source": "file" | "config" | "estimated"}``.
+        Channel -> ``{"std": float, "source": "file" | "config" | "estimated" |
+        "differences"}`` (:attr:`~.density.NoiseEstimate.source`).
     """
     std, info = [output_noise], {stack.names[0]: {"std": float(output_noise),
                                                   "source": output_source}}
@@ -201,7 +202,7 @@ def channel_noise(cfg: Config, unit_obs, stack: StackedSurrogate, output_noise: 
             s, src = float(unit_obs.noise_std[ch]), "file"
         else:
             est = estimate_noise_checked(stack.parts[ch], cfg, unit_obs.channels[ch])
-            s, src = est.std, "estimated"
+            s, src = est.std, est.source
             if est.structured and warnings is not None:
                 warnings.append(est.warning(unit, ch,
                                             cfg.model.channels[ch].units))

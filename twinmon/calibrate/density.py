@@ -223,6 +223,12 @@ class NoiseEstimate:
     p_structure: float = float("nan")
     structured: bool = False
 
+    @property
+    def source(self) -> str:
+        """``"estimated"``, or ``"differences"`` where the level is the second
+        differences' (the ``noise_source`` calibrate records)."""
+        return "differences" if self.structured else "estimated"
+
     def warning(self, unit: str, channel: str, units: str = "") -> str:
         """The line that says a unit's residuals hold structure ("" when they do not)."""
         if not self.structured:

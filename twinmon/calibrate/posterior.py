@@ -43,7 +43,8 @@ class UnitPosterior:
     noise_std : ndarray, shape [n_y]
         Output noise standard deviation used in the likelihood (output units).
     noise_source : str
-        ``"file"``, ``"config"`` or ``"estimated"``.
+        ``"file"``, ``"config"``, ``"estimated"`` or ``"differences"`` (estimated from the
+        residuals' second differences, the residuals holding more than noise).
     surrogate_var_ratio : ndarray, shape [n_y]
         Mean over time steps of surrogate predictive variance / noise variance.
     """

@@ -93,7 +93,9 @@ def calibrate(config_path, overrides, surrogate, observations, truth, output, up
 
 
 _SOURCE = {"file": "from the observations file", "config": "from the config",
-           "estimated": "estimated from the residuals"}
+           "estimated": "estimated from the residuals",
+           "differences": "estimated from the residuals' second differences (the residuals "
+                          "hold more than noise)"}
 
 
 def _count_years(observations) -> int:

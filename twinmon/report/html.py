@@ -13,6 +13,9 @@ from ..config import Config
 from .common import SECTION_TITLES, SECTIONS, Words, input_label, pct, qty
 from .summary import ReportSummary
 
+#: The calibration table's words for a noise level's source (calibrate's ``noise_source``).
+NOISE_SOURCES = {"differences": "estimated; the residuals hold more than noise"}
+
 CSS = """
 body{font-family:system-ui,-apple-system,'Segoe UI',sans-serif;max-width:1180px;margin:2em auto;
 padding:0 1em;color:#222;line-height:1.45}
@@ -94,7 +97,7 @@ def calibration_table(cfg: Config, diag: dict, fleet=None) -> list[str]:
                     f"<td class='{'warn' if bad else 'ok'}'>{d['max_rhat']:.3f}</td>"
                     f"<td>{d['min_ess']:.0f}</td><td>{_acceptance(d['acceptance'])}</td>"
                     f"<td>{d['noise_std']:.3g} "
-                    f"({e(d['noise_source'])})</td></tr>")
+                    f"({e(NOISE_SOURCES.get(d['noise_source'], d['noise_source']))})</td></tr>")
     rows.append("</table>")
     if diag["warnings"]:
         rows.append("<p class='warn'>Sampling warnings:</p><ul>"
