@@ -40,6 +40,31 @@ def _line_model(years, c, A, slope_sd, d=1):
                                    np.asarray(A, float))
 
 
+def test_pareto_smoothing_finds_the_tail_and_keeps_one_draw_from_deciding():
+    """PSIS on log-weights of known tails: the fitted shape is the tail's (a lognormal's
+    grows with its sigma, a Cauchy's is near 1), the order is kept, no smoothed weight
+    exceeds the largest raw one, and a single huge draw no longer takes the mass."""
+    from twinmon.calibrate.gaussian_trend import pareto_smooth
+    rng = np.random.default_rng(0)
+    z = rng.standard_normal(8000)
+    _, k1 = pareto_smooth(1.0 * z)
+    _, k2 = pareto_smooth(2.0 * z)
+    _, kc = pareto_smooth(np.log(np.abs(rng.standard_cauchy(8000))))
+    assert 0.05 < k1 < 0.3 < k2 < 0.7 < kc < 1.1
+    lw = 2.0 * z
+    lw[-5] = lw.max() + 8.0                     # one draw 3000 times the next
+    sm, _ = pareto_smooth(lw)
+    assert sm.max() <= lw.max() and int(np.argmax(sm)) == 7995
+
+    def ess(v):
+        w = np.exp(v - v.max())
+        return w.sum() ** 2 / (w ** 2).sum()
+    assert ess(lw) < 2 < 100 < ess(sm)
+    # -inf (outside the box) stays out.
+    lw[:10] = -np.inf
+    assert np.all(np.isneginf(pareto_smooth(lw)[0][:10]))
+
+
 def test_closed_form_inverse_and_factor_are_numpys():
     # The years' conditional covariances of 2 inputs are inverted and factored in closed
     # form; 1 and 3 inputs go through LAPACK.

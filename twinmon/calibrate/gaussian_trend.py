@@ -29,8 +29,20 @@ EP_SWEEPS = 3
 EP_DRAWS = 1000
 EP_POINTS = 300
 EP_MIN_ESS = 30.0
+#: Share of each year's expectation-propagation points drawn from its cavity rather than
+#: from the model's current marginal of the year.
+EP_CAVITY_SHARE = 0.5
 #: No box: the Gaussian model's own draws (the box enters through the weights).
 WIDE_BOX = np.tile([-np.inf, np.inf], (64, 1))
+
+
+def _log_normal(z: np.ndarray, m: np.ndarray, S: np.ndarray) -> np.ndarray:
+    """log N(z; m_k, S_k) for points ``z`` [M, K, d], means ``m`` [K, d], covariances ``S``
+    [K, d, d]: [M, K]."""
+    L = np.linalg.cholesky(S)
+    y = np.linalg.solve(L[None], (z - m)[..., None])[..., 0]
+    return (-0.5 * np.sum(y * y, axis=2) - np.log(np.einsum("kii->ki", L)).sum(axis=1)
+            - 0.5 * z.shape[2] * np.log(2.0 * np.pi))
 
 
 def year_weight_table(cov: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -188,15 +200,36 @@ class SiteModel:
             H = np.linalg.inv(self.cov)
             lam_c = S_inv - H
             eta_c = np.einsum("kij,kj->ki", S_inv, mu) - np.einsum("kij,kj->ki", H, self.x)
-            z = mu + np.einsum("kij,mkj->mki", np.linalg.cholesky(S),
-                               rng.standard_normal((EP_POINTS, K, d)))
-            dz = z - self.x
-            lw = loglik(z) + 0.5 * np.einsum("mki,kij,mkj->mk", dz, H, dz)
+            # The tilted distribution's points: half from q_k, half from the cavity (where
+            # the rest of the model puts the year). From q_k alone, a site far from its
+            # cavity (a year's maximum at one end of a flat ridge) leaves the tilted mass
+            # in q_k's tail: a handful of effective points, the update skipped or its
+            # covariance read too narrow.
+            cav_ok = np.linalg.eigvalsh(lam_c).min(axis=1) > 0                # [K]
+            cav = np.linalg.inv(np.where(cav_ok[:, None, None], lam_c, eye))
+            cav = 0.5 * (cav + np.swapaxes(cav, 1, 2))
+            cm = np.einsum("kij,kj->ki", cav, eta_c)
+            e_q = rng.standard_normal((EP_POINTS, K, d))
+            z = mu + np.einsum("kij,mkj->mki", np.linalg.cholesky(S), e_q)
+            if EP_CAVITY_SHARE > 0:
+                n_c = int(EP_CAVITY_SHARE * EP_POINTS)
+                zc = cm + np.einsum("kij,mkj->mki", np.linalg.cholesky(cav),
+                                    rng.standard_normal((n_c, K, d)))
+                z[:n_c] = np.where(cav_ok[None, :, None], zc, z[:n_c])
+                # log of the mixture's density over q_k's, and the cavity's over the site's
+                # (the target is cavity x likelihood; q_k ~ cavity x site).
+                lq = _log_normal(z, mu, S)
+                lc = _log_normal(z, cm, cav)
+                mix = np.logaddexp(np.log1p(-EP_CAVITY_SHARE) + lq,
+                                   np.log(EP_CAVITY_SHARE) + lc)
+                lw = loglik(z) + lc - mix
+            else:
+                dz = z - self.x
+                lw = loglik(z) + 0.5 * np.einsum("mki,kij,mkj->mk", dz, H, dz)
             lw[~np.all((z >= lo) & (z <= hi), axis=2)] = -np.inf
             new_x, new_cov = self.x.copy(), self.cov.copy()
             for k in range(K):
-                if not np.isfinite(lw[:, k]).any() or \
-                        np.linalg.eigvalsh(lam_c[k]).min() <= 0:
+                if not np.isfinite(lw[:, k]).any() or not cav_ok[k]:
                     continue
                 w = np.exp(lw[:, k] - lw[:, k].max())
                 w /= w.sum()
@@ -237,6 +270,7 @@ class SiteModel:
             # 0: the caller marks the years unconverged).
             beta, sigma, theta, _ = self.draw(n, rng, bounds)
             return beta, sigma, theta, 0.0
+        lw, _ = pareto_smooth(lw)
         w = np.exp(lw - lw.max())
         w /= w.sum()
         # Systematic resampling, then a shuffle: the kept draws carry no order.
@@ -246,6 +280,58 @@ class SiteModel:
         return beta[idx], sigma[idx], theta[idx], 1.0 / float(w @ w)
 
 
+
+
+def pareto_smooth(lw: np.ndarray) -> tuple[np.ndarray, float]:
+    """Pareto-smoothed importance weights (Vehtari, Simpson, Gelman, Yao and Gabry 2024):
+    the largest ``min(n / 5, 3 sqrt(n))`` of the log-weights ``lw`` [n] (-inf allowed)
+    replaced by the expected order statistics of a generalised Pareto fitted to them
+    (Zhang and Stephens 2009, with their weak prior on the shape). A proposal whose tails
+    are lighter than the target's (a year's likelihood along a flat ridge, beyond its
+    Gaussian site) gives weights of infinite variance: their effective number is then set
+    by the one or two largest, a lottery from one seed to the next. Smoothed, the tail
+    keeps its mass without one draw taking it. Returns the smoothed log-weights and the
+    fitted shape ``k`` (above 0.7 the estimate is not to be trusted; inf when the tail is
+    too short to fit)."""
+    lw = np.array(lw, float)
+    fin = np.isfinite(lw)
+    n = int(fin.sum())
+    m = int(np.ceil(min(0.2 * n, 3.0 * np.sqrt(n))))
+    if n < 10 or m < 5:
+        return lw, np.inf
+    top = lw.max()
+    lw = lw - top
+    order = np.argsort(np.where(fin, lw, -np.inf))
+    tail_idx = order[-m:]
+    cut = lw[order[-m - 1]]
+    x = np.expm1(lw[tail_idx] - cut) * np.exp(cut)                         # ascending
+    if x[-1] <= 0:
+        return lw + top, 0.0
+    k, sigma = _gpd_fit(x)
+    if np.isfinite(k) and sigma > 0:
+        p = (np.arange(m) + 0.5) / m
+        q = sigma * (-np.log1p(-p) if abs(k) < 1e-12 else np.expm1(-k * np.log1p(-p)) / k)
+        lw[tail_idx] = np.minimum(np.log(q + np.exp(cut)), 0.0)
+    return lw + top, float(k)
+
+
+def _gpd_fit(x: np.ndarray) -> tuple[float, float]:
+    """Shape and scale of a generalised Pareto fitted to ``x`` (ascending, > 0) by Zhang and
+    Stephens' (2009) empirical Bayes estimate, the shape shrunk towards 0.5 (PSIS's prior)."""
+    n = len(x)
+    n_b = 30 + int(np.sqrt(n))
+    b = 1.0 - np.sqrt(n_b / (np.arange(1, n_b + 1) - 0.5))
+    b = b / (3.0 * x[int(n / 4 + 0.5) - 1]) + 1.0 / x[-1]
+    k = np.log1p(-b[:, None] * x).mean(axis=1)
+    ll = n * (np.log(-b / k) - k - 1.0)
+    w = 1.0 / np.exp(ll - ll[:, None]).sum(axis=1)
+    keep = w >= 10 * np.finfo(float).eps
+    w, b = w[keep] / w[keep].sum(), b[keep]
+    b_post = float(np.sum(b * w))
+    k_post = float(np.log1p(-b_post * x).mean())
+    sigma = -k_post / b_post
+    k_post = (n * k_post + 10 * 0.5) / (n + 10)
+    return k_post, sigma
 
 
 @dataclass
