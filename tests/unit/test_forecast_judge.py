@@ -599,7 +599,15 @@ def test_level_cause_names_the_inputs_whose_restoration_makes_the_unit_safe():
                        np.array([33.0, 31.0, 31.5]), 34.0) == {}
     assert list(level_cause(cfg, state, np.array([True, True, False]),
                             np.array([33.0, 31.0, 20.0]), 34.0)) == ["pump_coef", "motor_damping"]
-    from twinmon.forecast.plan import nominal_plan
+    from twinmon.forecast.plan import level_plan, nominal_plan
+    both = {n: {"value": v, "nominal": 1.0, "restored": 25.0, "safe": True}
+            for n, v in (("motor_damping", 28.5), ("pump_coef", 3.5))}
+    text = level_plan(cfg, both, 0.9, 10)
+    assert text.startswith("Inspect/replace the motor or the pump now")
+    assert "restoring any one of them makes it safe" in text
+    text = level_plan(cfg, {n: {**v, "safe": False} for n, v in both.items()}, 0.9, 10)
+    assert text.startswith("Inspect/replace the motor and the pump now")
+    assert "no one of them restored alone makes it safe" in text
     text = nominal_plan(cfg, 31.5, 0.97, 10)
     assert text.startswith("Check the limit: the unit is past it (P(unsafe) 0.97 in year 10), "
                            "but so is a new unit")
@@ -697,3 +705,17 @@ def test_an_input_beyond_normal_alone_is_watched_not_called_normal():
     assert plan.endswith("watch the motor (next year's record will tell).")
     trends["motor_damping"] = trend(0.1, 0.12, 0.0, 0.25, +1, "motor")
     assert unconfirmed(cfg, trends, drift, 13, fut, p) is None
+
+
+def test_collapsed_slope_draws_fall_back_on_the_yearly_regression():
+    """Posterior slope draws that collapsed onto one point (an unconverged weighting) have
+    no covariance: the joint tests take the yearly means' regression instead of stopping
+    the forecast with "Singular matrix"."""
+    from twinmon.forecast.judge import _spread
+    rng = np.random.default_rng(0)
+    good = rng.standard_normal((500, 4))
+    assert _spread(good) is good and _spread(None) is None
+    assert _spread(np.tile(good[:1], (500, 1))) is None
+    two = good[rng.integers(0, 2, 500)]            # two distinct draws in four dimensions
+    assert _spread(two) is None
+    assert _spread(good[:, :1]) is not None       # one input

@@ -367,6 +367,29 @@ def describe_power(cfg: Config, drift: IndicatorDrift | None) -> str:
             "input's normal-ageing tolerance; a smaller one may go unseen")
 
 
+def _spread(draws: Optional[np.ndarray]) -> Optional[np.ndarray]:
+    """``draws`` [n, d] when their covariance is positive definite, else None: draws that
+    collapsed onto a few points (an unconverged weighting, the unit unreliable already)
+    have no covariance to test with, and the tests fall back on the yearly means'
+    regression (all-equal slopes stopped the forecast with "Singular matrix")."""
+    if draws is None:
+        return None
+    C = np.atleast_2d(np.cov(draws, rowvar=False))
+    if not np.all(np.isfinite(C)) or not np.all(np.diag(C) > 0):
+        return None
+    scale = np.sqrt(np.diag(C))
+    return draws if np.linalg.eigvalsh(C / np.outer(scale, scale)).min() > 1e-10 else None
+
+
+def _floored(C: np.ndarray, tol: np.ndarray) -> np.ndarray:
+    """``C`` [d, d] with its diagonal floored at a thousandth of each input's normal-ageing
+    tolerance squared (or of 1e-12): the yearly means of a unit whose draws collapsed lie
+    on one line, and a slope covariance of zero is no metric for the box tests (the unit
+    is unreliable already; its slopes are then judged as if known)."""
+    floor = (1e-3 * np.where(tol > 0, tol, 1e-9)) ** 2
+    return C + np.diag(np.where(np.diag(C) > floor, 0.0, floor))
+
+
 def history_slope_draws(trend: dict) -> Optional[np.ndarray]:
     """Draws [n, d] of each input's wear rate pooled over its trend's segments, or None when
     no input has more than one (no repair restarted a trend).
@@ -413,7 +436,7 @@ def judge(cfg: Config, unit: str, plan: dict, ind_obs: np.ndarray, gradient: np.
     alpha = cfg.forecast.alpha
     years = plan["years"]
     after = years >= plan["since"]     # a repair restarts the trends
-    slope_draws = plan["slope_draws"]
+    slope_draws = _spread(plan["slope_draws"])
     # A joint unit's indicator slope is its posterior trend's (the slopes of the last
     # segments, i.e. after any repair), through the gradient: the null is built on the same
     # linearisation.
@@ -432,9 +455,9 @@ def judge(cfg: Config, unit: str, plan: dict, ind_obs: np.ndarray, gradient: np.
         err = plan["err_cov"][after][:, after]
         b = np.array([t.slope for t in tl])
         C, dof = slope_covariance(tl, plan["resid"], years[after], err), max(tl[0].dof, 1)
-    C = np.atleast_2d(C)
+    C = _floored(np.atleast_2d(C), tol)
     drift.p_inputs = box_test_uniform(b, C, dof, rate, tol, dirs, unit_rng(cfg, unit, 4))
-    history = plan.get("history_draws")
+    history = _spread(plan.get("history_draws"))
     if history is not None:
         # A repair restarted a trend: the segments before it wore too. Their rates pooled
         # with the current one's test the component's wear between repairs, which a
@@ -443,7 +466,7 @@ def judge(cfg: Config, unit: str, plan: dict, ind_obs: np.ndarray, gradient: np.
                                            np.atleast_2d(np.cov(history, rowvar=False)),
                                            POSTERIOR_DOF, rate, tol, dirs,
                                            unit_rng(cfg, unit, 5))
-    current = plan.get("rate_draws")
+    current = _spread(plan.get("rate_draws"))
     if current is not None and plan.get("changed", 0.0) > CHANGED_SHARE:
         # The slopes above are chords over the segment: a part whose wear rate jumped late
         # (or accelerates) shows only part of its current rate in them (a water heater's

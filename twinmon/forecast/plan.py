@@ -211,12 +211,17 @@ def level_plan(cfg: Config, levels: dict, p_unsafe_now: float, last_year: int) -
                      f"{ind.name} {ind.fmt(v['restored'])}"
                      + (", safe)" if v["safe"] else ")"))
     alone = all(v["safe"] for v in levels.values())
-    return (f"Inspect/replace the {' and the '.join(comps)} now (already unsafe: P(unsafe) "
+    # Each restoration alone safe: any one of the parts brings the unit back (not that each
+    # alone would put it past: the twin judged each restored, the others as they are).
+    join = " or the " if alone and len(comps) > 1 else " and the "
+    return (f"Inspect/replace the {join.join(comps)} now (already unsafe: P(unsafe) "
             f"{p_unsafe_now:.2f} in year {last_year}): a level, not a drift -- "
             + "; ".join(parts)
-            + (" -- each alone puts the unit past its limit" if alone and len(parts) > 1
+            + (" -- together put the unit past its limit; restoring any one of them makes it "
+               "safe" if alone and len(parts) > 1
                else " -- puts the unit past its limit" if alone
-               else " -- together put the unit past its limit")
+               else " -- together put the unit past its limit; no one of them restored alone "
+               "makes it safe")
             + "; no input wears faster than normal ageing, so the level dates from before "
             "the record or from a step in it.")
 

@@ -23,7 +23,9 @@ def fig_estimates(figs: Figures, inp: Inputs, colours: dict) -> dict:
             p = post.units[unit]
             yrs = np.asarray(p.years)
             m, lo, hi = p.mean[:, j], p.q05[:, j], p.q95[:, j]
-            ax.errorbar(yrs, m, yerr=[m - lo, hi - m], fmt="o", ms=4, capsize=3,
+            # A skewed posterior may put its mean outside its 90 % interval.
+            ax.errorbar(yrs, m, yerr=[np.maximum(m - lo, 0), np.maximum(hi - m, 0)], fmt="o",
+                        ms=4, capsize=3,
                         color=colours[unit], label="estimate (90 % interval)")
             tv = truth_at(truth, unit, name, yrs)
             if tv is not None:
