@@ -12,7 +12,8 @@ def test_reduce_json_is_strict_when_the_relative_error_is_undefined(tmp_path):
     # the relative error is undefined (NaN) and the log transform impossible.
     cfg = write_yaml(tmp_path / "dc.yaml", {
         "extends": str(CONFIGS / "dcdrive.yaml"),
-        "model": {"fixed": {"supply.delay": 0.35}, "channels": {}},
+        "model": {"fixed": {"supply.delay": 0.35}, "channels": {},
+                  "effects": {"supply.delay": None}},
         "simulate": {"train_size": 16, "test_size": 4, "executor": "serial"},
         "reduce": {"transform": "none", "max_modes": 3}})
     r = twinmon("simulate", "-c", cfg, "-o", tmp_path / "sims.h5", "--json")

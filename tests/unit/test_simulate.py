@@ -78,6 +78,7 @@ def test_failing_runs_are_recorded_and_do_not_stop_the_batch(tmp_path, small_con
     # a range the FMU does not bound): the flow runs away and the FMU's step guard fails
     # the run.
     cfg = load_config(small_config, ["model.inputs.motor_damping.variable=pipe.fouling",
+                                     "model.effects.pipe.fouling=null",
                                      "model.inputs.motor_damping.low=-3",
                                      "model.inputs.motor_damping.high=0.5",
                                      "model.inputs.motor_damping.nominal=0"])
