@@ -126,6 +126,8 @@ def _write_unit(f, cfg: Config, unit: str, u: UnitForecast, names: list) -> None
         at["level_cause"] = artifacts.json_attr(u.level_cause)
     if u.unsafe_at_nominal is not None:
         at["unsafe_at_nominal"] = float(u.unsafe_at_nominal)
+    if u.unsafe_since is not None:
+        at["unsafe_since"] = int(u.unsafe_since)
     if u.watch:
         at["watch"] = artifacts.json_attr(u.watch)
     if u.has_truth:
@@ -343,6 +345,7 @@ def _read_unit(f, unit: str, path: Path, names: list, arrays: bool = True) -> Un
         level_cause=json.loads(g.attrs["level_cause"]) if "level_cause" in g.attrs else {},
         unsafe_at_nominal=(float(g.attrs["unsafe_at_nominal"]) if "unsafe_at_nominal" in g.attrs
                            else None),
+        unsafe_since=int(g.attrs["unsafe_since"]) if "unsafe_since" in g.attrs else None,
         watch=json.loads(g.attrs["watch"]) if "watch" in g.attrs else {},
         drift=_drift_from(json.loads(g.attrs["detection"])) if "detection" in g.attrs else None,
         attribution=(Attribution(**json.loads(g.attrs["attribution"]))

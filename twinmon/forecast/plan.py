@@ -44,6 +44,10 @@ def no_fault_due(years_future: np.ndarray, p_unsafe: np.ndarray, limit: float) -
             f"above {100 * limit:g} %; each year of record narrows it")
 
 
+#: Probability of being at fault below which a component is not among a plan's candidates.
+CANDIDATE_FLOOR = 0.05
+
+
 def maintenance_plan(trends: dict, years_future: np.ndarray,
                      p_unsafe: np.ndarray, failure_year: Optional[int], last_year: int,
                      p_unsafe_now: float, safety, drift: Optional[IndicatorDrift] = None,
@@ -69,15 +73,22 @@ def maintenance_plan(trends: dict, years_future: np.ndarray,
                 evidence += (f"; their wear rates over the whole record, across its "
                              f"repairs, p = {drift.p_history:.2g}")
         if attribution.verdict == AMBIGUOUS:
-            faulty = sorted(probs, key=lambda c: -probs[c])
-            evidence += ("; the data cannot tell which component: " +
-                         ", ".join(f"{c} {probs[c]:.2f}" for c in faulty) +
+            # The candidates, most probable first; a part all but surely sound is none of
+            # them, and one surely at fault is named as such (with three parts or more, a
+            # sure one beside two in doubt read "the rotor or the prefilter or the vee-belt
+            # or the spindle", the spindle at 0.00).
+            cands = sorted((c for c in probs if probs[c] > CANDIDATE_FLOOR),
+                           key=lambda c: -probs[c])
+            faulty = [c for c in cands if probs[c] >= conf] or cands
+            maybe = [c for c in cands if c not in faulty]
+            evidence += ("; the data cannot tell " + ("which component: " if not maybe else
+                                                       "which others wear too: ") +
+                         ", ".join(f"{c} {probs[c]:.2f}" for c in cands) +
                          (f"; recording {attribution.separating_channel} would separate them"
                           if attribution.separating_channel else ""))
-            maybe = []
         else:
             faulty = sorted(c for c, pr in probs.items() if pr >= conf)
-            maybe = sorted(c for c, pr in probs.items() if 0.05 < pr < conf)
+            maybe = sorted(c for c, pr in probs.items() if CANDIDATE_FLOOR < pr < conf)
             if maybe:
                 evidence += "; " + ", ".join(f"{c} possibly too ({probs[c]:.2f})"
                                              for c in maybe)
@@ -89,9 +100,10 @@ def maintenance_plan(trends: dict, years_future: np.ndarray,
             f"{name} slope {t.slope:+.3g}/yr vs normal {t.normal_rate:+.3g} +- "
             f"{t.tolerance:.3g} (p = {t.p_value:.2g})"
             for c in faulty for name, t in comps[c] if t.rejects)
-    # An ambiguous attribution lists the candidates, most probable first.
+    # An ambiguous attribution lists the candidates, most probable first (those surely at
+    # fault named together, the others in its evidence).
     join = " or the " if attribution is not None and attribution.verdict == AMBIGUOUS \
-        else " and the "
+        and not maybe else " and the "
     # A part beyond normal ageing the safe way is no risk by the indicator, nor normal.
     away = safe_way(trends, cfg.forecast.alpha) if cfg is not None else {}
     # (Nor is a part whose own slope test rejects where the unit's tests together named no

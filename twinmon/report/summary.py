@@ -9,7 +9,7 @@ import numpy as np
 
 from ..config import Config
 from ..forecast.judge import box_bound_of, describe_power
-from ..forecast.plan import no_fault_due
+from ..forecast.plan import CANDIDATE_FLOOR, no_fault_due
 from ..forecast.trend import safe_way
 from ..repairs import FoundRepair
 from ..safety import trailing_run
@@ -194,10 +194,16 @@ def faulty_components(cfg: Config, uf) -> list[str]:
         probs = att.probabilities
         if att.verdict == "healthy":
             return []
-        if att.verdict == "ambiguous":
-            return [" or ".join(f"{c} {probs[c]:.2f}" for c in
-                                sorted(probs, key=lambda c: -probs[c])) + " (ambiguous)"]
         conf = cfg.forecast.attribution_confidence
+        if att.verdict == "ambiguous":
+            # As the plan words it: the parts surely at fault, then those in doubt; not a
+            # part all but surely sound.
+            cands = sorted((c for c in probs if probs[c] > CANDIDATE_FLOOR),
+                           key=lambda c: -probs[c])
+            sure = [c for c in cands if probs[c] >= conf]
+            doubt = " or ".join(f"{c} {probs[c]:.2f}" for c in cands if c not in sure)
+            return sure + [doubt + " (possibly)"] if sure and doubt else \
+                [doubt + " (ambiguous)"]
         return sorted(c for c, p in probs.items() if p >= conf)
     out = set()
     for name, t in uf.trends.items():
