@@ -48,6 +48,18 @@ def test_reloaded_surrogate_predicts_exactly_what_the_fitted_one_did(fitted):
     assert np.array_equal(m1, m2) and np.array_equal(v1, v2)
 
 
+def test_a_coarse_surrogate_is_a_warning(fitted):
+    from twinmon.reduce import error_warning
+    _, _, summary = fitted
+    w = error_warning(0.141, 0.02, "the output m_flow")
+    assert w.startswith("the output m_flow: the surrogate's largest error on the test runs "
+                        "is 14.1 % of the output's range (mean 2 %)")
+    v = summary.validation
+    assert error_warning(v.max_range_error, v.mean_range_error, "x") == ""   # < 1 %
+    assert error_warning(0.141, 0.02, "x", capped="said already") == ""
+    assert not any("largest error on the test runs" in w for w in summary.warnings)
+
+
 def test_a_log_transform_of_outputs_below_zero_is_a_config_error(fitted):
     from twinmon.errors import ConfigError
     from twinmon.reduce import fit_surrogate
