@@ -598,6 +598,9 @@ def test_figure_9_does_not_say_no_failure_for_a_withheld_prognosis():
     assert "withheld" in failure_words(held, 17)
     forced = SimpleNamespace(status="withheld", forced=True, failure_year=13)
     assert failure_words(forced, 17) == "fails in year 13"
+    # Past the limit in its last recorded years: since when, not the next year's date.
+    past = SimpleNamespace(status="ok", forced=False, failure_year=11, unsafe_since=8)
+    assert failure_words(past, 17) == "unsafe since year 8"
     ok = SimpleNamespace(status="ok", forced=False, failure_year=None)
     assert failure_words(ok, 17) == "no failure by year 17"
 

@@ -84,8 +84,15 @@ def fig_trends(figs: Figures, inp: Inputs, colours: dict) -> None:
                               label="true future" if sources == {"recorded future"}
                               else "true trend, extended"))
     fig.legend(handles=handles, loc="outside lower center", ncol=len(handles), fontsize=9)
-    fig.suptitle(f"Linear trends of the estimates, extended over {len(yf)} years with "
-                 f"{100 * conf:g} % prediction intervals (dotted line: last observation)")
+    # A posterior that weighed bent shapes forecasts with them too: the straight line drawn
+    # here is then one view of the trend, not the forecast's (figure 9 is).
+    bent = any(isinstance(p, (int, float)) and k != "line" and p > 0.05
+               for f in fc.units.values() for k, p in (f.shape or {}).items())
+    fig.suptitle(f"Straight-line trends of the estimates, extended over {len(yf)} years with "
+                 f"{100 * conf:g} % prediction intervals (dotted line: last observation)"
+                 + ("\nthe forecast also weighs accelerating and changed trends: its "
+                    "indicator and P(unsafe) are in the indicator forecast's figure"
+                    if bent else ""))
     figs.save(fig, "fig7_trends", "forecast", "Trends with prediction intervals",
               "A straight line is fitted to each input's yearly estimates (crosses) and extended "
               "past the last observation; the band is where a new year's value is expected with "
@@ -194,6 +201,10 @@ def failure_words(u, last_year: int) -> str:
     beside it may pass the limit, but the forecast does not date a failure it withholds."""
     if u.status == "withheld" and not u.forced:
         return "no failure year (prognosis withheld)"
+    if getattr(u, "unsafe_since", None) is not None:
+        # Past the limit in its last recorded years already: the first future year past it
+        # says nothing of when.
+        return f"unsafe since year {u.unsafe_since}"
     if u.failure_year is not None:
         return f"fails in year {u.failure_year}"
     return f"no failure by year {last_year}"
