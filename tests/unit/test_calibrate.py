@@ -215,6 +215,9 @@ def test_a_smooth_misfit_is_not_taken_for_noise(setup):
     assert est.structured and est.p_structure < cfg.calibrate.fit_alpha
     assert est.std == est.difference_std and abs(est.std / NOISE - 1) < 0.2
     assert est.source == "differences"
+    # A year with no sample (a further channel not recorded then) is no year of the fit.
+    flows[0] = np.nan
+    assert estimate_noise_checked(sur, cfg, flows).structured
     assert "hold more than noise" in est.warning("U", "m_flow", "kg/s")
 
 

@@ -63,6 +63,12 @@ def test_pareto_smoothing_finds_the_tail_and_keeps_one_draw_from_deciding():
     # -inf (outside the box) stays out.
     lw[:10] = -np.inf
     assert np.all(np.isneginf(pareto_smooth(lw)[0][:10]))
+    # A tail hundreds of nats below the top, ties at the cutoff, all equal: the raw
+    # weights, no division by zero.
+    for bad in (np.r_[0.0, -800 - rng.random(299) * 100], np.r_[[0.0] * 3, -720 - rng.random(297)],
+                np.r_[np.full(270, -5.0), rng.random(30)], np.zeros(300)):
+        sm, k = pareto_smooth(bad)
+        assert sm.shape == bad.shape and not np.isnan(sm).any()
 
 
 def test_closed_form_inverse_and_factor_are_numpys():

@@ -205,7 +205,13 @@ class SiteModel:
             # cavity (a year's maximum at one end of a flat ridge) leaves the tilted mass
             # in q_k's tail: a handful of effective points, the update skipped or its
             # covariance read too narrow.
-            cav_ok = np.linalg.eigvalsh(lam_c).min(axis=1) > 0                # [K]
+            # A cavity barely positive definite (its correlations' smallest eigenvalue under
+            # 1e-10) would fail the batch's inverse or factor: such a year is not updated.
+            # (Scaled to unit diagonal: inputs in units far apart are no reason.)
+            dg = np.einsum("kii->ki", lam_c)
+            sc = np.sqrt(np.where(dg > 0, dg, 1.0))
+            ev = np.linalg.eigvalsh(lam_c / (sc[:, :, None] * sc[:, None, :]))
+            cav_ok = np.all(dg > 0, axis=1) & (ev.min(axis=1) > 1e-10)          # [K]
             cav = np.linalg.inv(np.where(cav_ok[:, None, None], lam_c, eye))
             cav = 0.5 * (cav + np.swapaxes(cav, 1, 2))
             cm = np.einsum("kij,kj->ki", cav, eta_c)
@@ -302,14 +308,18 @@ def pareto_smooth(lw: np.ndarray) -> tuple[np.ndarray, float]:
     top = lw.max()
     lw = lw - top
     order = np.argsort(np.where(fin, lw, -np.inf))
-    tail_idx = order[-m:]
-    cut = lw[order[-m - 1]]
-    x = np.expm1(lw[tail_idx] - cut) * np.exp(cut)                         # ascending
-    if x[-1] <= 0:
-        return lw + top, 0.0
+    # The cutoff floored where exp() still holds it (ArviZ's psislw does the same): a tail
+    # 800 nats below the top is not one to fit. The tail is what lies above it (ties at the
+    # cutoff are body, not zeros in the fit).
+    cut = max(float(lw[order[-m - 1]]), float(np.log(np.finfo(float).tiny)))
+    tail_idx = np.flatnonzero(fin & (lw > cut))
+    if tail_idx.size <= 4:
+        return lw + top, np.inf
+    tail_idx = tail_idx[np.argsort(lw[tail_idx])]                            # ascending
+    x = np.exp(lw[tail_idx]) - np.exp(cut)
     k, sigma = _gpd_fit(x)
-    if np.isfinite(k) and sigma > 0:
-        p = (np.arange(m) + 0.5) / m
+    if np.isfinite(k) and np.isfinite(sigma) and sigma > 0:
+        p = (np.arange(tail_idx.size) + 0.5) / tail_idx.size
         q = sigma * (-np.log1p(-p) if abs(k) < 1e-12 else np.expm1(-k * np.log1p(-p)) / k)
         lw[tail_idx] = np.minimum(np.log(q + np.exp(cut)), 0.0)
     return lw + top, float(k)
@@ -328,6 +338,8 @@ def _gpd_fit(x: np.ndarray) -> tuple[float, float]:
     keep = w >= 10 * np.finfo(float).eps
     w, b = w[keep] / w[keep].sum(), b[keep]
     b_post = float(np.sum(b * w))
+    if not np.isfinite(b_post) or b_post == 0:
+        return np.inf, np.nan               # no fit: the caller keeps the raw weights
     k_post = float(np.log1p(-b_post * x).mean())
     sigma = -k_post / b_post
     k_post = (n * k_post + 10 * 0.5) / (n + 10)
