@@ -130,6 +130,12 @@ def test_noise_sf_is_the_f_test_for_one_estimated_channel():
     for x in (60.0, 80.0, 100.0):
         assert noise_sf([x], [[25.0, 25.0]], [np.inf, 30.0])[0] == pytest.approx(
             np.mean(total > x), rel=0.05)
+    # Two and three estimated channels, each its own scale (one shared scale made the
+    # p-values 3-4 times too small).
+    for k in (2, 3):
+        total = sum(rng.chisquare(100, n) * 20.0 / rng.chisquare(20, n) for _ in range(k))
+        x = np.quantile(total, 1 - 0.0025)
+        assert noise_sf([x], [[100.0] * k], [20.0] * k)[0] == pytest.approx(0.0025, rel=0.1)
 
 
 # -- the twin --------------------------------------------------------------------------------
