@@ -72,6 +72,12 @@ def test_null_drops_an_inherited_entry_and_set_takes_dotted_names(tmp_path):
     cfg = load_config(CONFIGS / "dcdrive.yaml", ["model.effects.tacho.gain.high=1.2",
                                                  "model.effects.supply.delay=null"])
     assert cfg.model.effects["tacho.gain"].high == 1.2 and "supply.delay" not in cfg.model.effects
+    # ... whether or not the config has the entry yet.
+    cfg = load_config(CONFIGS / "dcdrive.yaml", ["model.fixed.fan.c=8e-6",
+                                                 "model.effects.fan.c.baseline=8e-6",
+                                                 "model.effects.fan.c.low=6e-6",
+                                                 "model.effects.fan.c.high=1e-5"])
+    assert cfg.model.fixed["fan.c"] == 8e-6 and cfg.model.effects["fan.c"].high == 1e-5
     with pytest.raises(ConfigError, match=r"a config that extends another keeps its side "
                                           r"unless set to null"):
         load_config(CONFIGS / "dcdrive.yaml", ["safety.unsafe_if.above=300"])

@@ -181,6 +181,25 @@ def _merge(base: dict, top: dict) -> dict:
     return out
 
 
+def _named_parts(parts: list) -> list:
+    """``parts`` with an FMU variable's name joined into one part where the path runs
+    through a mapping keyed by such names: ``model.fixed.tacho.gain`` is the name
+    ``tacho.gain``, ``model.effects.shaft.J.baseline`` the field ``baseline`` of the effect
+    ``shaft.J`` (the last part is a field when the entries have it), whether or not the
+    config has the entry yet."""
+    from .model import ChannelSpec, EffectSpec
+    fields = {("model", "effects"): {f.name for f in dataclasses.fields(EffectSpec)},
+              ("model", "channels"): {f.name for f in dataclasses.fields(ChannelSpec)},
+              ("model", "fixed"): set()}
+    head = tuple(parts[:2])
+    if head not in fields or len(parts) < 4:
+        return parts
+    rest = parts[2:]
+    if rest[-1] in fields[head]:
+        return list(head) + [".".join(rest[:-1]), rest[-1]]
+    return list(head) + [".".join(rest)]
+
+
 def _apply_override(raw: dict, item: str, source: Path) -> None:
     if "=" not in item:
         raise ConfigError(f"--set {item!r}: expected KEY.PATH=VALUE")
@@ -192,6 +211,7 @@ def _apply_override(raw: dict, item: str, source: Path) -> None:
         value = yaml.load(text, Loader=StrictLoader)
     except yaml.YAMLError:
         raise ConfigError(f"--set {item!r}: value {text!r} is not valid YAML") from None
+    parts = _named_parts(parts)
     node, i = raw, 0
     while True:
         # An FMU variable's name holds dots (model.effects.tacho.gain.baseline): the longest

@@ -63,8 +63,10 @@ class TimeGrid:
             yield "stop", f"must be at least start + step ({self.start + self.step:g}): a " \
                 "transient needs two samples or more", self.stop
         elif self.step > 0:
+            # In steps, not relative to their number: a long grid could otherwise end a
+            # step past its stop.
             n = (self.stop - self.start) / self.step
-            if abs(n - round(n)) > 1e-6 * max(n, 1.0):
+            if abs(n - round(n)) > 1e-6:
                 below = self.start + math.floor(n) * self.step
                 yield "stop", (f"is not start + a whole number of steps ({self.start:g} + "
                                f"{math.floor(n)} x {self.step:g} = {below:.12g}, the next "

@@ -202,8 +202,9 @@ def faulty_components(cfg: Config, uf) -> list[str]:
                            key=lambda c: -probs[c])
             sure = [c for c in cands if probs[c] >= conf]
             doubt = " or ".join(f"{c} {probs[c]:.2f}" for c in cands if c not in sure)
-            return sure + [doubt + " (possibly)"] if sure and doubt else \
-                [doubt + " (ambiguous)"]
+            if sure:
+                return sure + ([doubt + " (possibly)"] if doubt else [])
+            return [doubt + " (ambiguous)"] if doubt else []
         return sorted(c for c, p in probs.items() if p >= conf)
     out = set()
     for name, t in uf.trends.items():
@@ -281,7 +282,8 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
         # A part watched though no fault is confirmed (its wear accelerating, or its own
         # slope beyond normal ageing alone) is the one the action names.
         found, comps = comps, comps or watch
-        s.components = [c for c in found if " (ambiguous)" not in c]
+        s.components = [c for c in found
+                        if not c.endswith((" (ambiguous)", " (possibly)"))]
         if uf.forced:
             s.health += " (FORCED: the twin misses the plant)"
             why.append("FORCED: " + uf.status_reason)
