@@ -29,20 +29,8 @@ EP_SWEEPS = 3
 EP_DRAWS = 1000
 EP_POINTS = 300
 EP_MIN_ESS = 30.0
-#: Share of each year's expectation-propagation points drawn from its cavity rather than
-#: from the model's current marginal of the year.
-EP_CAVITY_SHARE = 0.5
 #: No box: the Gaussian model's own draws (the box enters through the weights).
 WIDE_BOX = np.tile([-np.inf, np.inf], (64, 1))
-
-
-def _log_normal(z: np.ndarray, m: np.ndarray, S: np.ndarray) -> np.ndarray:
-    """log N(z; m_k, S_k) for points ``z`` [M, K, d], means ``m`` [K, d], covariances ``S``
-    [K, d, d]: [M, K]."""
-    L = np.linalg.cholesky(S)
-    y = np.linalg.solve(L[None], (z - m)[..., None])[..., 0]
-    return (-0.5 * np.sum(y * y, axis=2) - np.log(np.einsum("kii->ki", L)).sum(axis=1)
-            - 0.5 * z.shape[2] * np.log(2.0 * np.pi))
 
 
 def year_weight_table(cov: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -200,42 +188,15 @@ class SiteModel:
             H = np.linalg.inv(self.cov)
             lam_c = S_inv - H
             eta_c = np.einsum("kij,kj->ki", S_inv, mu) - np.einsum("kij,kj->ki", H, self.x)
-            # The tilted distribution's points: half from q_k, half from the cavity (where
-            # the rest of the model puts the year). From q_k alone, a site far from its
-            # cavity (a year's maximum at one end of a flat ridge) leaves the tilted mass
-            # in q_k's tail: a handful of effective points, the update skipped or its
-            # covariance read too narrow.
-            # A cavity barely positive definite (its correlations' smallest eigenvalue under
-            # 1e-10) would fail the batch's inverse or factor: such a year is not updated.
-            # (Scaled to unit diagonal: inputs in units far apart are no reason.)
-            dg = np.einsum("kii->ki", lam_c)
-            sc = np.sqrt(np.where(dg > 0, dg, 1.0))
-            ev = np.linalg.eigvalsh(lam_c / (sc[:, :, None] * sc[:, None, :]))
-            cav_ok = np.all(dg > 0, axis=1) & (ev.min(axis=1) > 1e-10)          # [K]
-            cav = np.linalg.inv(np.where(cav_ok[:, None, None], lam_c, eye))
-            cav = 0.5 * (cav + np.swapaxes(cav, 1, 2))
-            cm = np.einsum("kij,kj->ki", cav, eta_c)
-            e_q = rng.standard_normal((EP_POINTS, K, d))
-            z = mu + np.einsum("kij,mkj->mki", np.linalg.cholesky(S), e_q)
-            if EP_CAVITY_SHARE > 0:
-                n_c = int(EP_CAVITY_SHARE * EP_POINTS)
-                zc = cm + np.einsum("kij,mkj->mki", np.linalg.cholesky(cav),
-                                    rng.standard_normal((n_c, K, d)))
-                z[:n_c] = np.where(cav_ok[None, :, None], zc, z[:n_c])
-                # log of the mixture's density over q_k's, and the cavity's over the site's
-                # (the target is cavity x likelihood; q_k ~ cavity x site).
-                lq = _log_normal(z, mu, S)
-                lc = _log_normal(z, cm, cav)
-                mix = np.logaddexp(np.log1p(-EP_CAVITY_SHARE) + lq,
-                                   np.log(EP_CAVITY_SHARE) + lc)
-                lw = loglik(z) + lc - mix
-            else:
-                dz = z - self.x
-                lw = loglik(z) + 0.5 * np.einsum("mki,kij,mkj->mk", dz, H, dz)
+            z = mu + np.einsum("kij,mkj->mki", np.linalg.cholesky(S),
+                               rng.standard_normal((EP_POINTS, K, d)))
+            dz = z - self.x
+            lw = loglik(z) + 0.5 * np.einsum("mki,kij,mkj->mk", dz, H, dz)
             lw[~np.all((z >= lo) & (z <= hi), axis=2)] = -np.inf
             new_x, new_cov = self.x.copy(), self.cov.copy()
             for k in range(K):
-                if not np.isfinite(lw[:, k]).any() or not cav_ok[k]:
+                if not np.isfinite(lw[:, k]).any() or \
+                        np.linalg.eigvalsh(lam_c[k]).min() <= 0:
                     continue
                 w = np.exp(lw[:, k] - lw[:, k].max())
                 w /= w.sum()
