@@ -88,11 +88,10 @@ def fig_trends(figs: Figures, inp: Inputs, colours: dict) -> None:
     # here is then one view of the trend, not the forecast's (figure 9 is).
     bent = any(isinstance(p, (int, float)) and k != "line" and p > 0.05
                for f in fc.units.values() for k, p in (f.shape or {}).items())
-    fig.suptitle(f"Straight-line trends of the estimates, extended over {len(yf)} years with "
-                 f"{100 * conf:g} % prediction intervals (dotted line: last observation)"
-                 + ("\nthe forecast also weighs accelerating and changed trends: its "
-                    "indicator and P(unsafe) are in the indicator forecast's figure"
-                    if bent else ""))
+    fig.suptitle(f"Straight-line trends of the estimates, {len(yf)} years ahead, with "
+                 f"{100 * conf:g} % prediction intervals (dotted: last observation)"
+                 + ("\nthe forecast also weighs accelerating and changed trends: see the "
+                    "indicator forecast's figure" if bent else ""))
     figs.save(fig, "fig7_trends", "forecast", "Trends with prediction intervals",
               "A straight line is fitted to each input's yearly estimates (crosses) and extended "
               "past the last observation; the band is where a new year's value is expected with "
