@@ -28,7 +28,7 @@ def summary_line(unit: str, g, no_candidates: str = "", hidden: bool = True) -> 
     return "\n".join(lines)
 
 
-def _noise(g, inside: bool = False) -> str:
+def noise_note(g, inside: bool = False) -> str:
     """How well the noise level the residuals are measured in is known: said only where
     diagnose estimated it from the record (one sd of the estimate, in %); ``inside`` a
     parenthesis already."""
@@ -42,17 +42,17 @@ def _noise(g, inside: bool = False) -> str:
 def _first_line(unit: str, g, no_candidates: str) -> str:
     if g.verdict == "none":
         return (f"{unit}: no significant gap (p = {g.p_gap:.2g}, residual RMS "
-                f"{g.rms_before:.2f} x noise{_noise(g, inside=True)})")
+                f"{g.rms_before:.2f} x noise{noise_note(g, inside=True)})")
     where = (f"years {g.where_years[0]}-{g.where_years[-1]}" if g.where_years else "")
     if g.where_windows:
         where += f", {', '.join(g.where_windows)}"
     if g.verdict == "unexplained" and not g.candidates:
         return (f"{unit}: UNEXPLAINED gap from year {g.onset} ({where}); residual RMS "
-                f"{g.rms_before:.2f} x noise{_noise(g)}; "
+                f"{g.rms_before:.2f} x noise{noise_note(g)}; "
                 + (no_candidates or "no candidate effects to test (model.effects)"))
     if g.verdict == "unexplained":
         return (f"{unit}: UNEXPLAINED gap from year {g.onset} ({where}); residual RMS "
-                f"{g.rms_before:.2f} x noise{_noise(g)}; best candidate {g.candidates[0]} "
+                f"{g.rms_before:.2f} x noise{noise_note(g)}; best candidate {g.candidates[0]} "
                 f"would close "
                 f"only {g.closed_percent:.0f} %")
     sep = ""
@@ -76,7 +76,7 @@ def _first_line(unit: str, g, no_candidates: str) -> str:
         fy = (f"; projected failure year {g.failure_year_before or 'none'} -> "
               f"{g.failure_year_after or 'none'}")
     return (f"{unit}: {text} from year {g.onset} ({where}); residual RMS "
-            f"{g.rms_before:.2f} -> {g.rms_after:.2f} x noise{_noise(g)}, "
+            f"{g.rms_before:.2f} -> {g.rms_after:.2f} x noise{noise_note(g)}, "
             f"{g.closed_percent:.0f} % of "
             f"the excess gap closed, BIC gain {g.delta_bic_final:.0f}{sep}{fy}")
 

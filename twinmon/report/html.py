@@ -97,7 +97,11 @@ def calibration_table(cfg: Config, diag: dict, fleet=None) -> list[str]:
                     f"<td class='{'warn' if bad else 'ok'}'>{d['max_rhat']:.3f}</td>"
                     f"<td>{d['min_ess']:.0f}</td><td>{_acceptance(d['acceptance'])}</td>"
                     f"<td>{d['noise_std']:.3g} "
-                    f"({e(NOISE_SOURCES.get(d['noise_source'], d['noise_source']))})</td></tr>")
+                    f"({e(NOISE_SOURCES.get(d['noise_source'], d['noise_source']))})"
+                    + "".join(f"<br>{e(c)} {v['std']:.3g} "
+                              f"({e(NOISE_SOURCES.get(v['source'], v['source']))})"
+                              for c, v in d.get("channels", {}).items())
+                    + "</td></tr>")
     rows.append("</table>")
     if diag["warnings"]:
         rows.append("<p class='warn'>Sampling warnings:</p><ul>"

@@ -160,7 +160,12 @@ def calibration_diagnostics(inp: Inputs) -> dict:
                     "max_rhat": float(np.nanmax(p.rhat)), "min_ess": float(np.nanmin(p.ess)),
                     "acceptance": [float(np.min(p.acceptance)), float(np.max(p.acceptance))],
                     "noise_std": float(np.asarray(p.noise_std)[0]),
-                    "noise_source": p.noise_source}
+                    "noise_source": p.noise_source,
+                    # Each further channel's level and where it came from (a channel whose
+                    # residuals hold more than noise says so here too).
+                    "channels": {c: {"std": float(v["std"]), "source": v["source"]}
+                                 for c, v in (getattr(p, "channels", None) or {}).items()
+                                 if c != cfg.model.output.name}}
         warnings += diagnostics_warnings({u: p}, names, cfg)
     return {"units": units, "warnings": warnings}
 
@@ -398,6 +403,10 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
                        "intervals are less certain than they look")
 
     if gap is not None:
+        # Where diagnose estimated the noise its residuals are measured in, how well it is
+        # known (the command's own words).
+        from ..diagnose.text import noise_note as _noise_words
+        noise_note = _noise_words(gap)
         s.diagnose = {
             "verdict": gap.verdict, "effects": list(gap.effects), "group": list(gap.group),
             "onset": gap.onset, "where_windows": list(gap.where_windows),
@@ -412,6 +421,9 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
             "hidden": dict(getattr(gap, "hidden", {}) or {}),
             "estimate": {k: {"mean": plain(float(v[0])), "q05": plain(float(v[1])),
                              "q95": plain(float(v[2]))} for k, v in gap.estimate.items()},
+            "noise_std": plain(float(gap.noise_std)),
+            "noise_dof": plain(float(gap.noise_dof)) if getattr(gap, "noise_dof", None)
+            else None,
         }
         withheld = s.status == "withheld" and not s.forced
         if gap.verdict == "unexplained" and withheld and not box_bound_of(s.status_reason):
@@ -461,8 +473,11 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
                             for k, v in gap.estimate.items())
             where = " and ".join(gap.where_windows)
             plural = "s" if len(gap.where_windows) > 1 else ""
-            why.append(f"diagnose: the gap sits in the {where or 'whole record'} window{plural}; "
-                       "adding "
+            # No window significant alone: the gap is spread over the record, not in one
+            # window called "the whole record".
+            sits = (f"the gap sits in the {where} window{plural}" if where
+                    else "the gap is spread over the record (no window is significant alone)")
+            why.append(f"diagnose{noise_note}: {sits}; adding "
                        f"{', '.join(gap.effects)} closes {gap.closed_percent:.0f} % of the "
                        f"excess gap (BIC gain {gap.delta_bic_final:.0f}); {est}"
                        + (f"; {gap.separating_channel} would tell the group apart"
@@ -494,10 +509,11 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
                          "candidate effect explains" + (", though each year's fit passes "
                          "calibrate's test" if s.status == "ok" else "")
                          + ": check the data")
-            why.append("diagnose: a significant gap no candidate effect explains, so the "
-                       "estimates may be biased")
+            why.append(f"diagnose{noise_note}: a significant gap no candidate effect explains, "
+                       "so the estimates may be biased")
         else:
-            why.append("diagnose: no significant gap between the twin and the plant")
+            why.append(f"diagnose{noise_note}: no significant gap between the twin and the "
+                       "plant")
         if getattr(gap, "hidden", None):
             from ..diagnose.text import hidden_line
             why.append("diagnose: " + hidden_line(gap.hidden) + "; the estimates may carry "
