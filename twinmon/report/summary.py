@@ -454,9 +454,12 @@ def unit_summary(unit: str, inp: Inputs, observed: dict) -> UnitSummary:
                                if gap.failure_year_after is not None
                                else "no failure within the horizon"))
             else:
-                s.action += (f"; the twin misses the plant from year {gap.onset}: check {eff}"
-                             if gap.onset is not None
-                             else f"; the twin misses the plant: check {eff}")
+                # Diagnose's finding, beside a status that may say the twin fits: each year's
+                # fit can pass while the degradation inputs absorb the effect.
+                since = f" from year {gap.onset}" if gap.onset is not None else ""
+                s.action += (f"; diagnose finds {eff}{since}"
+                             + (", though each year's fit passes calibrate's test"
+                                if s.status == "ok" else "") + f": check {eff}")
             projection = (f"year {gap.failure_year_after}"
                           if gap.failure_year_after is not None
                           else "no failure within the horizon")
