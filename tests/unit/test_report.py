@@ -169,6 +169,37 @@ def test_summary_json_is_derived_from_the_artifacts(pipeline, full):
             assert data["units"][u]["diagnose"]["verdict"] == g.verdict
 
 
+def test_the_diagnose_lines_say_how_the_noise_was_known_and_where_the_gap_lies(pipeline,
+                                                                               tmp_path):
+    """A gap.h5 whose noise was estimated and whose gap no single window holds: each unit's
+    diagnose line says how well the noise is known, the gap is spread over the record (it
+    read "the whole record window"), and summary.json has diagnose's noise."""
+    import dataclasses
+
+    from twinmon.diagnose import read_gap, write_gap
+    from twinmon.fmu import resolve_fmu
+    cfg, _, tmp, art = pipeline
+    if not (art["gap"] and art["forecast"]):
+        pytest.skip("needs the diagnose and forecast stages")
+    gap = read_gap(art["gap"])
+    units = {u: dataclasses.replace(g, noise_dof=20.0, where_windows=[])
+             for u, g in gap.units.items()}
+    write_gap(tmp_path / "gap.h5", units, cfg, gap.time,
+              [art["observations"], resolve_fmu(cfg.model.fmu)])
+    report(cfg, tmp_path / "rep", **{**art, "gap": tmp_path / "gap.h5"})
+    data = json.loads((tmp_path / "rep" / "summary.json").read_text())
+    for u, g in units.items():
+        s = data["units"][u]
+        assert "diagnose (noise estimated from the record to +-16 %)" in s["confidence"]
+        assert s["diagnose"]["noise_dof"] == 20.0
+        if g.verdict == "effect":
+            assert "the gap is spread over the record (no window is significant alone)" \
+                in s["confidence"] and "whole record" not in s["confidence"]
+            if s["status"] == "ok":
+                assert f"diagnose finds {g.effects[0]}" in s["action"]
+                assert "though each year's fit passes calibrate's test" in s["action"]
+
+
 def test_terminal_summary_has_one_line_per_unit(pipeline, full):
     _, _, _, art = pipeline
     summary, _ = full
