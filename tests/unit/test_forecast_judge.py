@@ -738,18 +738,15 @@ def test_an_ambiguous_plan_names_the_sure_part_and_leaves_the_sound_one_out():
         t = Trend(intercept=0.0, slope=0.0, slope_se=0.1, slope_ci=(0.0, 0.0),
                   residual_std=0.1, n=10, x_mean=5.5, sxx=82.5, component=c)
         trends[c + "_x"] = slope_test(t, 0.0, 0.25, +1, cfg.forecast.alpha)
-    att = Attribution(AMBIGUOUS, {"rotor": 1.0, "prefilter": 0.61, "vee-belt": 0.56,
-                                  "spindle": 0.0}, {})
-    plan = maintenance_plan(trends, np.arange(11, 18), np.r_[0.0, np.ones(6)], 12, 10, 0.0,
-                            cfg.safety, drift=SimpleNamespace(abnormal=False),
-                            attribution=att, cfg=cfg)
+
+    def plan_for(probs):
+        return maintenance_plan(trends, np.arange(11, 18), np.r_[0.0, np.ones(6)], 12, 10,
+                                0.0, cfg.safety, drift=SimpleNamespace(abnormal=False),
+                                attribution=Attribution(AMBIGUOUS, probs, {}), cfg=cfg)
+    plan = plan_for({"rotor": 1.0, "prefilter": 0.61, "vee-belt": 0.56, "spindle": 0.0})
     assert plan.startswith("Inspect/replace the rotor before year 11 ends")
     assert "which others wear too: rotor 1.00, prefilter 0.61, vee-belt 0.56" in plan
     assert "spindle within normal ageing" in plan and "or the spindle" not in plan
     # None sure: the candidates, most probable first, joined by "or".
-    att = Attribution(AMBIGUOUS, {"rotor": 0.7, "prefilter": 0.61, "vee-belt": 0.0,
-                                  "spindle": 0.0}, {})
-    plan = maintenance_plan(trends, np.arange(11, 18), np.r_[0.0, np.ones(6)], 12, 10, 0.0,
-                            cfg.safety, drift=SimpleNamespace(abnormal=False),
-                            attribution=att, cfg=cfg)
+    plan = plan_for({"rotor": 0.7, "prefilter": 0.61, "vee-belt": 0.0, "spindle": 0.0})
     assert plan.startswith("Inspect/replace the rotor or the prefilter before year 11 ends")

@@ -213,7 +213,8 @@ class NoiseEstimate:
     difference_std, difference_dof : float
         From the second differences of those residuals (NaN when too few).
     p_structure : float
-        p-value of ``residual_std^2 / difference_std^2`` (F test; NaN when not made).
+        p-value of ``log(residual_std^2 / difference_std^2)`` (normal, variance
+        ``2/difference_dof - 2/n``; NaN when not made).
     structured : bool
     """
 

@@ -23,7 +23,7 @@ import numpy as np
 from ..errors import SimulationError
 from .fit import JointFit
 from .state import UnitState
-from .stats import ljung_box
+from .stats import ljung_box, pooled_onset_pvalues
 
 
 # -- the base twin -----------------------------------------------------------------------------
@@ -92,10 +92,8 @@ def detect(s: UnitState) -> None:
     s.p_chi2_before, s.p_lb_before = p_chi2, p_lb
     p_year = np.minimum(1.0, 2 * s.n_y * np.minimum(p_chi2, p_lb))
     s.significant_years = p_year < a
-    # From each possible onset on, the years pooled.
-    p_pool = np.minimum(1.0, s.n_y * s.p_excess(
-        np.cumsum(chi2[::-1])[::-1], np.cumsum(s.channel_counts[::-1], axis=0)[::-1],
-        np.maximum(np.cumsum(dof[::-1])[::-1], 1)))
+    p_pool = np.minimum(1.0, s.n_y * pooled_onset_pvalues(chi2, dof, s.channel_counts,
+                                                          s.p_excess))
     s.detected_onset = int(s.years[int(np.argmin(p_pool))])
     # Bonferroni over the two families (per-year tests, pooled-from-onset tests).
     s.p_omnibus = float(min(1.0, 2 * min(p_year.min(), p_pool.min())))

@@ -37,11 +37,17 @@ def ljung_box(z: np.ndarray, lags: int) -> float:
     return float(chi2_sf(q, lags))
 
 
-def pooled_onset_pvalues(chi2: np.ndarray, dof: np.ndarray) -> np.ndarray:
-    """p-value of the pooled chi-square of the years from each possible onset on, [n_y]."""
-    c = np.cumsum(chi2[::-1])[::-1]
-    d = np.cumsum(dof[::-1])[::-1]
-    return chi2_sf(c, np.maximum(d, 1))
+def pooled_onset_pvalues(chi2: np.ndarray, dof: np.ndarray, counts: np.ndarray | None = None,
+                         sf=None) -> np.ndarray:
+    """p-value of the pooled chi-square of the years from each possible onset on, [n_y].
+
+    ``chi2``, ``dof`` [n_y]; with ``sf`` (``sf(stat, counts, dof)``, e.g. a unit's test
+    that counts estimated noise levels) the years' samples per channel ``counts``
+    [n_y, n_ch] are pooled too and passed to it."""
+    def from_onset(x):
+        return np.cumsum(np.asarray(x)[::-1], axis=0)[::-1]
+    c, d = from_onset(chi2), np.maximum(from_onset(dof), 1)
+    return chi2_sf(c, d) if sf is None else sf(c, from_onset(counts), d)
 
 
 #: Second differences :func:`plateau_noise` needs before it drops outliers.

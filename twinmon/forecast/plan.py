@@ -48,6 +48,17 @@ def no_fault_due(years_future: np.ndarray, p_unsafe: np.ndarray, limit: float) -
 CANDIDATE_FLOOR = 0.05
 
 
+def ambiguous_candidates(probs: dict, confidence: float) -> tuple[list, list]:
+    """An ambiguous attribution's candidates, most probable first: ``(sure, doubt)``, the
+    components at fault with probability at least ``confidence`` and the others above
+    :data:`CANDIDATE_FLOOR` (a part all but surely sound is none of them: with three parts
+    or more, a sure one beside two in doubt read "the rotor or the prefilter or the
+    vee-belt or the spindle", the spindle at 0.00). The plan and the report word them."""
+    cands = sorted((c for c in probs if probs[c] > CANDIDATE_FLOOR), key=lambda c: -probs[c])
+    sure = [c for c in cands if probs[c] >= confidence]
+    return sure, [c for c in cands if c not in sure]
+
+
 def maintenance_plan(trends: dict, years_future: np.ndarray,
                      p_unsafe: np.ndarray, failure_year: Optional[int], last_year: int,
                      p_unsafe_now: float, safety, drift: Optional[IndicatorDrift] = None,
@@ -73,14 +84,10 @@ def maintenance_plan(trends: dict, years_future: np.ndarray,
                 evidence += (f"; their wear rates over the whole record, across its "
                              f"repairs, p = {drift.p_history:.2g}")
         if attribution.verdict == AMBIGUOUS:
-            # The candidates, most probable first; a part all but surely sound is none of
-            # them, and one surely at fault is named as such (with three parts or more, a
-            # sure one beside two in doubt read "the rotor or the prefilter or the vee-belt
-            # or the spindle", the spindle at 0.00).
-            cands = sorted((c for c in probs if probs[c] > CANDIDATE_FLOOR),
-                           key=lambda c: -probs[c])
-            faulty = [c for c in cands if probs[c] >= conf] or cands
-            maybe = [c for c in cands if c not in faulty]
+            # The candidates, most probable first; one surely at fault is named as such.
+            sure, doubt = ambiguous_candidates(probs, conf)
+            cands = sure + doubt
+            faulty, maybe = (sure, doubt) if sure else (doubt, [])
             evidence += ("; the data cannot tell " + ("which component: " if not maybe else
                                                        "which others wear too: ") +
                          ", ".join(f"{c} {probs[c]:.2f}" for c in cands) +

@@ -9,7 +9,7 @@ import numpy as np
 
 from ..config import Config
 from ..forecast.judge import box_bound_of, describe_power
-from ..forecast.plan import CANDIDATE_FLOOR, no_fault_due
+from ..forecast.plan import ambiguous_candidates, no_fault_due
 from ..forecast.trend import safe_way
 from ..repairs import FoundRepair
 from ..safety import trailing_run
@@ -201,12 +201,9 @@ def faulty_components(cfg: Config, uf) -> list[str]:
             return []
         conf = cfg.forecast.attribution_confidence
         if att.verdict == "ambiguous":
-            # As the plan words it: the parts surely at fault, then those in doubt; not a
-            # part all but surely sound.
-            cands = sorted((c for c in probs if probs[c] > CANDIDATE_FLOOR),
-                           key=lambda c: -probs[c])
-            sure = [c for c in cands if probs[c] >= conf]
-            doubt = " or ".join(f"{c} {probs[c]:.2f}" for c in cands if c not in sure)
+            # As the plan words it: the parts surely at fault, then those in doubt.
+            sure, rest = ambiguous_candidates(probs, conf)
+            doubt = " or ".join(f"{c} {probs[c]:.2f}" for c in rest)
             if sure:
                 return sure + ([doubt + " (possibly)"] if doubt else [])
             return [doubt + " (ambiguous)"] if doubt else []
