@@ -10,6 +10,7 @@ STAMP   := $(VENV)/.twinmon-installed
 OUT     ?= out
 CONFIG  ?= configs/pump.yaml
 OBS     ?= data/fleet.h5
+TEST_JOBS ?= 2
 TRUTH   ?= data/fleet_truth.h5
 GAP_OBS ?= data/fleet_gap.h5
 FMU_SRC := $(wildcard fmus/PumpCircuit/modelDescription.xml fmus/PumpCircuit/sources/*)
@@ -20,7 +21,7 @@ all: run
 
 help:
 	@echo "make run    set up, build the FMU, run the whole pipeline on $(OBS), print the report path"
-	@echo "make test   set up, then the whole test suite"
+	@echo "make test   set up, then the whole test suite (TEST_JOBS=2 processes)"
 	@echo "make bench  benchmarks (figures printed)"
 	@echo "make data   regenerate the shipped fleet data from configs/fleet.yaml and fleet_gap.yaml"
 	@echo "make example  the second worked example (a DC drive, fmus/DCDrive) end to end"
@@ -62,8 +63,9 @@ run: setup
 	$(TWINMON) run -c $(CONFIG) --observations $(OBS) --truth $(TRUTH) \
 	    --gap-observations $(GAP_OBS) --workdir $(OUT)
 
+# The suite on TEST_JOBS processes (pytest-xdist): CI has two cores, and most tests use one.
 test: setup
-	$(PY) -m pytest -q tests
+	$(PY) -m pytest -q -n $(TEST_JOBS) tests
 
 bench: setup
 	@for b in benchmarks/*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
