@@ -71,6 +71,37 @@ def test_pareto_smoothing_finds_the_tail_and_keeps_one_draw_from_deciding():
         assert sm.shape == bad.shape and not np.isnan(sm).any()
 
 
+def test_a_site_off_its_likelihood_is_widened_until_the_weights_reach_the_mass():
+    """One year's site sits 7 of its sds off a Gaussian likelihood (and narrower): the
+    plain weights collapse onto a few draws and put that year 5 posterior sds off; the
+    widened site gives enough effective draws, and the exact posterior's mean and spread
+    (the model with the true likelihoods as its sites, drawn densely). The sites are
+    left as they were."""
+    years = np.arange(1.0, 9.0)
+    K, s = len(years), 0.1
+    y = 1.0 + 0.05 * years + s * np.random.default_rng(5).standard_normal(K)
+    c = np.full((K, 1, 1), s ** 2)
+
+    def loglik(theta):
+        return -0.5 * ((theta[..., 0] - y) / s) ** 2
+
+    ref = _line_model(years, c, [0.05], 1.0)(y[:, None]).draw(
+        200000, np.random.default_rng(1), WIDE)[2][:, 2, 0]
+    c_off, x_off = c.copy(), y[:, None].copy()
+    c_off[2], x_off[2] = 0.03 ** 2, x_off[2] + 0.35
+    m = _line_model(years, c_off, [0.05], 1.0)(x_off)
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        first = m.importance(loglik, 4000, rng, WIDE)
+        assert first[3] < 100 and np.argmin(m.year_ess) == 2
+        assert abs(first[2][:, 2, 0].mean() - ref.mean()) > 3 * ref.std()
+        got = m.importance_widened(loglik, 4000, rng, WIDE, first, 400)
+        assert got[3] >= 400
+        assert abs(got[2][:, 2, 0].mean() - ref.mean()) < 0.25 * ref.std()
+        assert 0.8 < got[2][:, 2, 0].std() / ref.std() < 1.2
+        assert np.array_equal(m.cov, c_off) and np.array_equal(m.x, x_off)
+
+
 def test_closed_form_inverse_and_factor_are_numpys():
     # The years' conditional covariances of 2 inputs are inverted and factored in closed
     # form; 1 and 3 inputs go through LAPACK.

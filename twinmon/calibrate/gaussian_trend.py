@@ -29,6 +29,11 @@ EP_SWEEPS = 3
 EP_DRAWS = 1000
 EP_POINTS = 300
 EP_MIN_ESS = 30.0
+#: The last resort of the importance weights (SiteModel.importance_widened): factors on the
+#: covariance of the sites whose own weights are the unevenest, tried in turn, and how
+#: uneven that is (a year's effective number below this fraction of the best year's).
+WIDEN_FACTORS = (4.0, 16.0)
+WIDEN_BELOW = 0.5
 #: No box: the Gaussian model's own draws (the box enters through the weights).
 WIDE_BOX = np.tile([-np.inf, np.inf], (64, 1))
 
@@ -224,13 +229,20 @@ class SiteModel:
         ess : float
             Effective number of the weighted draws (Kish); 0 when every draw left the box
             (the draws are then the Gaussian model's, held in the box).
+
+        Each year's own effective number (its factor of the weights alone, over the draws
+        in the box) is kept as :attr:`year_ess` [K], which tells the year whose site the
+        draws miss (:meth:`importance_widened`).
         """
         d = self.x.shape[1]
         beta, sigma, theta, _ = self.draw(n, rng, WIDE_BOX[:d])
         dx = theta - self.x
         H = np.linalg.inv(self.cov)
-        lw = np.sum(loglik(theta) + 0.5 * np.einsum("nki,kij,nkj->nk", dx, H, dx), axis=1)
-        lw[~np.all((theta >= bounds[:, 0]) & (theta <= bounds[:, 1]), axis=(1, 2))] = -np.inf
+        lw_k = loglik(theta) + 0.5 * np.einsum("nki,kij,nkj->nk", dx, H, dx)   # [n, K]
+        inside = np.all((theta >= bounds[:, 0]) & (theta <= bounds[:, 1]), axis=(1, 2))
+        self.year_ess = _kish(lw_k[inside]) if inside.any() else np.zeros(len(self.x))
+        lw = np.sum(lw_k, axis=1)
+        lw[~inside] = -np.inf
         if not np.isfinite(lw).any():
             # Every draw leaves the box (a unit whose inputs lie beyond it): the Gaussian
             # model's draws held in the box, with no weight behind them (effective number
@@ -246,7 +258,56 @@ class SiteModel:
         idx = rng.permutation(idx)
         return beta[idx], sigma[idx], theta[idx], 1.0 / float(w @ w)
 
+    def importance_widened(self, loglik, n: int, rng: np.random.Generator,
+                           bounds: np.ndarray, first: tuple, mark: float) -> tuple:
+        """:meth:`importance` again with the sites the draws miss widened, for a model whose
+        weights stay too uneven (``first``, :meth:`importance`'s result, has fewer than
+        ``mark`` effective draws).
 
+        A year whose site sits off its likelihood's mass (at one end of a flat ridge
+        between two inputs, where the Laplace point and expectation propagation can leave
+        it) gives the draws a factor of the weights far more uneven than the other years'.
+        Those years (their own effective number below :data:`WIDEN_BELOW` of the best
+        year's, :attr:`year_ess`) get their site covariance multiplied by each of
+        :data:`WIDEN_FACTORS` in turn, until ``mark`` is met. The weights stay those of
+        the exact likelihood over the site in use, so the result is the same posterior,
+        from a proposal that reaches the mass. The sites are left as they were.
+
+        Returns
+        -------
+        tuple
+            :meth:`importance`'s result with the most effective draws, ``first`` when no
+            widening gives more.
+        """
+        best, cov = first, self.cov
+        ye = getattr(self, "year_ess", None)
+        if ye is None or not np.isfinite(ye).all() or ye.max() <= 0:
+            return best
+        off = ye < WIDEN_BELOW * ye.max()
+        if not off.any():
+            return best
+        try:
+            for f in WIDEN_FACTORS:
+                wide = cov.copy()
+                wide[off] *= f
+                self.cov = wide
+                got = self.importance(loglik, n, rng, bounds)
+                if got[3] > best[3]:
+                    best = got
+                if best[3] >= mark:
+                    break
+        finally:
+            self.cov = cov
+            self.year_ess = ye
+        return best
+
+
+
+
+def _kish(lw: np.ndarray) -> np.ndarray:
+    """Effective number (Kish) of each column's weights, given as their logs [n, K] -> [K]."""
+    w = np.exp(lw - lw.max(axis=0))
+    return w.sum(axis=0) ** 2 / np.sum(w * w, axis=0)
 
 
 def pareto_smooth(lw: np.ndarray) -> tuple[np.ndarray, float]:

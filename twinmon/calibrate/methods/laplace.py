@@ -24,7 +24,9 @@ repairs found in the years). Only the way its posterior is drawn differs
    the Gaussian model are weighted by each year's exact likelihood over its site (0 outside
    the box) and resampled: the result is the joint posterior up to Monte Carlo error, not an
    approximation of it. Fewer than ``calibrate.ess_warn`` effective draws: twice as many,
-   at most ``calibrate.max_extensions`` times; still fewer, the unit's years are
+   at most ``calibrate.max_extensions`` times; still fewer, the sites of the years whose
+   own weights are the unevenest are widened (a proposal that reaches a likelihood the
+   site sits at one end of; the weights stay exact); still fewer, the unit's years are
    "unconverged", as an unconverged chain's.
 
 The draws are independent, so there is no burn-in or acceptance rate (NaN); ``ess`` is the
@@ -273,6 +275,11 @@ class LaplaceRun:
             ext += 1
             n_s *= 2
             model.refine(loglik, rng, bounds, sweeps=1)
+        if n_eff < cc.ess_warn:
+            # Still too few: the year whose site the draws miss is widened (exact weights
+            # still), which a longer run cannot do.
+            coef, sigma, theta, n_eff = model.importance_widened(
+                loglik, n_c * n_s, rng, bounds, (coef, sigma, theta, n_eff), cc.ess_warn)
         converged = n_eff >= cc.ess_warn
         pooled = np.ascontiguousarray(theta.transpose(1, 0, 2))              # [K, n, d]
         chains = pooled.reshape(K, n_c, n_s, d)
