@@ -302,8 +302,6 @@ class SiteModel:
         return best
 
 
-
-
 def _kish(lw: np.ndarray) -> np.ndarray:
     """Effective number (Kish) of each column's weights, given as their logs [n, K] -> [K]."""
     w = np.exp(lw - lw.max(axis=0))
