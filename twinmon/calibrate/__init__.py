@@ -107,7 +107,8 @@ __all__ = [
     "STATUS_OK", "STATUS_UNCONVERGED", "CalibrateSummary", "LogDensity", "Method",
     "NoiseEstimate", "Posterior", "Prior", "Sampler", "UnitPosterior", "Work", "calibrate",
     "calibrate_unit", "diagnostics_warnings", "ess", "estimate_noise", "estimate_noise_checked",
-    "find_map", "fit_warnings", "make_log_density", "plan_chains", "read_posterior", "resolve_method", "run_chain",
+    "find_map", "fit_warnings", "make_log_density", "plan_chains", "read_posterior",
+    "resolve_method", "run_chain",
     "sample_posterior", "split_rhat", "truth_check", "write_posterior", "year_fit",
     "year_prior",
 ]

@@ -166,12 +166,11 @@ def nominal_plan(cfg: Config, value: float, p_unsafe_now: float, last_year: int)
     the limit (``safety.unsafe_if``) is the thing to check."""
     from ..safety import Indicator
     ind = Indicator.from_config(cfg)
-    side = "below" if cfg.safety.unsafe_if.below is not None else "above"
-    limit = cfg.safety.unsafe_if.below if side == "below" else cfg.safety.unsafe_if.above
+    side = "above" if ind.sense > 0 else "below"
     return (f"Check the limit: the unit is past it (P(unsafe) {p_unsafe_now:.2f} in year "
             f"{last_year}), but so is a new unit -- at every input's nominal value the twin's "
             f"{ind.name} is {ind.fmt(value)}, unsafe by safety.unsafe_if ({side} "
-            f"{ind.fmt(limit)}); no part's wear or level is to blame")
+            f"{ind.fmt(ind.limit)}); no part's wear or level is to blame")
 
 
 def level_cause(cfg: Config, state: np.ndarray, unsafe: np.ndarray, value: np.ndarray,

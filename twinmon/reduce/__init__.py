@@ -152,8 +152,8 @@ def optimiser_warning(s: "Surrogate", val: "Validation", what: str) -> str:
 MAX_TEST_ERROR = 0.05
 
 
-def error_warning(max_range_error: float, mean_range_error: Optional[float], what: str,
-                  capped: str = "") -> str:
+def error_warning(max_range_error: Optional[float], mean_range_error: Optional[float],
+                  what: str, capped: str = "") -> str:
     """A warning when a surrogate's largest test error (fraction of the output's range)
     exceeds :data:`MAX_TEST_ERROR` ("" otherwise, or when :func:`cap_warning` has said it
     already, ``capped``)."""

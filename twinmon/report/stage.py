@@ -214,10 +214,9 @@ def _render(cfg: Config, inp: Inputs, tmp: Path, out: Path, provenance: dict,
         from ..reduce import cap_warning, error_warning
         capped = cap_warning(inp.surrogate, cfg.reduce, surrogate_info.get("max_range_error"),
                              w.out_label)
-        err = surrogate_info.get("max_range_error")
-        if not capped and err is not None:
-            capped = error_warning(err, (inp.validation or {}).get("mean_range_error"),
-                                   w.out_label)
+        capped = capped or error_warning(surrogate_info.get("max_range_error"),
+                                         (inp.validation or {}).get("mean_range_error"),
+                                         w.out_label)
         if capped:
             surrogate_info["warning"] = capped
             notes.append(capped[0].upper() + capped[1:] + ".")
