@@ -310,3 +310,16 @@ def test_stacked_small_factors_and_forward_solves_match_lapack():
         B = rng.standard_normal(shape + (n, 3))
         np.testing.assert_allclose(forward_solve(L, B), np.linalg.solve(L, B), rtol=0,
                                    atol=1e-10)
+
+
+def test_a_summary_without_change_draws_names_no_change_year_and_stays_quiet():
+    """Draws that all lie on the line and the accelerating shape: no input's change year,
+    and no warning of numpy's (a mean over no draws) on the user's terminal."""
+    import warnings
+    shape = np.array([0, 0, 1, 0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        summary = shape_summary({"shape": shape, "change_year": np.full(4, -1),
+                                 "change_years": np.full((4, 2), -1)})
+    assert summary["change_year"] is None and summary["change_years"] == [None, None]
+    assert summary["line"] == 0.75 and summary["change"] == 0.0

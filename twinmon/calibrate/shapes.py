@@ -361,8 +361,9 @@ def shape_summary(trend: dict) -> dict:
     out["change_year"] = _mode(np.asarray(trend["change_year"], int)[code == 2])
     if "change_years" in trend:
         per = np.asarray(trend["change_years"], int)[code == 2]             # [n_c, d]
+        # No change draws (a unit whose change shape holds none): every input None.
         out["change_years"] = [_mode(per[per[:, i] >= 0, i])
-                               if np.mean(per[:, i] >= 0) >= 0.5 else None
+                               if len(per) and np.mean(per[:, i] >= 0) >= 0.5 else None
                                for i in range(per.shape[1])]
     return out
 
