@@ -51,6 +51,7 @@ from ..base import Method, Sampler, Work
 from ..diagnostics import split_rhat_many
 from ..fit import years_fit
 from ..posterior import UnitPosterior, draw_statistics
+from ..rejuvenate import rejuvenate
 from ..samplers.batch_map import Batch, batch_map
 from ..shared import sampling_pool, unit_groups, yearly_noise
 from ..shapes import ShapeMixture, build_shapes, shape_probabilities
@@ -280,6 +281,14 @@ class LaplaceRun:
             # still), which a longer run cannot do.
             coef, sigma, theta, n_eff = model.importance_widened(
                 loglik, n_c * n_s, rng, bounds, (coef, sigma, theta, n_eff), cc.ess_warn)
+        if 0 < n_eff < cc.ess_warn:
+            # Still too few, every year's weights fine but not their product (inputs the
+            # channels hardly tell apart, over many years): the weighted draws moved by a
+            # Markov chain on the exact posterior until they forget their copies.
+            n_s = -(-cc.keep_draws // n_c)
+            moved = rejuvenate(model, loglik, (coef, sigma, theta, n_eff), n_c * n_s, rng,
+                               bounds, cc.ess_warn)
+            coef, sigma, theta, n_eff = moved.coef, moved.sigma, moved.theta, moved.ess
         converged = n_eff >= cc.ess_warn
         pooled = np.ascontiguousarray(theta.transpose(1, 0, 2))              # [K, n, d]
         chains = pooled.reshape(K, n_c, n_s, d)
