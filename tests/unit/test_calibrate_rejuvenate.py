@@ -89,3 +89,51 @@ def test_copies_that_never_moved_count_as_their_groups():
     assert abs(resampled_ess(groups, start, start, 10, 10) - 100.0) < 1e-9
     fresh = rng.standard_normal((1000, 3))
     assert resampled_ess(groups, start, fresh, 10, 10) > 990
+
+
+def test_moved_draws_are_named_so_in_the_summary_and_the_reason():
+    """A unit whose weighted draws were moved: the calibrate summary and the report say so
+    instead of 'weighted independent draws', and an unreliable status names the moves."""
+    from types import SimpleNamespace
+
+    from twinmon.cli.calibrate_cmd import _drawn
+    from twinmon.config import load_config
+    from twinmon.forecast.judge import _unconverged
+    from twinmon.report.html import _acceptance
+
+    from ..conftest import CONFIGS
+    cfg = load_config(CONFIGS / "pump.yaml")
+    K = 4
+    p = SimpleNamespace(years=np.arange(1, K + 1), ess=np.full((K, 2), 150.0),
+                        acceptance=np.full((K, 4), np.nan), rhat=np.ones((K, 2)),
+                        fit={"extensions": np.full(K, 2)},
+                        trend={"acceptance": np.full(4, 0.17)})
+    assert _drawn(p) == "weighted draws moved by a Markov chain (trend moves accepted 0.17)"
+    why = _unconverged(p, cfg, np.arange(K))
+    assert "150 effective draws" in why and "doubled 2 time(s) and moved by a Markov chain" in why
+    assert _acceptance([float("nan")] * 2, True) == "- (weighted draws, moved by a Markov chain)"
+    p.trend = {"acceptance": np.full(4, np.nan)}
+    assert _drawn(p) == "weighted independent draws"
+    assert "moved" not in _unconverged(p, cfg, np.arange(K))
+
+
+def test_a_unit_whose_years_share_a_warning_gets_one_line():
+    """The laplace method's effective number is the unit's: ten years with the same ESS
+    make one warning naming the years, not ten; years that differ keep their own."""
+    from types import SimpleNamespace
+
+    from twinmon.calibrate import diagnostics_warnings
+    from twinmon.config import load_config
+
+    from ..conftest import CONFIGS
+    cfg = load_config(CONFIGS / "pump.yaml")
+    K = 10
+    ess = np.full((K, 2), 197.0)
+    ess[7:] = [[900.0, 900.0]] * 3
+    rhat = np.ones((K, 2))
+    rhat[8, 1] = 1.2
+    p = SimpleNamespace(years=np.arange(1, K + 1), ess=ess, rhat=rhat,
+                        acceptance=np.full((K, 4), np.nan))
+    got = diagnostics_warnings({"U7": p}, ["a", "b"], cfg)
+    assert got == ["U7 years 1-7: ESS 197 < 400 for a; ESS 197 < 400 for b",
+                   "U7 year 9: R-hat 1.200 > 1.05 for b"]

@@ -432,10 +432,14 @@ def fit_warnings(posterior: dict[str, UnitPosterior], names: list[str], windows:
 
 def diagnostics_warnings(posterior: dict[str, UnitPosterior], names: list[str],
                          cfg: Config) -> list[str]:
-    """One line per unit-year whose R-hat, ESS or acceptance rate is poor."""
+    """One line per unit and diagnosis of its poor R-hat, ESS or acceptance rate, naming the
+    years that share it (``U0007 years 1-10: ESS 197 < 400 ...``: the laplace method draws a
+    unit's years together, so one figure holds for all of them)."""
+    from .diagnostics import year_ranges
     cc = cfg.calibrate
     out = []
     for unit, p in posterior.items():
+        said: dict = {}
         for k, year in enumerate(p.years):
             bad = []
             for j, name in enumerate(names):
@@ -448,7 +452,10 @@ def diagnostics_warnings(posterior: dict[str, UnitPosterior], names: list[str],
             if np.any((a < lo) | (a > hi)):
                 bad.append(f"acceptance {a.min():.2f}..{a.max():.2f} outside [{lo:g}, {hi:g}]")
             if bad:
-                out.append(f"{unit} year {int(year)}: " + "; ".join(bad))
+                said.setdefault("; ".join(bad), []).append(int(year))
+        for text, years in said.items():
+            out.append(f"{unit} year{'s' if len(years) > 1 else ''} {year_ranges(years)}: "
+                       + text)
     return out
 
 

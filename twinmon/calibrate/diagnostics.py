@@ -1,4 +1,5 @@
-"""Convergence diagnostics (Vehtari, Gelman, Simpson, Carpenter, Buerkner 2021)."""
+"""Convergence diagnostics (Vehtari, Gelman, Simpson, Carpenter, Buerkner 2021), and the runs
+of years their warnings name."""
 from __future__ import annotations
 
 import numpy as np
@@ -206,3 +207,14 @@ def ess(chains: np.ndarray, rank_normalize: bool = False) -> float:
     return float(total / tau)
 
 
+def year_ranges(years) -> str:
+    """Years as runs: ``[1, 2, 3, 5, 7, 8]`` -> ``"1-3, 5, 7-8"``."""
+    out, run = [], []
+    for y in (int(v) for v in years):
+        if run and y != run[-1] + 1:
+            out.append(run)
+            run = []
+        run.append(y)
+    if run:
+        out.append(run)
+    return ", ".join(str(r[0]) if len(r) == 1 else f"{r[0]}-{r[-1]}" for r in out)

@@ -46,7 +46,7 @@ def calibrate(config_path, overrides, surrogate, observations, truth, output, up
     for w in s.warnings[:MAX_WARNINGS]:
         click.echo(f"twinmon: warning: {w}", err=True)
     if len(s.warnings) > MAX_WARNINGS:
-        click.echo(f"twinmon: warning: ... and {len(s.warnings) - MAX_WARNINGS} more unit-years "
+        click.echo(f"twinmon: warning: ... and {len(s.warnings) - MAX_WARNINGS} more warnings "
                    "(all in --json)", err=True)
     if as_json:
         emit_json(s.as_dict())
@@ -70,7 +70,7 @@ def calibrate(config_path, overrides, surrogate, observations, truth, output, up
             f"{cfg.model.output.units} "
             f"({_SOURCE[nz['source']]}), R-hat <= {p.rhat.max():.3f}, ESS >= {p.ess.min():.0f}, "
             + (f"acceptance {np.nanmin(p.acceptance):.2f}-{np.nanmax(p.acceptance):.2f}"
-               if np.isfinite(p.acceptance).any() else "weighted independent draws"))
+               if np.isfinite(p.acceptance).any() else _drawn(p)))
         if p.channels:
             units = cfg.model.channel_units
             say("  channels: " + ", ".join(
@@ -96,6 +96,16 @@ _SOURCE = {"file": "from the observations file", "config": "from the config",
            "estimated": "estimated from the residuals",
            "differences": "estimated from the residuals' second differences (the residuals "
                           "hold more than noise)"}
+
+
+def _drawn(p) -> str:
+    """How a unit's draws without a chain per year were made (the laplace method): weighted,
+    or weighted then moved by a Markov chain (its trend moves' acceptance recorded)."""
+    moved = np.asarray((p.trend or {}).get("acceptance", [np.nan]), float)
+    if np.isfinite(moved).any():
+        return ("weighted draws moved by a Markov chain (trend moves accepted "
+                f"{np.nanmean(moved):.2f})")
+    return "weighted independent draws"
 
 
 def _count_years(observations) -> int:

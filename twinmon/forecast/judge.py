@@ -28,6 +28,7 @@ from typing import Optional
 
 import numpy as np
 
+from ..calibrate.diagnostics import year_ranges
 from ..config import Config
 from .attribution import AMBIGUOUS, HEALTHY, Attribution, attribute, separating_channel
 from .covariance import MIN_ATTENUATION, slope_covariance
@@ -201,25 +202,13 @@ def box_bound_of(reason: str) -> Optional[str]:
     return m.group(1) if m else None
 
 
-def year_ranges(years) -> str:
-    """Years as runs: ``[1, 2, 3, 5, 7, 8]`` -> ``"1-3, 5, 7-8"``."""
-    out, run = [], []
-    for y in (int(v) for v in years):
-        if run and y != run[-1] + 1:
-            out.append(run)
-            run = []
-        run.append(y)
-    if run:
-        out.append(run)
-    return ", ".join(str(r[0]) if len(r) == 1 else f"{r[0]}-{r[-1]}" for r in out)
-
-
 def _unconverged(up, cfg: Config, unconv: np.ndarray) -> str:
     """Why the years ``unconv`` (indices) are unreliable, with the figures that say so.
 
-    Draws made without a chain (the laplace method: no acceptance rates) are the Gaussian
-    model's weighted to the exact likelihood; too few effective draws mean the likelihood
-    is far from any Gaussian, which longer chains have nothing to do with."""
+    Draws made without a chain per year (the laplace method: no acceptance rates) are the
+    Gaussian model's weighted to the exact likelihood, moved by a Markov chain where the
+    weights stay too uneven (their trend moves' acceptance recorded); too few effective
+    draws mean the likelihood is far from any Gaussian and the chain slow along it."""
     cc = cfg.calibrate
     yrs = year_ranges(np.asarray(up.years)[unconv])
     ess = np.asarray(up.ess, float)[unconv]
@@ -227,7 +216,11 @@ def _unconverged(up, cfg: Config, unconv: np.ndarray) -> str:
     more = int(ext[unconv].max()) if ext.size == len(up.years) else 0
     lowest = float(np.nanmin(ess)) if np.isfinite(ess).any() else float("nan")
     if np.isnan(np.asarray(up.acceptance, float)).all():
-        doubled = f" even with the draws doubled {more} time(s)" if more else ""
+        tried = [f"doubled {more} time(s)"] if more else []
+        if np.isfinite(np.asarray((getattr(up, "trend", None) or {}).get("acceptance", [np.nan]),
+                                  float)).any():
+            tried.append("moved by a Markov chain")
+        doubled = f" even with the draws {' and '.join(tried)}" if tried else ""
         return (f"prognosis unreliable: the posterior of year(s) {yrs} rests on {lowest:.0f} "
                 f"effective draws (calibrate.ess_warn {cc.ess_warn:g}){doubled}: the "
                 "likelihood is far from Gaussian (inputs the recorded channels hardly tell "

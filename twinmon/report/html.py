@@ -95,7 +95,7 @@ def calibration_table(cfg: Config, diag: dict, fleet=None) -> list[str]:
         bad = d["max_rhat"] > cfg.calibrate.rhat_warn or d["min_ess"] < cfg.calibrate.ess_warn
         rows.append(f"<tr><td class='unit'>{e(u)}</td><td>{d['years'][0]}-{d['years'][-1]}</td>"
                     f"<td class='{'warn' if bad else 'ok'}'>{d['max_rhat']:.3f}</td>"
-                    f"<td>{d['min_ess']:.0f}</td><td>{_acceptance(d['acceptance'])}</td>"
+                    f"<td>{d['min_ess']:.0f}</td><td>{_acceptance(d['acceptance'], d.get('moved'))}</td>"
                     f"<td>{d['noise_std']:.3g} "
                     f"({e(NOISE_SOURCES.get(d['noise_source'], d['noise_source']))})"
                     + "".join(f"<br>{e(c)} {v['std']:.3g} "
@@ -275,12 +275,13 @@ def page(cfg: Config, words: Words, summary: ReportSummary, figs: list[dict],
     return "\n".join(out)
 
 
-def _acceptance(rng: list) -> str:
+def _acceptance(rng: list, moved: bool = False) -> str:
     """An acceptance range as the table shows it; a method of independent draws has none
-    (NaN, null in summary.json)."""
+    (NaN, null in summary.json), nor do its weighted draws a Markov chain then ``moved``."""
     lo, hi = rng
     if lo is None or hi is None or not (np.isfinite(lo) and np.isfinite(hi)):
-        return "- (weighted independent draws)"
+        return ("- (weighted draws, moved by a Markov chain)" if moved
+                else "- (weighted independent draws)")
     return f"{lo:.2f}-{hi:.2f}"
 
 

@@ -159,6 +159,11 @@ def calibration_diagnostics(inp: Inputs) -> dict:
         units[u] = {"years": [int(y) for y in p.years],
                     "max_rhat": float(np.nanmax(p.rhat)), "min_ess": float(np.nanmin(p.ess)),
                     "acceptance": [float(np.min(p.acceptance)), float(np.max(p.acceptance))],
+                    # Weighted draws a Markov chain then moved (the laplace method's last
+                    # resort) record their trend moves' acceptance.
+                    "moved": bool(np.isfinite(np.asarray(
+                        (p.trend or {}).get("acceptance", [np.nan]), float)).any()
+                        and not np.isfinite(p.acceptance).any()),
                     "noise_std": float(np.asarray(p.noise_std)[0]),
                     "noise_source": p.noise_source,
                     # Each further channel's level and where it came from (a channel whose

@@ -26,12 +26,16 @@ repairs found in the years). Only the way its posterior is drawn differs
    approximation of it. Fewer than ``calibrate.ess_warn`` effective draws: twice as many,
    at most ``calibrate.max_extensions`` times; still fewer, the sites of the years whose
    own weights are the unevenest are widened (a proposal that reaches a likelihood the
-   site sits at one end of; the weights stay exact); still fewer, the unit's years are
-   "unconverged", as an unconverged chain's.
+   site sits at one end of; the weights stay exact); still fewer (every year's weights fair,
+   their product over the years not), the weighted draws are moved by a Markov chain on the
+   exact posterior until their copies have parted (resample-move,
+   :mod:`~twinmon.calibrate.rejuvenate`); still fewer, the unit's years are "unconverged",
+   as an unconverged chain's.
 
 The draws are independent, so there is no burn-in or acceptance rate (NaN); ``ess`` is the
-weights' effective number (Kish), and split R-hat is computed on the draws cut into
-``calibrate.chains`` groups. On the joint method's test unit the slopes agree with its Gibbs
+weights' effective number (Kish; for moved draws, the design effect of their copies), and
+split R-hat is computed on the draws cut into ``calibrate.chains`` groups. Moved draws
+record their trend moves' acceptance (``trend/acceptance``). On the joint method's test unit the slopes agree with its Gibbs
 sampler's within half a posterior sd (tests/unit/test_calibrate_laplace.py);
 ``benchmarks/prognosis.py --methods joint,laplace`` compares them on fleets.
 
@@ -281,6 +285,7 @@ class LaplaceRun:
             # still), which a longer run cannot do.
             coef, sigma, theta, n_eff = model.importance_widened(
                 loglik, n_c * n_s, rng, bounds, (coef, sigma, theta, n_eff), cc.ess_warn)
+        moved = None
         if 0 < n_eff < cc.ess_warn:
             # Still too few, every year's weights fine but not their product (inputs the
             # channels hardly tell apart, over many years): the weighted draws moved by a
@@ -301,16 +306,17 @@ class LaplaceRun:
         return UnitPosterior(
             years=self.years, samples=pooled, acceptance=np.full((K, n_c), np.nan),
             noise_std=noise, noise_source=self.source, surrogate_var_ratio=ratio,
-            fit=fit, trend=self._trend(starts, model, coef, sigma, n_c, n_s, n_eff),
+            fit=fit, trend=self._trend(starts, model, coef, sigma, n_c, n_s, n_eff, moved),
             var=pooled.var(axis=1), chain_end=chains[:, :, -1].copy(), **stats)
 
     def _trend(self, starts, model: ShapeMixture, coef: np.ndarray, sigma: np.ndarray,
-               n_c: int, n_s: int, n_eff: float) -> dict:
+               n_c: int, n_s: int, n_eff: float, moved=None) -> dict:
         """:data:`~twinmon.calibrate.trend.TREND_FIELDS` from the draws. Each segment's
         ``intercept`` and ``slope`` are the chord of the draw's trend over the segment's
         recorded years (its value at the first, its mean rate to the last; the line itself
         for a straight line); ``now`` is the trend at the last year, which the forecast
-        extends."""
+        extends. ``acceptance`` is NaN for weighted draws, the trend moves' acceptance for
+        draws ``moved`` by :func:`~twinmon.calibrate.rejuvenate.rejuvenate`."""
         years = self.years.astype(float)
         code, m, now = model.decode(coef)
         n, K, d = m.shape
@@ -335,7 +341,8 @@ class LaplaceRun:
         shape = np.array([shapes[c].code for c in code], dtype=np.int64)
         return {"start": start, "intercept": a, "slope": b, "sigma": sigma,
                 "sigma_scale": np.asarray(sigma_prior_scale(self.cfg), float),
-                "rhat": rhat, "ess": np.full((3, d), n_eff), "acceptance": np.full(n_c, np.nan),
+                "rhat": rhat, "ess": np.full((3, d), n_eff),
+                "acceptance": np.full(n_c, moved.acceptance["trend"] if moved else np.nan),
                 "now": now, "now_year": np.int64(self.years[-1]),
                 "shape": shape,
                 "change_year": np.array([shapes[c].change_year for c in code], dtype=np.int64),
