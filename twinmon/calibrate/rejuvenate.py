@@ -322,8 +322,8 @@ def rejuvenate(model, loglik, start: tuple, n: int, rng: np.random.Generator,
 
     steps = [c.shape_and_trend, c.sigma_given_rest, c.years, c.scale] + \
         [c.slide] * TREND_MOVES
-    sweeps, ess = 0, 0.0
-    before = watched(coef[pick])
+    sweeps, ess, out = 0, 0.0, coef[pick]
+    before = watched(out)
     while sweeps < max_sweeps:
         for i in range(BLOCK):
             # Every other sweep in reverse: two sweeps make a palindrome of reversible

@@ -290,10 +290,19 @@ class LaplaceRun:
             # Still too few, every year's weights fine but not their product (inputs the
             # channels hardly tell apart, over many years): the weighted draws moved by a
             # Markov chain on the exact posterior until they forget their copies.
-            n_s = -(-cc.keep_draws // n_c)
-            moved = rejuvenate(model, loglik, (coef, sigma, theta, n_eff), n_c * n_s, rng,
-                               bounds, cc.ess_warn)
-            coef, sigma, theta, n_eff = moved.coef, moved.sigma, moved.theta, moved.ess
+            per_chain = -(-cc.keep_draws // n_c)
+            try:
+                moved = rejuvenate(model, loglik, (coef, sigma, theta, n_eff),
+                                   n_c * per_chain, rng, bounds, cc.ess_warn)
+            except np.linalg.LinAlgError:
+                # A trend whose precision is not positive definite at some chain's state
+                # (sigma collapsed): the weighted draws stand, unconverged.
+                moved = None
+            if moved is not None and moved.ess > n_eff:
+                coef, sigma, theta, n_eff = moved.coef, moved.sigma, moved.theta, moved.ess
+                n_s = per_chain
+            else:
+                moved = None
         converged = n_eff >= cc.ess_warn
         pooled = np.ascontiguousarray(theta.transpose(1, 0, 2))              # [K, n, d]
         chains = pooled.reshape(K, n_c, n_s, d)
