@@ -264,9 +264,10 @@ def resampled_ess(groups: np.ndarray, before: np.ndarray, after: np.ndarray,
     The autocorrelation is measured at ``lag`` from every chain's states ``lag`` sweeps
     apart (``before``, ``after`` [n, q], about the pooled mean: copies not yet apart raise
     it) and extended geometrically, ``rho(lag)^(2 sweeps / lag)``, as a Markov chain's
-    decays; the largest over the ``q`` columns counts. Estimated from the ``n`` pairs, not from the groups: the
-    groups' own intraclass correlation is too noisy to read with a few hundred groups of
-    very unequal sizes.
+    decays; the largest over the ``q`` columns counts. Estimated from the ``n`` pairs, not
+    from the groups: the groups' own intraclass correlation is too noisy to read with a few
+    hundred groups of very unequal sizes (independent draws in the groups of a resample
+    with 18 effective weights read as 157-286 effective of 1000 over 36 columns).
 
     Parameters
     ----------

@@ -95,7 +95,8 @@ def calibration_table(cfg: Config, diag: dict, fleet=None) -> list[str]:
         bad = d["max_rhat"] > cfg.calibrate.rhat_warn or d["min_ess"] < cfg.calibrate.ess_warn
         rows.append(f"<tr><td class='unit'>{e(u)}</td><td>{d['years'][0]}-{d['years'][-1]}</td>"
                     f"<td class='{'warn' if bad else 'ok'}'>{d['max_rhat']:.3f}</td>"
-                    f"<td>{d['min_ess']:.0f}</td><td>{_acceptance(d['acceptance'], d.get('moved'))}</td>"
+                    f"<td>{d['min_ess']:.0f}</td>"
+                    f"<td>{_acceptance(d['acceptance'], d.get('moved'))}</td>"
                     f"<td>{d['noise_std']:.3g} "
                     f"({e(NOISE_SOURCES.get(d['noise_source'], d['noise_source']))})"
                     + "".join(f"<br>{e(c)} {v['std']:.3g} "

@@ -35,8 +35,9 @@ repairs found in the years). Only the way its posterior is drawn differs
 The draws are independent, so there is no burn-in or acceptance rate (NaN); ``ess`` is the
 weights' effective number (Kish; for moved draws, the design effect of their copies), and
 split R-hat is computed on the draws cut into ``calibrate.chains`` groups. Moved draws
-record their trend moves' acceptance (``trend/acceptance``). On the joint method's test unit the slopes agree with its Gibbs
-sampler's within half a posterior sd (tests/unit/test_calibrate_laplace.py);
+record their trend moves' acceptance (``trend/acceptance``). On the joint method's test
+unit the slopes agree with its Gibbs sampler's within half a posterior sd
+(tests/unit/test_calibrate_laplace.py);
 ``benchmarks/prognosis.py --methods joint,laplace`` compares them on fleets.
 
 The cost is a few thousand surrogate evaluations per unit-year (the EP points and the weighted
