@@ -6,11 +6,13 @@ with two more sound units: ``Elm3``, three years with a fifth of the samples los
 ``nan_fraction``). A year with so few samples can leave its Laplace site at one end of a
 flat ridge between two inputs, and the importance weights then rest on a few draws.
 
-``calibrate`` (the laplace method, in this process) runs once per seed with the widening of
-the sites the draws miss (``SiteModel.importance_widened``, the default) and once without it
-(that step turned into a no-op here); per seed it prints the units left ``unconverged`` and
-each unit's smallest effective number. A unit that converges either way has the same draws
-in both runs (the widening runs only for a unit still short after its longer runs).
+``calibrate`` (the laplace method, in this process) runs once per seed as the default does
+(the widening of the sites the draws miss, ``SiteModel.importance_widened``, then, for a
+unit still short, the resample-move of ``twinmon.calibrate.rejuvenate``) and once without
+either (both steps turned into no-ops here); per seed it prints the units left
+``unconverged`` and each unit's smallest effective number, and the units the default moved
+by its Markov chain. A unit that converges either way has the same draws in both runs (the
+widening runs only for a unit still short after its longer runs).
 
 Usage: ``python benchmarks/laplace_widening.py [--seeds 1 2 3 ...] [--workdir DIR]``
 (the default 16 seeds take about 4 minutes on 2 cores).
@@ -30,6 +32,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from twinmon.calibrate import calibrate, read_posterior  # noqa: E402
+from twinmon.calibrate.methods import laplace  # noqa: E402
 from twinmon.calibrate.gaussian_trend import SiteModel  # noqa: E402
 from twinmon.config import config_from_mapping, load_config  # noqa: E402
 from twinmon.fabricate import fabricate  # noqa: E402
@@ -45,16 +48,19 @@ EXTRA = {"Elm3": {"last_year": 3, "nan_fraction": 0.2, "trajectories": SOUND},
 
 
 def _run(cfg, sur: Path, obs: Path, out: Path, widen: bool) -> dict:
-    """Calibrate; per unit: (smallest effective number, every year converged)."""
-    original = SiteModel.importance_widened
+    """Calibrate; per unit: (smallest effective number, every year converged, moved by the
+    Markov chain)."""
+    original, chain = SiteModel.importance_widened, laplace.rejuvenate
     if not widen:
         SiteModel.importance_widened = lambda self, loglik, n, rng, bounds, first, mark: first
+        laplace.rejuvenate = lambda *args, **kwargs: None
     try:
         calibrate(cfg, sur, obs, out)
     finally:
-        SiteModel.importance_widened = original
+        SiteModel.importance_widened, laplace.rejuvenate = original, chain
     post = read_posterior(out)
-    return {u: (float(np.min(p.ess)), bool(np.all(p.fit["converged"])))
+    return {u: (float(np.min(p.ess)), bool(np.all(p.fit["converged"])),
+                bool(np.isfinite(np.asarray(p.trend.get("acceptance", [np.nan]))).any()))
             for u, p in post.units.items()}
 
 
@@ -86,7 +92,7 @@ def main() -> int:
           f"{raw['fabricate']['years']} years (Fir: half its samples lost; Elm3: 3 years, a "
           f"fifth lost); set-up {time.perf_counter() - t0:.0f} s; workdir {work}")
 
-    counts = {True: 0, False: 0}
+    counts, moved = {True: 0, False: 0}, 0
     for seed in a.seeds:
         rows = {}
         cfg_s = config_from_mapping({**raw, "seed": seed}, source)
@@ -94,15 +100,18 @@ def main() -> int:
             rows[widen] = _run(cfg_s, sur, obs, work / f"posterior_{seed}_{int(widen)}.h5",
                                widen)
         for widen in (False, True):
-            counts[widen] += sum(not ok for _, ok in rows[widen].values())
+            counts[widen] += sum(not ok for _, ok, _ in rows[widen].values())
+        moved += sum(m for _, _, m in rows[True].values())
         line = "  ".join(f"{u} {rows[False][u][0]:.0f}->{rows[True][u][0]:.0f}"
                          f"{'' if rows[True][u][1] else ' UNCONVERGED'}"
+                         f"{' (moved)' if rows[True][u][2] else ''}"
                          f"{' (was unconverged)' if not rows[False][u][1] else ''}"
                          for u in rows[True])
         print(f"seed {seed:3d}: smallest effective number without -> with widening: {line}")
     n = len(a.seeds) * len(raw["fabricate"]["units"])
     print(f"units left unconverged over {len(a.seeds)} seeds ({n} unit-runs): without the "
-          f"widening {counts[False]}, with it {counts[True]} (target 0)")
+          f"widening and the chain {counts[False]}, with them {counts[True]} (target 0); "
+          f"moved by the chain {moved}")
     return 0
 
 
