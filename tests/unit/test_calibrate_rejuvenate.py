@@ -8,6 +8,7 @@ import numpy as np
 
 from twinmon.calibrate.rejuvenate import rejuvenate, resampled_ess
 
+from .test_calibrate_laplace import setup  # noqa: F401 (the real surrogate, a fixture)
 from .test_calibrate_shapes import WIDE, YEARS, _mixture
 
 
@@ -137,3 +138,27 @@ def test_a_unit_whose_years_share_a_warning_gets_one_line():
     got = diagnostics_warnings({"U7": p}, ["a", "b"], cfg)
     assert got == ["U7 years 1-7: ESS 197 < 400 for a; ESS 197 < 400 for b",
                    "U7 year 9: R-hat 1.200 > 1.05 for b"]
+
+
+def test_a_unit_whose_weights_stay_short_is_moved_end_to_end(setup, tmp_path, monkeypatch):
+    """Through the real surrogate: a unit whose weighted draws count as too few (their
+    effective number cut to 50 here, the draws themselves kept) goes through the chain:
+    converged, its trend moves' acceptance recorded, and calibrate's summary and the
+    report's table name the moves."""
+    from twinmon.calibrate import calibrate, gaussian_trend, read_posterior
+    from twinmon.cli.calibrate_cmd import _drawn
+    from twinmon.report.summary import _trend_moved
+
+    from .test_calibrate_laplace import _fleet
+    cfg, _, tmp, sur = setup
+    obs = tmp_path / "obs.h5"
+    _fleet(obs, sur, [2])
+    weigh = gaussian_trend.SiteModel.importance
+    monkeypatch.setattr(gaussian_trend.SiteModel, "importance",
+                        lambda self, *args: weigh(self, *args)[:3] + (50.0,))
+    calibrate(cfg, tmp / "sur.h5", obs, tmp_path / "post.h5")
+    p = read_posterior(tmp_path / "post.h5").units["U2"]
+    assert np.all(p.fit["converged"]) and np.all(p.ess >= cfg.calibrate.ess_warn)
+    assert np.isfinite(p.trend["acceptance"]).all() and np.all(np.isnan(p.acceptance))
+    assert _drawn(p).startswith("weighted draws moved by a Markov chain")
+    assert _trend_moved(tmp_path / "post.h5") == {"U2"}

@@ -149,21 +149,33 @@ def words_dict(inp: Inputs) -> tuple[dict, dict]:
              "rule": ind.rule})
 
 
+def _trend_moved(path) -> set:
+    """The units of the posterior at ``path`` whose trend moves record an acceptance: the
+    joint method's chains, and the laplace method's weighted draws a Markov chain then moved
+    (its last resort). Read here, a few numbers a unit: the report reads the posterior
+    without its trend."""
+    from .. import artifacts
+    out = set()
+    with artifacts.open_artifact(path, "posterior") as f:
+        for u, g in f.get("units", {}).items():
+            a = g.get("trend/acceptance")
+            if a is not None and np.isfinite(a[()]).any():
+                out.add(u)
+    return out
+
+
 def calibration_diagnostics(inp: Inputs) -> dict:
     """Convergence diagnostics per unit and the sampler's warnings (``summary.json``)."""
     from ..calibrate import diagnostics_warnings
     post, cfg = inp.posterior, inp.cfg
     units, warnings = {}, []
     names = list(post.input_names)
+    moved = _trend_moved(post.path)
     for u, p in post.units.items():       # one read of each unit (a fleet's are lazy)
         units[u] = {"years": [int(y) for y in p.years],
                     "max_rhat": float(np.nanmax(p.rhat)), "min_ess": float(np.nanmin(p.ess)),
                     "acceptance": [float(np.min(p.acceptance)), float(np.max(p.acceptance))],
-                    # Weighted draws a Markov chain then moved (the laplace method's last
-                    # resort) record their trend moves' acceptance.
-                    "moved": bool(np.isfinite(np.asarray(
-                        (p.trend or {}).get("acceptance", [np.nan]), float)).any()
-                        and not np.isfinite(p.acceptance).any()),
+                    "moved": u in moved and not np.isfinite(p.acceptance).any(),
                     "noise_std": float(np.asarray(p.noise_std)[0]),
                     "noise_source": p.noise_source,
                     # Each further channel's level and where it came from (a channel whose
