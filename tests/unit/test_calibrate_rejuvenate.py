@@ -138,6 +138,13 @@ def test_a_unit_whose_years_share_a_warning_gets_one_line():
     got = diagnostics_warnings({"U7": p}, ["a", "b"], cfg)
     assert got == ["U7 years 1-7: ESS 197 < 400 for a; ESS 197 < 400 for b",
                    "U7 year 9: R-hat 1.200 > 1.05 for b"]
+    # The report keeps a drawn unit's warnings and counts the units warned, either form.
+    from twinmon.report.stage import _only
+    diag = {"units": {"U7": {"max_rhat": 1.2, "min_ess": 197.0},
+                      "V": {"max_rhat": 1.0, "min_ess": 900.0}},
+            "warnings": got + ["V year 2: ESS 300 < 400 for a"]}
+    kept = _only(diag, ["U7"])
+    assert kept["warnings"] == got and kept["fleet"]["warned_units"] == 2
 
 
 def test_a_unit_whose_weights_stay_short_is_moved_end_to_end(setup, tmp_path, monkeypatch):

@@ -390,17 +390,23 @@ def _subset(inp: Inputs, units: list, gap_only: bool = False) -> Inputs:
         gap=keep(inp.gap, inp.gap_other_source is None))
 
 
+def _warned_unit(warning: str) -> str:
+    """The unit a calibration warning names (``U year 3: ...``, ``U years 1-10: ...``)."""
+    import re
+    return re.split(r" years? ", warning, maxsplit=1)[0]
+
+
 def _only(diag: dict, units: list) -> dict:
     """Calibration diagnostics of ``units`` only, with the fleet's figures beside them."""
     keep = set(units)
     per_unit = diag["units"]
     out = {**diag, "units": {u: d for u, d in per_unit.items() if u in keep},
-           "warnings": [x for x in diag["warnings"] if x.split(" year ")[0] in keep]}
+           "warnings": [x for x in diag["warnings"] if _warned_unit(x) in keep]}
     if per_unit:
         out["fleet"] = {"units": len(per_unit),
                         "max_rhat": max(d["max_rhat"] for d in per_unit.values()),
                         "min_ess": min(d["min_ess"] for d in per_unit.values()),
-                        "warned_units": len({x.split(" year ")[0] for x in diag["warnings"]})}
+                        "warned_units": len({_warned_unit(x) for x in diag["warnings"]})}
     return out
 
 
