@@ -5,7 +5,7 @@ The laplace method weights draws of a Gaussian model (each year's site, refined 
 expectation propagation) to the exact likelihood. Where the recorded channels hardly tell
 the inputs apart, each year's likelihood is a long curved ridge cut by the design box; no
 Gaussian follows it, and over ten years of three inputs the small mismatches of every year
-multiply: on a water heater recorded by its water temperature alone, units kept 34-370
+multiply: on a water heater recorded by its water temperature alone, units kept 34-372
 effective draws of 8000, every year's own weights fine (thousands) and their product not.
 More draws (Pareto shape above 0.7: the weights' variance is infinite) and wider sites do
 not help.
