@@ -33,6 +33,7 @@ sys.path.insert(0, str(ROOT))
 
 from twinmon.calibrate import calibrate, read_posterior  # noqa: E402
 from twinmon.calibrate.methods import laplace  # noqa: E402
+from twinmon.calibrate.rejuvenate import moved_by_chain  # noqa: E402
 from twinmon.calibrate.gaussian_trend import SiteModel  # noqa: E402
 from twinmon.config import config_from_mapping, load_config  # noqa: E402
 from twinmon.fabricate import fabricate  # noqa: E402
@@ -60,7 +61,7 @@ def _run(cfg, sur: Path, obs: Path, out: Path, widen: bool) -> dict:
         SiteModel.importance_widened, laplace.rejuvenate = original, chain
     post = read_posterior(out)
     return {u: (float(np.min(p.ess)), bool(np.all(p.fit["converged"])),
-                bool(np.isfinite(np.asarray(p.trend.get("acceptance", [np.nan]))).any()))
+                moved_by_chain(p.acceptance, p.trend.get("acceptance")))
             for u, p in post.units.items()}
 
 

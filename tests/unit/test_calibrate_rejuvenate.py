@@ -6,7 +6,7 @@ import copy
 
 import numpy as np
 
-from twinmon.calibrate.rejuvenate import rejuvenate, resampled_ess
+from twinmon.calibrate.rejuvenate import moved_by_chain, rejuvenate, resampled_ess
 
 from .test_calibrate_laplace import setup  # noqa: F401 (the real surrogate, a fixture)
 from .test_calibrate_shapes import WIDE, YEARS, _mixture
@@ -154,7 +154,7 @@ def test_a_unit_whose_weights_stay_short_is_moved_end_to_end(setup, tmp_path, mo
     report's table name the moves."""
     from twinmon.calibrate import calibrate, gaussian_trend, read_posterior
     from twinmon.cli.calibrate_cmd import _drawn
-    from twinmon.report.summary import _trend_moved
+    from twinmon.report.summary import _trend_acceptance
 
     from .test_calibrate_laplace import _fleet
     cfg, _, tmp, sur = setup
@@ -168,4 +168,4 @@ def test_a_unit_whose_weights_stay_short_is_moved_end_to_end(setup, tmp_path, mo
     assert np.all(p.fit["converged"]) and np.all(p.ess >= cfg.calibrate.ess_warn)
     assert np.isfinite(p.trend["acceptance"]).all() and np.all(np.isnan(p.acceptance))
     assert _drawn(p).startswith("weighted draws moved by a Markov chain")
-    assert _trend_moved(tmp_path / "post.h5") == {"U2"}
+    assert moved_by_chain(p.acceptance, _trend_acceptance(tmp_path / "post.h5")["U2"])

@@ -253,6 +253,16 @@ class _Chains:
                                 now.reshape(n, -1)])
 
 
+def moved_by_chain(acceptance, trend_acceptance) -> bool:
+    """Whether a unit's draws are weighted draws this module's chain moved: no acceptance
+    per year (``UnitPosterior.acceptance`` [K, chains] all NaN: draws without a chain per
+    year, the laplace method's) and its trend moves' acceptance recorded
+    (``trend/acceptance``; None or absent: a trend read without it, or none)."""
+    if trend_acceptance is None or np.isfinite(np.asarray(acceptance, float)).any():
+        return False
+    return bool(np.isfinite(np.asarray(trend_acceptance, float)).any())
+
+
 def resampled_ess(groups: np.ndarray, before: np.ndarray, after: np.ndarray,
                   sweeps: int, lag: int) -> float:
     """Effective number of ``n`` chains that started in groups of copies, after ``sweeps``.

@@ -101,10 +101,11 @@ _SOURCE = {"file": "from the observations file", "config": "from the config",
 def _drawn(p) -> str:
     """How a unit's draws without a chain per year were made (the laplace method): weighted,
     or weighted then moved by a Markov chain (its trend moves' acceptance recorded)."""
-    moved = np.asarray((p.trend or {}).get("acceptance", [np.nan]), float)
-    if np.isfinite(moved).any():
+    from ..calibrate.rejuvenate import moved_by_chain
+    trend = (p.trend or {}).get("acceptance")
+    if moved_by_chain(p.acceptance, trend):
         return ("weighted draws moved by a Markov chain (trend moves accepted "
-                f"{np.nanmean(moved):.2f})")
+                f"{np.nanmean(trend):.2f})")
     return "weighted independent draws"
 
 

@@ -29,6 +29,7 @@ from typing import Optional
 import numpy as np
 
 from ..calibrate.diagnostics import year_ranges
+from ..calibrate.rejuvenate import moved_by_chain
 from ..config import Config
 from .attribution import AMBIGUOUS, HEALTHY, Attribution, attribute, separating_channel
 from .covariance import MIN_ATTENUATION, slope_covariance
@@ -217,8 +218,7 @@ def _unconverged(up, cfg: Config, unconv: np.ndarray) -> str:
     lowest = float(np.nanmin(ess)) if np.isfinite(ess).any() else float("nan")
     if np.isnan(np.asarray(up.acceptance, float)).all():
         tried = [f"doubled {more} time(s)"] if more else []
-        if np.isfinite(np.asarray((getattr(up, "trend", None) or {}).get("acceptance", [np.nan]),
-                                  float)).any():
+        if moved_by_chain(up.acceptance, (getattr(up, "trend", None) or {}).get("acceptance")):
             tried.append("moved by a Markov chain")
         doubled = f" even with the draws {' and '.join(tried)}" if tried else ""
         return (f"prognosis unreliable: the posterior of year(s) {yrs} rests on {lowest:.0f} "

@@ -149,33 +149,30 @@ def words_dict(inp: Inputs) -> tuple[dict, dict]:
              "rule": ind.rule})
 
 
-def _trend_moved(path) -> set:
-    """The units of the posterior at ``path`` whose trend moves record an acceptance: the
-    joint method's chains, and the laplace method's weighted draws a Markov chain then moved
-    (its last resort). Read here, a few numbers a unit: the report reads the posterior
-    without its trend."""
+def _trend_acceptance(path) -> dict:
+    """Each unit's trend moves' acceptance [chains] in the posterior at ``path`` (units
+    without a trend left out): whether the laplace method's weighted draws were moved by its
+    Markov chain. Read here, a few numbers a unit: the report reads the posterior without
+    its trend."""
     from .. import artifacts
-    out = set()
     with artifacts.open_artifact(path, "posterior") as f:
-        for u, g in f.get("units", {}).items():
-            a = g.get("trend/acceptance")
-            if a is not None and np.isfinite(a[()]).any():
-                out.add(u)
-    return out
+        return {u: g["trend/acceptance"][()] for u, g in f.get("units", {}).items()
+                if "trend/acceptance" in g}
 
 
 def calibration_diagnostics(inp: Inputs) -> dict:
     """Convergence diagnostics per unit and the sampler's warnings (``summary.json``)."""
     from ..calibrate import diagnostics_warnings
+    from ..calibrate.rejuvenate import moved_by_chain
     post, cfg = inp.posterior, inp.cfg
     units, warnings = {}, []
     names = list(post.input_names)
-    moved = _trend_moved(post.path)
+    trend_acceptance = _trend_acceptance(post.path)
     for u, p in post.units.items():       # one read of each unit (a fleet's are lazy)
         units[u] = {"years": [int(y) for y in p.years],
                     "max_rhat": float(np.nanmax(p.rhat)), "min_ess": float(np.nanmin(p.ess)),
                     "acceptance": [float(np.min(p.acceptance)), float(np.max(p.acceptance))],
-                    "moved": u in moved and not np.isfinite(p.acceptance).any(),
+                    "moved": moved_by_chain(p.acceptance, trend_acceptance.get(u)),
                     "noise_std": float(np.asarray(p.noise_std)[0]),
                     "noise_source": p.noise_source,
                     # Each further channel's level and where it came from (a channel whose

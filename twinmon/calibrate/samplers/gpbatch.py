@@ -210,10 +210,9 @@ class GPTable:
     more than :data:`TABLE_RTOL` off (on the pump's surrogate: 3e-8, against validation
     errors of 1.4e-4 on average; on the water heater's, three inputs, 7e-6 against 2.8e-4,
     1.4 µs a point against GPBatch's 4.4; GPBatch's own rounding moves a transient by
-    ~1e-9). A point
-    outside the box (the forecast never sends one; a sampler's proposal may) gets GPBatch's.
-    Every row is interpolated on its own: a point's value does not depend on the batch it
-    is in.
+    ~1e-9). A point outside the box (the forecast never sends one; a sampler's proposal
+    may) gets GPBatch's. Every row is interpolated on its own: a point's value does not
+    depend on the batch it is in.
 
     Parameters
     ----------
