@@ -342,6 +342,22 @@ def test_fmumodel_model_exchange(fmu_path, model):
             np.array_equal(a[name], b[name])
 
 
+def test_model_exchange_instance_is_reused_and_reset(fmu_path):
+    # One instance serves every run (reset between them): a run repeated after others, and
+    # after a run the FMU refused, gives the first run's arrays bit for bit.
+    with FMUModel(fmu_path, OUTPUTS, TIMES, fmi_type="ModelExchange") as me:
+        a = me.run({"motor.D": 14.0})
+        first = me._me
+        me.run({"motor.D": 20.0, "pump.b2": 3.2})
+        assert me._me is first
+        with pytest.raises(SimulationError, match=r"ModelExchange run failed for motor.D=nan"):
+            me.run({"motor.D": float("nan")})
+        b = me.run({"motor.D": 14.0})
+    assert me._me is None
+    for name in OUTPUTS:
+        assert np.array_equal(a[name], b[name])
+
+
 def test_fmumodel_rejects_bad_construction(fmu_path):
     with pytest.raises(SimulationError, match="no_such_output"):
         FMUModel(fmu_path, ["no_such_output"], TIMES)

@@ -152,6 +152,9 @@ class ModelConfig:
     fmu: Path
     inputs: dict[str, InputSpec]
     output: OutputSpec
+    #: The FMU's interface: ``CoSimulation`` (its own solver, called straight from C) or
+    #: ``ModelExchange`` (fmpy's CVode, rtol 1e-8, calling the FMU's derivatives from Python:
+    #: about 25 times slower a run, for an FMU exported without a solver).
     fmi_type: Literal["CoSimulation", "ModelExchange"] = "CoSimulation"
     #: Further FMU variables recorded as extra channels, keyed by FMU variable name (a plain
     #: YAML list of names is accepted too).
