@@ -6,7 +6,9 @@ An FMU source folder holds ``modelDescription.xml`` and ``sources/*.c|*.h`` (FMI
 build recipe), so an unchanged model is compiled once.  :func:`describe_fmu` reads what an
 FMU offers (its parameters, outputs, types and units) for config checks and ``twinmon init``.
 :class:`FMUModel` extracts an FMU once, keeps one instance and resets it between runs: an
-FMI 2.0 or 3.0 Co-Simulation run costs a few dozen direct C calls.
+FMI 2.0 or 3.0 Co-Simulation run costs a few dozen direct C calls. A crash in an FMU's native
+code during a run ends the process with the one-line simulation error naming the FMU and the
+run's inputs (:mod:`.guard`), not with a core dump.
 """
 from __future__ import annotations
 

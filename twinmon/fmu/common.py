@@ -2,7 +2,8 @@
 from __future__ import annotations
 
 import difflib
-from typing import Iterable
+import numbers
+from typing import Iterable, Mapping
 
 FLOAT_TYPES = frozenset({"Real", "Float64", "Float32"})
 INTEGER_TYPES = frozenset({"Integer", "Enumeration", "Int8", "UInt8", "Int16", "UInt16",
@@ -22,6 +23,13 @@ def _one_line(exc: BaseException, limit: int = 300) -> str:
         text += (" " if text.endswith(":") else "; ") + ln
     return text if len(text) <= limit else text[:limit - 3] + "..."
 
+
+
+def format_params(values: Mapping[str, float]) -> str:
+    """A run's parameters as ``name=value, ...`` (6 significant digits; a value that is not a
+    number shown as it is, for the message refusing it), ``defaults`` when there are none."""
+    return ", ".join(f"{k}={v:.6g}" if isinstance(v, numbers.Real) else f"{k}={v!r}"
+                     for k, v in values.items()) or "defaults"
 
 
 def closest_names(name: str, candidates: Iterable[str], n: int = 3) -> list[str]:

@@ -3,7 +3,6 @@ direct C calls (FMI 2.0 or 3.0 Co-Simulation), or fmpy's CVode for Model Exchang
 from __future__ import annotations
 
 import ctypes
-import numbers
 import shutil
 import tempfile
 import weakref
@@ -13,7 +12,8 @@ from typing import Iterable, Mapping, Sequence
 import numpy as np
 
 from ..errors import SimulationError
-from .common import NUMERIC_TYPES, _a, _closest_hint, _one_line
+from . import guard
+from .common import NUMERIC_TYPES, _a, _closest_hint, _one_line, format_params
 from .description import (_is_recordable, _is_settable, _read_model_description,
                           why_not_settable)
 
@@ -55,12 +55,6 @@ _GETTERS3 = {"Float32": ctypes.c_float, "Int8": ctypes.c_int8, "UInt8": ctypes.c
              "UInt32": ctypes.c_uint32, "Int64": ctypes.c_int64, "UInt64": ctypes.c_uint64,
              "Enumeration": ctypes.c_int64, "Boolean": ctypes.c_bool}
 _STATUS = ["ok", "warning", "discard", "error", "fatal", "pending"]
-
-
-def _fmt_params(values: Mapping[str, float]) -> str:
-    # A value that is not a number is shown as it is (the message refusing it lists it).
-    return ", ".join(f"{k}={v:.6g}" if isinstance(v, numbers.Real) else f"{k}={v!r}"
-                     for k, v in values.items()) or "defaults"
 
 
 class FMUModel:
@@ -136,6 +130,7 @@ class FMUModel:
         self._start = dict(start_values or {})
         self._check_names(self._start)
 
+        guard.install()
         self._tmpdir = tempfile.mkdtemp(prefix="twinmon-fmu-")
         self._finalizer = weakref.finalize(self, shutil.rmtree, self._tmpdir, True)
         try:
@@ -330,17 +325,18 @@ class FMUModel:
             floats = [float(v) for v in values.values()]
         except (TypeError, ValueError):
             raise SimulationError(f"{self._fmu_path}: parameter values must be numbers, "
-                                  f"got {_fmt_params(values)}") from None
+                                  f"got {format_params(values)}") from None
         self._log.clear()
-        if self._v3:
-            self._run_cs3(values, floats)
-        else:
-            self._run_cs2(values, floats)
+        with guard.running(self._fmu_path, values, self._tmpdir):
+            if self._v3:
+                self._run_cs3(values, floats)
+            else:
+                self._run_cs2(values, floats)
         buf = self._buf
         if not np.isfinite(buf).all():
             bad = [n for n in self._outputs if not np.isfinite(buf[:, self._col[n]]).all()]
             raise SimulationError(f"{self._fmu_path}: non-finite {', '.join(bad)} for "
-                                  f"{_fmt_params(values)}")
+                                  f"{format_params(values)}")
         col = self._col
         return {name: buf[:, col[name]].copy() for name in self._outputs}
 
@@ -475,7 +471,7 @@ class FMUModel:
             except SimulationError:
                 self._component = None
         raise SimulationError(f"{self._fmu_path}: {what} failed for "
-                              f"{_fmt_params(values)}{detail}")
+                              f"{format_params(values)}{detail}")
 
     def _run_me(self, params: Mapping[str, float]) -> dict[str, np.ndarray]:
         import fmpy
@@ -488,25 +484,26 @@ class FMUModel:
         try:
             # One instance, reset between runs, as the Co-Simulation path keeps one: loading
             # the library's functions and instantiating cost a quarter of a run.
-            if self._me is None:
-                self._me = fmpy.instantiate_fmu(self._tmpdir, self._md, "ModelExchange")
-            else:
-                self._me.reset()
-            res = fmpy.simulate_fmu(self._tmpdir, model_description=self._md,
-                                    fmi_type="ModelExchange", fmu_instance=self._me,
-                                    start_time=0.0, stop_time=float(self._times[-1]),
-                                    output_interval=interval, relative_tolerance=1e-8,
-                                    start_values=dict(values), output=list(self._outputs))
+            with guard.running(self._fmu_path, values, self._tmpdir):
+                if self._me is None:
+                    self._me = fmpy.instantiate_fmu(self._tmpdir, self._md, "ModelExchange")
+                else:
+                    self._me.reset()
+                res = fmpy.simulate_fmu(self._tmpdir, model_description=self._md,
+                                        fmi_type="ModelExchange", fmu_instance=self._me,
+                                        start_time=0.0, stop_time=float(self._times[-1]),
+                                        output_interval=interval, relative_tolerance=1e-8,
+                                        start_values=dict(values), output=list(self._outputs))
         except Exception as e:
             # A failed run may leave the instance in an error state: the next one starts
             # from a fresh instance.
             self._free_me()
             raise SimulationError(f"{self._fmu_path}: ModelExchange run failed for "
-                                  f"{_fmt_params(values)}: {_one_line(e)}") from None
+                                  f"{format_params(values)}: {_one_line(e)}") from None
         out = {n: np.interp(self._times, res["time"], np.asarray(res[n], dtype=float))
                for n in self._outputs}
         if not all(np.isfinite(v).all() for v in out.values()):
-            raise SimulationError(f"{self._fmu_path}: non-finite output for {_fmt_params(values)}")
+            raise SimulationError(f"{self._fmu_path}: non-finite output for {format_params(values)}")
         return out
 
     def _free_me(self) -> None:
