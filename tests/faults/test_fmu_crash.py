@@ -52,7 +52,7 @@ def test_crash_in_this_process_is_one_line(crashing_fmu, tmp_path, value, signal
                        timeout=120, env=env)
     assert float(r.stdout.split()[0]) > 0          # the runs before the crash were fine
     assert_fails(r, 6, "simulation error", str(crashing_fmu),
-                 f"crashed ({signal}) running motor.D={value:g}", "nothing was written")
+                 f"crashed ({signal}) running motor.D={value:g}")
     assert not list(tmp_path.glob("twinmon-fmu-*")), "the extracted FMU was left behind"
 
 
@@ -71,17 +71,41 @@ def test_crash_outside_an_fmu_call_is_not_the_fmus(crashing_fmu, tmp_path):
 
 @pytest.mark.parametrize("executor", ["serial", "process"])
 def test_simulate_with_a_crashing_fmu(work, crashing_fmu, executor):
-    """The design reaches the crashing inputs: serial names the input, the process
-    executor's parent names the FMU and says how to see the input; nothing there changes."""
+    """The design reaches the crashing inputs: the line names the FMU and the input, whether
+    the crash ends the command's process or a pool worker (which leaves its line for the
+    parent); nothing there changes."""
     snap = Snapshot(work)
     r = twinmon("simulate", "-c", work / "small.yaml", "--set", f"model.fmu={crashing_fmu}",
                 "--set", f"simulate.executor={executor}",
                 "--set", "model.inputs.motor_damping.high=760", "-o", work / "sim.h5",
                 cwd=work)
-    if executor == "serial":
-        assert_fails(r, 6, str(crashing_fmu), "crashed (SIGABRT) running motor.D=7")
-    else:
-        assert_fails(r, 6, str(crashing_fmu), "worker process died",
-                     "simulate.executor=serial")
+    assert_fails(r, 6, str(crashing_fmu), "crashed (SIGABRT) running motor.D=7")
     assert not (work / "sim.h5").exists()
+    snap.check()
+
+
+def _crash_in_worker(args, fmu=None):
+    import numpy as np
+
+    from twinmon.fmu import FMUModel
+    with FMUModel(fmu, ["sensor.m_flow"], np.arange(1, 26) * 2.0) as m:
+        m.run({"motor.D": ABORT_AT})
+
+
+def test_diagnose_worker_crash_names_the_input(work, crashing_fmu, monkeypatch):
+    """A stage's own pool (diagnose's): the worker that crashed in an FMU is named by its
+    line, not by the stage's generic "a worker process died"."""
+    import functools
+
+    import twinmon.diagnose as dg
+    from twinmon.config import load_config
+    from twinmon.errors import SimulationError
+    cfg = load_config(work / "small.yaml")
+    snap = Snapshot(work)
+    monkeypatch.setattr(dg, "_job", functools.partial(_crash_in_worker, fmu=crashing_fmu))
+    with pytest.raises(SimulationError) as info:
+        dg.diagnose(cfg, work / "fleet.h5", work / "gap_new.h5", workers=2)
+    assert f"crashed (SIGABRT) running motor.D={ABORT_AT:g}" in str(info.value)
+    assert str(crashing_fmu) in str(info.value) and "\n" not in str(info.value)
+    assert not (work / "gap_new.h5").exists()
     snap.check()

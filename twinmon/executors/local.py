@@ -221,6 +221,7 @@ def start_pool(workers: int, initializer=None, initargs=()):
         # Removed as soon as the pool is shut down (shutdown_pool, stop_pool), not when the
         # pool object is collected: a command killed between the two would leave it behind.
         pool._twinmon_scratch = weakref.finalize(pool, shutil.rmtree, scratch, True)
+        pool._twinmon_scratch_dir = scratch
         # Start every worker inside the block (a fork context starts them all at the first
         # submit) and let each finish its initializer.
         wait([pool.submit(_noop) for _ in range(workers)])
@@ -282,7 +283,8 @@ def closing_pool(pool, broken: Exception, interrupted: Optional[Exception] = Non
         yield pool
         ok = True
     except BrokenProcessPool:
-        raise broken from None
+        # A worker that crashed inside an FMU left its own line: it names the input.
+        raise (worker_crash(pool) or broken) from None
     except KeyboardInterrupt:
         if interrupted is None:
             raise
@@ -294,6 +296,15 @@ def closing_pool(pool, broken: Exception, interrupted: Optional[Exception] = Non
             stop_pool(pool)
 
 
+def worker_crash(pool):
+    """The :class:`~twinmon.errors.SimulationError` a worker of ``pool`` left when an FMU
+    crashed in it (:func:`twinmon.fmu.guard.crash_note`), or None."""
+    from ..errors import SimulationError
+    from ..fmu.guard import crash_note
+    note = crash_note(getattr(pool, "_twinmon_scratch_dir", None))
+    return SimulationError(note) if note else None
+
+
 def _init_detached(initializer, initargs, scratch: str = "", parent: int = 0) -> None:
     detach_worker()
     # One worker per core: each one's BLAS on one thread (.threads).
@@ -302,9 +313,13 @@ def _init_detached(initializer, initargs, scratch: str = "", parent: int = 0) ->
         die_with_parent(parent, scratch)
     if scratch:
         import tempfile
+
+        from ..fmu.guard import leave_notes_in
         # tempfile caches its folder: a forked worker would otherwise keep the parent's.
         tempfile.tempdir = scratch
         os.environ["TMPDIR"] = scratch
+        # Its stderr goes nowhere: a crash in an FMU leaves its line there for the parent.
+        leave_notes_in(scratch)
     if initializer is not None:
         initializer(*initargs)
 
@@ -420,7 +435,7 @@ class ProcessExecutor(Executor):
                     except WorkerStartError as exc:
                         raise SimulationError(str(exc)) from None
                     except BrokenProcessPool:
-                        raise SimulationError(
+                        raise worker_crash(pool) or SimulationError(
                             f"{spec.fmu}: a worker process died while running the FMU (a crash "
                             "in its native code?); re-run with simulate.executor=serial to see "
                             "which input") from None

@@ -8,11 +8,14 @@ shell's "Aborted (core dumped)" and status 134 or 139. So every FMU call is made
 :func:`running`, which records what is being run, and the fatal signals (``SIGSEGV``,
 ``SIGBUS``, ``SIGFPE``, ``SIGILL``, ``SIGABRT``) get a native handler (:func:`install`)
 that, during such a call, writes ``twinmon: simulation error: <fmu>: the FMU's native
-code crashed (SIGABRT) running <parameters>; nothing was written`` on stderr and ends the
-process with :class:`~twinmon.errors.SimulationError`'s exit code. The artifacts are
-written atomically (a temporary file renamed into place), so nothing written before is
-lost; the leftovers of the interrupted write are what a ``kill -9`` leaves, cleaned up by
-the next run.
+code crashed (SIGABRT) running <parameters>`` on stderr and ends the process with
+:class:`~twinmon.errors.SimulationError`'s exit code. The artifacts are written atomically
+(a temporary file renamed into place), so nothing written before is lost; the leftovers of
+the interrupted write are what a ``kill -9`` leaves, cleaned up by the next run
+(``simulate`` resumes from its partial file). A pool worker's stderr goes nowhere: there
+the line is also left as a note in the pool's scratch folder (:func:`leave_notes_in`),
+which the parent reads when it finds the worker dead (:func:`crash_note`), so that its own
+one line names the input too.
 
 Outside an FMU call the handler gives the signal back to the handler it replaced (the
 default: a core dump; Python's ``faulthandler`` when enabled) and raises it again: a crash
@@ -40,6 +43,8 @@ FATAL = tuple(s for s in (getattr(signal, n, None) for n in
 
 #: (FMU path, parameters) of the FMU call under way in this process, else None.
 _current: Optional[tuple] = None
+#: Where this process (a pool worker) leaves the line of its crash for its parent.
+_note_dir: Optional[str] = None
 #: The process the handlers were installed in (a forked worker inherits them, and its state).
 _installed_pid: Optional[int] = None
 _HANDLER = ctypes.CFUNCTYPE(None, ctypes.c_int)
@@ -52,9 +57,17 @@ def _on_fatal(signum: int) -> None:
     now = _current
     if now is not None:
         try:
-            os.write(2, (f"twinmon: {SimulationError.family}: {now[0]}: the FMU's native code "
-                         f"crashed ({signal.Signals(signum).name}) running {format_params(now[1])}; "
-                         "nothing was written\n").encode(errors="replace"))
+            line = (f"{now[0]}: the FMU's native code crashed ({signal.Signals(signum).name}) "
+                    f"running {format_params(now[1])}")
+            if _note_dir:
+                try:
+                    fd = os.open(os.path.join(_note_dir, f"crash-{os.getpid()}.txt"),
+                                 os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+                    os.write(fd, line.encode(errors="replace"))
+                    os.close(fd)
+                except OSError:
+                    pass
+            os.write(2, f"twinmon: {SimulationError.family}: {line}\n".encode(errors="replace"))
         finally:
             if now[2]:
                 shutil.rmtree(now[2], ignore_errors=True)
@@ -98,3 +111,26 @@ def running(fmu, params: Mapping[str, float], folder: Optional[str] = None
         yield
     finally:
         _current = outer
+
+
+def leave_notes_in(folder: str) -> None:
+    """In a pool worker: leave the line of a crash in ``folder`` (the pool's scratch folder)
+    for the parent, as ``crash-<pid>.txt``."""
+    global _note_dir
+    _note_dir = folder
+
+
+def crash_note(folder: Optional[str]) -> Optional[str]:
+    """The line a crashed worker left in ``folder`` (:func:`leave_notes_in`), if any."""
+    if not folder:
+        return None
+    try:
+        names = sorted(n for n in os.listdir(folder) if n.startswith("crash-"))
+        for n in names:
+            with open(os.path.join(folder, n), encoding="utf-8", errors="replace") as f:
+                text = f.read().strip()
+            if text:
+                return text
+    except OSError:
+        pass
+    return None
