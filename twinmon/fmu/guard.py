@@ -41,7 +41,7 @@ from .common import format_params
 FATAL = tuple(s for s in (getattr(signal, n, None) for n in
                           ("SIGSEGV", "SIGBUS", "SIGFPE", "SIGILL", "SIGABRT")) if s)
 
-#: (FMU path, parameters) of the FMU call under way in this process, else None.
+#: (FMU path, parameters, extracted folder) of the FMU call under way here, else None.
 _current: Optional[tuple] = None
 #: Where this process (a pool worker) leaves the line of its crash for its parent.
 _note_dir: Optional[str] = None
