@@ -21,8 +21,10 @@ below):
 * ``irregular``: 3-4 years of history, or ten with two years missing; 5-10 % of the samples
   lost (NaN); otherwise the linear fleet's units;
 * ``power``: power-law wear ``start + c a^1.5`` (wear growing as a power of the running
-  time, as sliding wear under rising contact stress does), none of the trend shapes'
-  forms: faster early than a quadratic, slower late than an exponential;
+  time, as sliding wear under rising contact stress does): faster early than a quadratic,
+  slower late than an exponential;
+* ``power_spread``: the same with each faulty input's own exponent, uniform in 1.15-1.95
+  (mostly between the laplace method's power forms, 1.25, 1.5 and 1.75);
 * ``mixed``: each faulty unit's wear takes one of the shapes above at random (linear,
   quadratic, exponential, step, power): a fleet whose units do not share one mechanism;
 * ``rate_change``: normal ageing, then from year 4-7 the faulty rate, with no step: a
@@ -85,11 +87,13 @@ import numpy as np
 
 YEARS = 10
 FAMILIES = ("linear", "quadratic", "exponential", "step", "repair", "repair_hidden",
-            "irregular", "reversing", "power", "mixed", "rate_change")
+            "irregular", "reversing", "power", "power_spread", "mixed", "rate_change")
 #: The shapes a ``mixed`` fleet's faulty units draw from.
 MIXED = ("linear", "quadratic", "exponential", "step", "power")
-#: Exponent of the ``power`` family's wear.
+#: Exponent of the ``power`` family's wear, and the range the ``power_spread`` family's
+#: exponents are drawn from (a unit's own, uniform).
 POWER = 1.5
+POWER_SPREAD = (1.15, 1.95)
 #: Years of service the trajectories are written out to: the record and the forecast's
 #: horizon after it (fabricate extends a trajectory's last rate beyond its last change).
 SPAN = 20
@@ -262,11 +266,12 @@ def shaped(family: str, start: float, rate: float, normal: float,
         year = int(rng.integers(4, 8))
         # normal up to ``year``, then the fault's rate: no step.
         tr.update(slope=normal, changes=[{"year": year, "size": 0.0, "slope": float(rate)}])
-    elif family == "power":
+    elif family in ("power", "power_spread"):
         # c a^p has mean rate c 9^(p-1) over the record; the trajectory is written as its
         # yearly increments (a change of rate each year), exact at every service year.
-        c = rate / ages ** (POWER - 1)
-        inc = c * np.diff(np.arange(SPAN) ** POWER)
+        p = POWER if family == "power" else float(rng.uniform(*POWER_SPREAD))
+        c = rate / ages ** (p - 1)
+        inc = c * np.diff(np.arange(SPAN) ** p)
         tr.update(slope=float(inc[0]), changes=[
             {"year": a + 1, "size": 0.0, "slope": float(inc[a])} for a in range(1, SPAN - 1)])
     elif family == "reversing":

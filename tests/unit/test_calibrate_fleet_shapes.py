@@ -13,13 +13,25 @@ BASE = form_priors({"line": 0.6, "accelerating": 0.2, "change": 0.2})
 F = len(form_names())
 
 
+def _pi(**named) -> np.ndarray:
+    """Proportions over :func:`form_names` from ``name=p`` (spaces as underscores, the
+    exponential's rate without its point: ``exponential_03``); the others 0."""
+    key = {n.replace(" ", "_").replace(".", ""): j for j, n in enumerate(form_names())}
+    out = np.zeros(F)
+    for name, p in named.items():
+        out[key[name]] = p
+    return out
+
+
 def _fleet(pi_true: np.ndarray, n: int, rng):
     """Units whose form is drawn from ``pi_true``, each seen through one noisy summary
-    ``y ~ N(mu_form, I)`` whose forms' means lie a unit or two apart in the plane (so a unit
+    ``y ~ N(mu_form, I)`` whose forms' means lie 1.5 apart from their neighbours in the plane (so a unit
     alone is unsure of its form). Returns the units' posterior shares under :data:`BASE`
     [n, F] (prior times the exact likelihood of ``y``) and their forms."""
     ang = 2 * np.pi * np.arange(F) / F
-    mu = 2.0 * np.column_stack([np.cos(ang), np.sin(ang)])                 # [F, 2]
+    # On a circle whose neighbours lie 1.53 apart, whatever the number of forms.
+    mu = 2 * np.sin(np.pi / 8) / np.sin(np.pi / F) * np.column_stack([np.cos(ang),
+                                                                       np.sin(ang)])  # [F, 2]
     true = rng.choice(F, n, p=pi_true)
     y = mu[true] + rng.standard_normal((n, 2))
     log_z = -0.5 * ((y[:, None, :] - mu[None]) ** 2).sum(axis=2)
@@ -32,7 +44,8 @@ def test_recovers_the_proportions_a_fleet_was_drawn_with():
     within 0.03 of the proportions they were drawn with, where the calibration's prior
     (0.6 on the line) is far off."""
     rng = np.random.default_rng(1)
-    pi_true = np.array([0.3, 0.25, 0.05, 0.05, 0.25, 0.05, 0.0, 0.05])
+    pi_true = _pi(line=0.3, quadratic=0.25, exponential_01=0.05, exponential_02=0.05,
+                  exponential_03=0.25, exponential_04=0.05, change=0.05)
     shares, _ = _fleet(pi_true, 2000, rng)
     fit = fit_fleet_shapes(shares, np.ones_like(shares, bool), BASE, prior_units=8.0)
     assert np.abs(fit.proportions - pi_true).max() < 0.03, fit.proportions
@@ -45,7 +58,7 @@ def test_a_small_fleet_stays_near_the_calibrations_prior():
     """Five units: the Dirichlet prior worth 8 units holds the fit closer to the
     calibration's prior than the same units' maximum likelihood (prior_units 0)."""
     rng = np.random.default_rng(2)
-    shares, _ = _fleet(np.array([0.0, 1.0, 0, 0, 0, 0, 0, 0]), 5, rng)
+    shares, _ = _fleet(_pi(quadratic=1.0), 5, rng)
     avail = np.ones_like(shares, bool)
     held = fit_fleet_shapes(shares, avail, BASE, prior_units=8.0).proportions
     free = fit_fleet_shapes(shares, avail, BASE, prior_units=0.0).proportions
@@ -57,7 +70,8 @@ def test_units_too_short_for_a_shape_say_nothing_of_it():
     """Units whose segments allow the line alone (share 1 on it) leave the fit as it is on
     the other units; counted as if every form were open, they would pull it to the line."""
     rng = np.random.default_rng(3)
-    shares, _ = _fleet(np.array([0.2, 0.4, 0.1, 0.1, 0.1, 0.0, 0.0, 0.1]), 300, rng)
+    shares, _ = _fleet(_pi(line=0.2, quadratic=0.4, exponential_01=0.1, exponential_02=0.1,
+                           exponential_03=0.1, change=0.1), 300, rng)
     short = np.zeros((300, F))
     short[:, 0] = 1.0
     avail = np.ones((600, F), bool)
@@ -85,12 +99,16 @@ def test_gradient_is_that_of_the_objective():
 
 
 def test_forms_of_draws_and_their_priors():
-    code = np.array([0, 1, 1, 1, 2])
-    growth = np.array([0.0, 0.0, 0.1, 0.5, 0.0])
-    assert form_of(code, growth).tolist() == [0, 1, 2, 6, 7]
+    code = np.array([0, 1, 1, 1, 1, 1, 2])
+    growth = np.array([0.0, 0.0, 0.1, 0.5, -1.25, -1.75, 0.0])
+    names = form_names()
+    assert [names[j] for j in form_of(code, growth)] == [
+        "line", "quadratic", "exponential 0.1", "exponential 0.5", "power 1.25",
+        "power 1.75", "change"]
+    n_acc = F - 2
     assert abs(BASE.sum() - 1) < 1e-12 and BASE[0] == 0.6 and BASE[-1] == 0.2
-    assert np.allclose(BASE[1:-1], 0.2 / 6)
-    assert available_forms(np.array([5, 2])).tolist() == [True] * 7 + [False]
+    assert np.allclose(BASE[1:-1], 0.2 / n_acc)
+    assert available_forms(np.array([5, 2])).tolist() == [True] * (1 + n_acc) + [False]
     assert available_forms(np.array([6, 6])).all()
 
 
@@ -103,11 +121,19 @@ def test_pooled_draws_follow_the_fleets_prior():
     from twinmon.forecast.pooling import _pool_unit
     rng = np.random.default_rng(5)
     n = 20000
-    s = np.array([0.5, 0.1, 0.1, 0.1, 0.05, 0.05, 0.05, 0.05])
+    s = _pi(line=0.5, quadratic=0.1, exponential_01=0.1, exponential_02=0.1,
+            exponential_03=0.05, power_15=0.05, power_175=0.05, change=0.05)
     forms = rng.choice(F, n, p=s)
-    code = np.where(forms == 0, 0, np.where(forms == 7, 2, 1))
-    growth = np.where((forms >= 2) & (forms <= 6), 0.1 * (forms - 1), 0.0)
-    pi = np.array([0.1, 0.5, 0.1, 0.1, 0.05, 0.05, 0.05, 0.05])
+    # Each form's code and growth, as the laplace method stores them.
+    names = form_names()
+    code = np.array([0 if names[f] == "line" else 2 if names[f] == "change" else 1
+                     for f in forms])
+    growth = np.array([float(names[f].split()[1]) if names[f].startswith("exponential")
+                       else -float(names[f].split()[1]) if names[f].startswith("power")
+                       else 0.0 for f in forms])
+    pi = _pi(line=0.1, quadratic=0.5, exponential_01=0.1, exponential_02=0.1,
+             exponential_03=0.05, power_15=0.05, power_175=0.05, change=0.05) + 0.01
+    pi /= pi.sum()
     shapes = FleetShapes(pi, BASE, 44, 8.0)
     trend = {"sigma": np.ones((n, 2)), "shape": code, "growth": growth,
              "slope": np.zeros((n, 1, 2))}

@@ -190,6 +190,50 @@ def test_exponential_wear_is_covered_ahead():
         truth(16.0)
 
 
+def test_power_law_wear_is_covered_ahead_where_a_quadratic_runs_ahead():
+    """Wear growing as a^1.4 from the first year (an exponent between the power forms'):
+    the accelerating shape takes the posterior, most of it on the power forms, and the 90 %
+    intervals three and seven years ahead hold the truth, where a quadratic alone (its
+    curvature the record's mean, larger than the last years') runs above it."""
+    from twinmon.calibrate.shape_columns import POWER_EXPONENTS
+    rng = np.random.default_rng(31)
+    t = YEARS.astype(float)
+    truth = lambda tt: 0.3 * (tt - 1) ** 1.4                        # noqa: E731
+    err = np.full((len(t), 2), 0.03)
+    x = np.column_stack([truth(t), np.zeros_like(t)]) + err * rng.standard_normal(err.shape)
+    shape, _, now, sigma, growth = _draws(_mixture(x, err))
+    assert np.mean(shape == 1) > 0.9
+    assert np.mean(np.isin(-growth, POWER_EXPONENTS)) > 0.5
+    future = _future(now, sigma, np.array([13, 17]), growth)[:, :, 0]
+    for j, year in enumerate((13.0, 17.0)):
+        lo, hi = np.quantile(future[:, j], [0.05, 0.95])
+        assert lo <= truth(year) <= hi, (year, lo, hi, truth(year))
+    quadratic = _mixture(x, err)
+    quadratic.shapes = [sh for sh in quadratic.shapes if sh.code == 1 and sh.growth == 0.0]
+    _, _, now_q, sigma_q, growth_q = _draws(quadratic)
+    assert np.quantile(_future(now_q, sigma_q, np.array([17]), growth_q)[:, 0, 0], 0.05) > \
+        truth(17.0)
+
+
+def test_a_power_forms_map_is_its_quadratic_at_the_last_year():
+    """The power form's map to the trend at the last year extends it by its value, rate and
+    half its second derivative there: within 2 % of the power law's rise seven years on."""
+    from twinmon.calibrate.shape_columns import POWER_EXPONENTS, _accelerating_forms
+    t = YEARS.astype(float)
+    seg = np.ones((1, len(t)), bool)
+    forms = _accelerating_forms(t, seg, PRIORS, 1.0)
+    powers = [f for f in forms if f[3] < 0]
+    assert [-f[3] for f in powers] == list(POWER_EXPONENTS)
+    u = np.arange(1.0, 8.0)
+    for _, cols, _, g in powers:
+        col, _, (level, rate, curv, amp) = cols[0]
+        b, A = -g, t[-1] - t[0]
+        exact = (A + u) ** b - A ** b
+        assert np.allclose(col[:, 0] - col[-1, 0], (t - t[0]) ** b - A ** b)
+        assert amp == 0.0 and np.isclose(level, col[-1, 0])
+        assert np.all(np.abs(rate * u + curv * u ** 2 - exact) <= 0.02 * exact[-1])
+
+
 def test_a_step_is_placed_in_its_year_and_not_extended():
     """Wear that steps up by 0.5 in year 7 and stays (sigma's prior scale 0.05): the change
     shape takes the posterior with its year right, and the future stays at the new level

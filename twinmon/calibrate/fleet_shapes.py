@@ -1,5 +1,6 @@
 """The fleet's prior of the trend shapes: how often its units' wear follows a line, a
-quadratic, an exponential of each growth rate, or a change, learnt from the fleet.
+quadratic, an exponential of each growth rate, a power law of each exponent, or a change,
+learnt from the fleet.
 
 The laplace method weighs each unit's trend shapes (:mod:`.shapes`) under the prior
 probabilities ``calibrate.shapes``, the accelerating shape shared equally by its forms

@@ -31,6 +31,11 @@ CHANGE_SCREEN = 2
 #: time of 7 years to one of 1.4 (slower growth is the quadratic's), spaced so that a
 #: rate between two of them is still covered (tests/unit/test_calibrate_shapes.py).
 GROWTH_RATES = (0.1, 0.2, 0.3, 0.4, 0.5)
+#: Exponents of the accelerating shape's power-law forms ``c a^b``, ``a`` the age from the
+#: segment's first year: wear that accelerates less than a quadratic, whose curvature a
+#: decade shows falling (a quadratic fitted to it keeps the record's mean curvature and
+#: runs ahead of it in the forecast).
+POWER_EXPONENTS = (1.25, 1.5, 1.75)
 #: Rows of a shape's map to the trend at the last year (``Shape.now``, ``trend/now``).
 NOW_ROWS = ("level", "rate", "curvature", "growth_amplitude")
 
@@ -49,6 +54,8 @@ class ShapeSets:
         Each column's map to the trend at the last year (:data:`NOW_ROWS`).
     growth : ndarray, shape [n_x]
         Each column's growth rate (an exponential form's, else 0), for :func:`extend`.
+        A power form's column is 0 here: its map extends it by its quadratic at the last
+        year.
     S : ndarray, shape [n_x, n_x]
         The columns' Zellner prior precision at the reference sigma; a set's prior is its
         rows and columns (the Schur complement of the line's information restricted to a
@@ -89,7 +96,7 @@ def shape_sets(line: GaussianTrend, years: np.ndarray, last_start: np.ndarray, p
     for code, f, log_prior, _ in extras:
         sets.append((code, tuple(range(at, at + len(f))), log_prior, (-1,) * d))
         at += len(f)
-    growth = [r for _, f, _, r in extras for _ in f]
+    growth = [max(r, 0.0) for _, f, _, r in extras for _ in f]
     prior_prec = np.diag(line.prior_P)
     if cols or any(cand):
         W = _reference_weights(line.cov, sigma_ref)
@@ -115,19 +122,30 @@ def shape_sets(line: GaussianTrend, years: np.ndarray, last_start: np.ndarray, p
 
 def _accelerating_forms(t: np.ndarray, seg: np.ndarray, priors: dict, total: float) -> list:
     """The accelerating shape's forms on the inputs' current segments ``seg`` [d, K]: per
-    form ``(1, columns, log prior, growth rate)``, the columns as
-    :func:`~.shapes._extended` takes them (the quadratic first, then the exponentials of
-    :data:`GROWTH_RATES`)."""
+    form ``(1, columns, log prior, growth)``, the columns as :func:`~.shapes._extended`
+    takes them: the quadratic first (growth 0), then the exponentials of
+    :data:`GROWTH_RATES` (growth their rate), then the power laws of
+    :data:`POWER_EXPONENTS` (growth minus their exponent, which tells them apart in
+    ``trend/growth``).
+
+    A power form's column is ``a^b`` (``a`` the years since the segment's first year), less
+    its mean; its map to the trend at the last year is its value, rate and half its second
+    derivative there (``A^b``, ``b A^(b-1)``, ``b (b-1) A^(b-2) / 2`` at the last year's
+    age ``A``), so the forecast extends it by that quadratic. The cubic term left out is
+    ``b (b-1) (b-2) A^(b-3) u^3 / 6``, negative for ``1 < b < 2``: 1-2 % of the rise over
+    seven years from a decade of record (A = 9), on the pessimistic side."""
     if priors.get("accelerating", 0.0) <= 0:
         return []
     d, K = seg.shape
     t_last = t[-1]
-    rates = (0.0,) + tuple(GROWTH_RATES)
+    rates = (0.0,) + tuple(GROWTH_RATES) + tuple(-b for b in POWER_EXPONENTS)
+    n_exp = len(GROWTH_RATES)
     able = [i for i in range(d) if seg[i].sum() >= ACCELERATING_MIN_YEARS]
     # Every form's column of every input in one array (a view each), the exponentials of
     # all rates at once: the forms are rebuilt for each of a unit's cut years.
     col = np.zeros((len(rates), d, K, d))
     per = {}
+    b = np.array(POWER_EXPONENTS)[:, None]
     for i in able:
         ts = t[seg[i]]
         c = ts.mean()
@@ -135,9 +153,16 @@ def _accelerating_forms(t: np.ndarray, seg: np.ndarray, priors: dict, total: flo
         col[0, i, seg[i], i] = (ts - c) ** 2 - v
         g = np.exp(np.array(GROWTH_RATES)[:, None] * (ts - t_last))          # [R, n]
         g_mean = g.mean(axis=1)
-        col[1:, i, seg[i], i] = g - g_mean[:, None]
+        col[1:1 + n_exp, i, seg[i], i] = g - g_mean[:, None]
+        age = ts - ts[0]
+        pw = age[None, :] ** b                                               # [P, n]
+        pw_mean = pw.mean(axis=1)
+        col[1 + n_exp:, i, seg[i], i] = pw - pw_mean[:, None]
+        A = t_last - ts[0]
         per[i] = [((t_last - c) ** 2 - v, 2.0 * (t_last - c), 1.0, 0.0)] + \
-            [(1.0 - g_mean[j], r, 0.0, 1.0) for j, r in enumerate(GROWTH_RATES)]
+            [(1.0 - g_mean[j], r, 0.0, 1.0) for j, r in enumerate(GROWTH_RATES)] + \
+            [(A ** e - pw_mean[j], e * A ** (e - 1), 0.5 * e * (e - 1) * A ** (e - 2), 0.0)
+             for j, e in enumerate(POWER_EXPONENTS)]
     forms = [(r, [(col[j, i], i, per[i][j]) for i in able]) for j, r in enumerate(rates)
              if able]
     # The forms share the shape's prior equally (half on the quadratic, half shared by the

@@ -13,9 +13,13 @@ forecast extends), each the line plus coefficients with a Gaussian prior:
   (``c`` and ``v`` the segment's mean year and the mean of ``(t - c)^2``, so that the line's
   level and slope keep their meaning), or an exponential term ``e exp(r (t - t_last))`` with
   its growth rate ``r`` one of :data:`GROWTH_RATES` (the field's exponential degradation
-  model, whose rate a decade of yearly records pins down only roughly); the six forms share
-  the shape's prior equally. A quadratic extended seven years falls short of exponential
-  wear; the exponential forms carry that possibility into the forecast;
+  model, whose rate a decade of yearly records pins down only roughly), or a power law
+  ``c a^b``, ``a`` the years since the segment's first, with ``b`` one of
+  :data:`POWER_EXPONENTS` (the field's other standard degradation model: wear whose rate
+  grows ever more slowly); the nine forms share the shape's prior equally. A quadratic
+  extended seven years falls short of exponential wear and runs ahead of power-law wear
+  (its curvature is the record's mean, the power law's falls): the other forms carry those
+  futures into the forecast;
 * ``change``: a jump of an input's level, ``1[t >= y]``, and of its rate, ``(t - y)
   1[t >= y]``, in a year ``y`` with at least :data:`CHANGE_MIN_YEARS` years of its segment
   before it and from it. Each input changes or not, in a year of its own: a priori each
@@ -59,7 +63,7 @@ import numpy as np
 
 from .gaussian_trend import GaussianTrend, SiteModel, draw_years, log_evidence_at
 from .shape_columns import (ACCELERATING_MIN_YEARS, CHANGE_MIN_YEARS, GROWTH_RATES,
-                            NOW_ROWS, OCCAM, _accelerating_forms, _change_candidates,
+                            NOW_ROWS, OCCAM, POWER_EXPONENTS, _accelerating_forms, _change_candidates,
                             _change_columns, _change_selection, _reference_weights,
                             _unit_information, line_now)
 
@@ -300,18 +304,21 @@ class ShapeMixture(SiteModel):
 def form_names() -> tuple:
     """The forms a draw's trend may take on its current segment, as the fleet's prior of the
     shapes (:mod:`.fleet_shapes`) tells them apart: the line, the quadratic, the
-    exponential at each of :data:`GROWTH_RATES`, the change (its years together)."""
+    exponential at each of :data:`GROWTH_RATES`, the power law at each of
+    :data:`POWER_EXPONENTS`, the change (its years together)."""
     return (("line", "quadratic") + tuple(f"exponential {r:g}" for r in GROWTH_RATES)
-            + ("change",))
+            + tuple(f"power {b:g}" for b in POWER_EXPONENTS) + ("change",))
 
 
 def form_of(code: np.ndarray, growth: np.ndarray) -> np.ndarray:
     """Each draw's form, the index in :func:`form_names` [n], from its shape code
-    (``trend/shape``) [n] and growth rate (``trend/growth``, per year) [n]."""
+    (``trend/shape``) [n] and growth (``trend/growth``: an exponential's rate per year,
+    minus a power law's exponent) [n]."""
     code = np.asarray(code, int)
     growth = np.asarray(growth, float)
-    out = np.where(code == 0, 0, np.where(code == 2, len(GROWTH_RATES) + 2, 1))
-    for j, r in enumerate(GROWTH_RATES):
+    n_acc = 1 + len(GROWTH_RATES) + len(POWER_EXPONENTS)
+    out = np.where(code == 0, 0, np.where(code == 2, n_acc + 1, 1))
+    for j, r in enumerate(tuple(GROWTH_RATES) + tuple(-b for b in POWER_EXPONENTS)):
         out = np.where((code == 1) & np.isclose(growth, r), 2 + j, out)
     return out
 
@@ -322,9 +329,9 @@ def form_priors(priors: dict) -> np.ndarray:
     over its years (kept together here). Sums to 1."""
     p = {k: max(float(v), 0.0) for k, v in priors.items()}
     total = sum(p.values())
-    acc = p.get("accelerating", 0.0) / (1 + len(GROWTH_RATES))
-    return np.array([p.get("line", 0.0)] + [acc] * (1 + len(GROWTH_RATES))
-                    + [p.get("change", 0.0)]) / total
+    n_acc = 1 + len(GROWTH_RATES) + len(POWER_EXPONENTS)
+    acc = p.get("accelerating", 0.0) / n_acc
+    return np.array([p.get("line", 0.0)] + [acc] * n_acc + [p.get("change", 0.0)]) / total
 
 
 def available_forms(segment_years: np.ndarray) -> np.ndarray:
@@ -335,7 +342,8 @@ def available_forms(segment_years: np.ndarray) -> np.ndarray:
     n = np.asarray(segment_years, int)
     acc = bool(np.any(n >= ACCELERATING_MIN_YEARS))
     change = bool(np.any(n >= 2 * CHANGE_MIN_YEARS))
-    return np.array([True] + [acc] * (1 + len(GROWTH_RATES)) + [change])
+    return np.array([True] + [acc] * (1 + len(GROWTH_RATES) + len(POWER_EXPONENTS))
+                    + [change])
 
 
 def shape_probabilities(codes: np.ndarray) -> np.ndarray:
@@ -402,7 +410,8 @@ def extend(now: np.ndarray, growth: np.ndarray, u: np.ndarray) -> np.ndarray:
     now : ndarray, shape [n, 4, d]
         Per draw, the trend at the last year (:data:`NOW_ROWS`).
     growth : ndarray, shape [n]
-        Per draw, the exponential form's growth rate (per year; 0: none).
+        Per draw, the exponential form's growth rate (per year; 0 or negative, a power
+        law's: none).
     u : ndarray, shape [h]
         Years after the last recorded year.
 
@@ -411,7 +420,9 @@ def extend(now: np.ndarray, growth: np.ndarray, u: np.ndarray) -> np.ndarray:
     ndarray, shape [n, h, d]
     """
     u = np.asarray(u, float)[None, :, None]
-    r = np.asarray(growth, float)[:, None, None]
+    # A power law's growth (minus its exponent) has no exponential part: its amplitude row
+    # is 0 and its bend is in the curvature row.
+    r = np.maximum(np.asarray(growth, float), 0.0)[:, None, None]
     # exp(r u) - 1 - r u, the part of an exponential beyond its tangent (0 when r = 0).
     bend = np.expm1(r * u) - r * u
     return (now[:, None, 0, :] + now[:, None, 1, :] * u + now[:, None, 2, :] * u ** 2

@@ -34,8 +34,8 @@ TREND_FIELDS = {
             "curvature and growth amplitude, the trend u = t - now_year years later being "
             "level + rate u + curvature u^2 + amplitude (exp(growth u) - 1 - growth u) "
             "[draw, 4, input] (laplace method)"),
-    "growth": ("per year", "growth rate of the draw's exponential form, 0 for the other "
-               "forms [draw] (laplace method)"),
+    "growth": ("per year", "growth rate of the draw's exponential form; minus the exponent "
+               "of its power-law form; 0 for the other forms [draw] (laplace method)"),
     "now_year": ("year", "the last recorded year (laplace method)"),
     "shape": ("1", "the draw's trend shape on the current segment: 0 line, 1 accelerating, "
               "2 change (calibrate.shapes) [draw] (laplace method)"),

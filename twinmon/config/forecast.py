@@ -42,7 +42,8 @@ class ForecastConfig:
     pool_sigma: bool = True
     pool_min_units: int = 5
     #: A laplace posterior's trend shapes: fit the fleet's prior probabilities of the
-    #: trend forms (line, quadratic, each exponential growth rate, change) on its units'
+    #: trend forms (line, quadratic, each exponential growth rate and power, change) on its
+    #: units'
     #: draws, and reweight each unit's draws to it (twinmon/calibrate/fleet_shapes.py), when
     #: at least ``pool_min_units`` units weighed shapes. false: ``calibrate.shapes`` as is.
     pool_shapes: bool = True
