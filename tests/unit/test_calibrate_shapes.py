@@ -168,26 +168,33 @@ def test_accelerating_wear_is_found_and_its_future_covered():
         truth(15.0)
 
 
+def _against_quadratic(truth, sd: float, seed: int, years: tuple):
+    """Sites of wear ``truth`` on the first of two inputs (the second flat), each year's
+    error ``sd``: the mixture's shape codes and growths, and the 90 % intervals [2, len(years)]
+    of the first input at ``years`` from the mixture and from its quadratic form alone."""
+    rng = np.random.default_rng(seed)
+    t = YEARS.astype(float)
+    err = np.full((len(t), 2), sd)
+    x = np.column_stack([truth(t), np.zeros_like(t)]) + err * rng.standard_normal(err.shape)
+    shape, _, now, sigma, growth = _draws(_mixture(x, err))
+    quadratic = _mixture(x, err)
+    quadratic.shapes = [sh for sh in quadratic.shapes if sh.code == 1 and sh.growth == 0.0]
+    _, _, now_q, sigma_q, growth_q = _draws(quadratic)
+    at = np.array(years)
+    return shape, growth, *(np.quantile(_future(n, s_, at, g)[:, :, 0], [0.05, 0.95], axis=0)
+                            for n, s_, g in ((now, sigma, growth), (now_q, sigma_q, growth_q)))
+
+
 def test_exponential_wear_is_covered_ahead():
     """Wear growing exponentially at 0.25 a year (between the exponential forms' rates): the
     accelerating shape takes the posterior, and the 90 % intervals three and six years ahead
     hold the truth, where a quadratic alone falls short six years ahead."""
-    rng = np.random.default_rng(21)
-    t = YEARS.astype(float)
     truth = lambda tt: 0.1 * np.expm1(0.25 * (tt - 1)) / 0.25        # noqa: E731
-    err = np.full((len(t), 2), 0.05)
-    x = np.column_stack([truth(t), np.zeros_like(t)]) + err * rng.standard_normal(err.shape)
-    shape, _, now, sigma, growth = _draws(_mixture(x, err))
+    shape, _, band, quadratic = _against_quadratic(truth, 0.05, 21, (13, 16))
     assert np.mean(shape == 1) > 0.9
-    future = _future(now, sigma, np.array([13, 16]), growth)[:, :, 0]
     for j, year in enumerate((13.0, 16.0)):
-        lo, hi = np.quantile(future[:, j], [0.05, 0.95])
-        assert lo <= truth(year) <= hi, (year, lo, hi, truth(year))
-    quadratic = _mixture(x, err)
-    quadratic.shapes = [sh for sh in quadratic.shapes if sh.code == 1 and sh.growth == 0.0]
-    _, _, now_q, sigma_q, growth_q = _draws(quadratic)
-    assert np.quantile(_future(now_q, sigma_q, np.array([16]), growth_q)[:, 0, 0], 0.95) < \
-        truth(16.0)
+        assert band[0, j] <= truth(year) <= band[1, j], (year, band[:, j], truth(year))
+    assert quadratic[1, 1] < truth(16.0)
 
 
 def test_power_law_wear_is_covered_ahead_where_a_quadratic_runs_ahead():
@@ -196,23 +203,13 @@ def test_power_law_wear_is_covered_ahead_where_a_quadratic_runs_ahead():
     intervals three and seven years ahead hold the truth, where a quadratic alone (its
     curvature the record's mean, larger than the last years') runs above it."""
     from twinmon.calibrate.shape_columns import POWER_EXPONENTS
-    rng = np.random.default_rng(31)
-    t = YEARS.astype(float)
     truth = lambda tt: 0.3 * (tt - 1) ** 1.4                        # noqa: E731
-    err = np.full((len(t), 2), 0.03)
-    x = np.column_stack([truth(t), np.zeros_like(t)]) + err * rng.standard_normal(err.shape)
-    shape, _, now, sigma, growth = _draws(_mixture(x, err))
+    shape, growth, band, quadratic = _against_quadratic(truth, 0.03, 31, (13, 17))
     assert np.mean(shape == 1) > 0.9
     assert np.mean(np.isin(-growth, POWER_EXPONENTS)) > 0.5
-    future = _future(now, sigma, np.array([13, 17]), growth)[:, :, 0]
     for j, year in enumerate((13.0, 17.0)):
-        lo, hi = np.quantile(future[:, j], [0.05, 0.95])
-        assert lo <= truth(year) <= hi, (year, lo, hi, truth(year))
-    quadratic = _mixture(x, err)
-    quadratic.shapes = [sh for sh in quadratic.shapes if sh.code == 1 and sh.growth == 0.0]
-    _, _, now_q, sigma_q, growth_q = _draws(quadratic)
-    assert np.quantile(_future(now_q, sigma_q, np.array([17]), growth_q)[:, 0, 0], 0.05) > \
-        truth(17.0)
+        assert band[0, j] <= truth(year) <= band[1, j], (year, band[:, j], truth(year))
+    assert quadratic[0, 1] > truth(17.0)
 
 
 def test_a_power_forms_map_is_its_quadratic_at_the_last_year():
