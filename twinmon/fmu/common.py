@@ -24,7 +24,6 @@ def _one_line(exc: BaseException, limit: int = 300) -> str:
     return text if len(text) <= limit else text[:limit - 3] + "..."
 
 
-
 def format_params(values: Mapping[str, float]) -> str:
     """A run's parameters as ``name=value, ...`` (6 significant digits; a value that is not a
     number shown as it is, for the message refusing it), ``defaults`` when there are none."""
