@@ -36,6 +36,9 @@ GROWTH_RATES = (0.1, 0.2, 0.3, 0.4, 0.5)
 #: decade shows falling (a quadratic fitted to it keeps the record's mean curvature and
 #: runs ahead of it in the forecast).
 POWER_EXPONENTS = (1.25, 1.5, 1.75)
+#: The accelerating shape's forms, in their order, by their growth (``trend/growth``): the
+#: quadratic 0, each exponential its rate, each power law minus its exponent.
+ACCELERATING_GROWTHS = (0.0,) + GROWTH_RATES + tuple(-b for b in POWER_EXPONENTS)
 #: Rows of a shape's map to the trend at the last year (``Shape.now``, ``trend/now``).
 NOW_ROWS = ("level", "rate", "curvature", "growth_amplitude")
 
@@ -138,7 +141,7 @@ def _accelerating_forms(t: np.ndarray, seg: np.ndarray, priors: dict, total: flo
         return []
     d, K = seg.shape
     t_last = t[-1]
-    rates = (0.0,) + tuple(GROWTH_RATES) + tuple(-b for b in POWER_EXPONENTS)
+    rates = ACCELERATING_GROWTHS
     n_exp = len(GROWTH_RATES)
     able = [i for i in range(d) if seg[i].sum() >= ACCELERATING_MIN_YEARS]
     # Every form's column of every input in one array (a view each), the exponentials of

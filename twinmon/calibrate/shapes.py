@@ -62,9 +62,9 @@ from typing import Optional
 import numpy as np
 
 from .gaussian_trend import GaussianTrend, SiteModel, draw_years, log_evidence_at
-from .shape_columns import (ACCELERATING_MIN_YEARS, CHANGE_MIN_YEARS, GROWTH_RATES,
-                            NOW_ROWS, OCCAM, POWER_EXPONENTS, _accelerating_forms, _change_candidates,
-                            _change_columns, _change_selection, _reference_weights,
+from .shape_columns import (ACCELERATING_GROWTHS, ACCELERATING_MIN_YEARS, CHANGE_MIN_YEARS,
+                            GROWTH_RATES, NOW_ROWS, OCCAM, POWER_EXPONENTS,
+                            _accelerating_forms, _change_candidates, _change_columns, _change_selection, _reference_weights,
                             _unit_information, line_now)
 
 #: The shapes, in the order of their code in the posterior (``trend/shape``).
@@ -316,9 +316,8 @@ def form_of(code: np.ndarray, growth: np.ndarray) -> np.ndarray:
     minus a power law's exponent) [n]."""
     code = np.asarray(code, int)
     growth = np.asarray(growth, float)
-    n_acc = 1 + len(GROWTH_RATES) + len(POWER_EXPONENTS)
-    out = np.where(code == 0, 0, np.where(code == 2, n_acc + 1, 1))
-    for j, r in enumerate(tuple(GROWTH_RATES) + tuple(-b for b in POWER_EXPONENTS)):
+    out = np.where(code == 0, 0, np.where(code == 2, len(ACCELERATING_GROWTHS) + 1, 1))
+    for j, r in enumerate(ACCELERATING_GROWTHS[1:]):
         out = np.where((code == 1) & np.isclose(growth, r), 2 + j, out)
     return out
 
@@ -329,7 +328,7 @@ def form_priors(priors: dict) -> np.ndarray:
     over its years (kept together here). Sums to 1."""
     p = {k: max(float(v), 0.0) for k, v in priors.items()}
     total = sum(p.values())
-    n_acc = 1 + len(GROWTH_RATES) + len(POWER_EXPONENTS)
+    n_acc = len(ACCELERATING_GROWTHS)
     acc = p.get("accelerating", 0.0) / n_acc
     return np.array([p.get("line", 0.0)] + [acc] * n_acc + [p.get("change", 0.0)]) / total
 
@@ -342,8 +341,7 @@ def available_forms(segment_years: np.ndarray) -> np.ndarray:
     n = np.asarray(segment_years, int)
     acc = bool(np.any(n >= ACCELERATING_MIN_YEARS))
     change = bool(np.any(n >= 2 * CHANGE_MIN_YEARS))
-    return np.array([True] + [acc] * (1 + len(GROWTH_RATES) + len(POWER_EXPONENTS))
-                    + [change])
+    return np.array([True] + [acc] * len(ACCELERATING_GROWTHS) + [change])
 
 
 def shape_probabilities(codes: np.ndarray) -> np.ndarray:

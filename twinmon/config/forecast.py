@@ -43,9 +43,8 @@ class ForecastConfig:
     pool_min_units: int = 5
     #: A laplace posterior's trend shapes: fit the fleet's prior probabilities of the
     #: trend forms (line, quadratic, each exponential growth rate and power, change) on its
-    #: units'
-    #: draws, and reweight each unit's draws to it (twinmon/calibrate/fleet_shapes.py), when
-    #: at least ``pool_min_units`` units weighed shapes. false: ``calibrate.shapes`` as is.
+    #: units' draws, and reweight each unit's draws to it (twinmon/calibrate/fleet_shapes.py),
+    #: when at least ``pool_min_units`` units weighed shapes. false: ``calibrate.shapes`` as is.
     pool_shapes: bool = True
     #: The fleet's prior of the trend forms is learnt from the units whose current segment
     #: spans at least this many recorded years: over fewer, each unit's evidence favours the
