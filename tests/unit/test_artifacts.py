@@ -134,6 +134,33 @@ def test_a_second_writer_is_refused_and_a_killed_holder_leaves_no_lock(tmp_path)
     assert [p.name for p in tmp_path.iterdir()] == ["a.h5"]
 
 
+def test_a_folder_named_by_dot_is_locked_as_that_folder(tmp_path, monkeypatch):
+    """``run --workdir .`` (or ``out/..``): the lock is the folder's own, beside it, whichever
+    way the folder is named; a second writer of it is refused."""
+    import multiprocessing as mp
+
+    from twinmon.errors import OutputBusyError
+    work = tmp_path / "work"
+    (work / "out").mkdir(parents=True)
+    monkeypatch.chdir(work)
+    assert artifacts.lock_path(".") == tmp_path / ".work.lock"
+    assert artifacts.lock_path("out/..") == tmp_path / ".work.lock"
+    ctx = mp.get_context("fork")
+    ready, release = ctx.Event(), ctx.Event()
+    holder = ctx.Process(target=_hold_lock, args=(".", ready, release))
+    holder.start()
+    try:
+        assert ready.wait(30)
+        with pytest.raises(OutputBusyError, match="is being written by"):
+            with artifacts.output_lock(work, "twinmon run"):
+                pass
+    finally:
+        release.set()
+        holder.join()
+    with artifacts.output_lock("out/..", "twinmon run"):
+        pass
+
+
 def test_stale_temporaries_of_dead_writers_are_removed(tmp_path):
     out = tmp_path / "a.h5"
     stale = tmp_path / ".a.h5.999999999.tmp"             # no such process

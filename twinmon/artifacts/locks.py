@@ -31,7 +31,9 @@ if hasattr(os, "register_at_fork"):
 
 
 def lock_path(path: str | os.PathLike) -> Path:
-    path = Path(path)
+    """The hidden lock file beside ``path``. The path is made absolute and normal first
+    (without following links), so that ``.`` or ``out/..`` name their folder."""
+    path = Path(os.path.abspath(path))
     return path.with_name(f".{path.name}.lock")
 
 
