@@ -11,7 +11,6 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from ..errors import SimulationError
 from .twin import SNAP, Twin
@@ -129,6 +128,7 @@ class JointFit:
     def solve(self, x0: np.ndarray) -> "FitResult":
         """Bounded trust-region least squares from ``x0`` (clipped into [0, 1])."""
         x0 = np.clip(np.asarray(x0, float), 1e-9, 1 - 1e-9)
+        from scipy.optimize import least_squares   # 0.3-0.6 s to import: when fitting
         res = least_squares(self.residuals, x0, jac=self.jacobian, bounds=(0.0, 1.0),
                             method="trf", x_scale="jac", ftol=FIT_TOL, xtol=FIT_TOL,
                             gtol=FIT_TOL, max_nfev=100)

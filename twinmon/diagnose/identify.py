@@ -25,13 +25,13 @@ from dataclasses import dataclass, field
 from typing import Optional
 
 import numpy as np
-from scipy import stats
 
 from .confirm import bic, confirm
 from .groups import EffectGroup, _weighted, single_group
 from .screen import screen, to_confirm
 from .several import alike_members, further, swap_groups
 from .state import UnitState
+from .stats import chi2_sf
 
 __all__ = ["Identification", "identify", "ranking", "bic", "EffectGroup"]
 
@@ -115,7 +115,7 @@ def identify(s: UnitState, candidates: list) -> Identification:
         # Likelihood-ratio p-value of the best candidate, Bonferroni over candidates and
         # onsets (value and onset both free: 2 degrees of freedom).
         lr = float(s.chi2_base.sum() - confirmed[best][0])
-        p_lr = min(1.0, stats.chi2.sf(lr, 2) * len(candidates) * s.n_y)
+        p_lr = min(1.0, chi2_sf(lr, 2) * len(candidates) * s.n_y)
         p_gap = min(p_gap, p_lr)
 
     # The final model: effects added while the BIC gain stays above bic_gain.

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
-from scipy import stats
+from scipy.special import ndtri
 
 from ..errors import SimulationError
 from .confirm import bic
@@ -182,7 +182,7 @@ def interval(s: UnitState, name: str, value: float, sd_u: float) -> tuple:
     deviation ``sd_u`` in normalised units, clipped to the effect's range."""
     e = s.twin.effects[name]
     sd = sd_u * (e.high - e.low)
-    z = stats.norm.ppf(0.95)
+    z = ndtri(0.95)
     return (float(value), float(max(e.low, value - z * sd)), float(min(e.high, value + z * sd)))
 
 

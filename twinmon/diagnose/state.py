@@ -12,10 +12,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy import stats
 
 from ..config import Config
-from .stats import noise_sf
+from .stats import chi2_sf, noise_sf
 from .twin import Twin
 
 
@@ -99,7 +98,7 @@ class UnitState:
         estimate's degrees of freedom (:func:`~.stats.noise_sf`)."""
         stat = np.asarray(stat, float)
         if not np.isfinite(self.noise_dof).any():
-            return stats.chi2.sf(stat, dof)
+            return chi2_sf(stat, dof)
         counts = np.atleast_2d(np.asarray(counts, float))
         total = np.maximum(counts.sum(axis=1, keepdims=True), 1.0)
         shared = counts * (np.atleast_1d(np.asarray(dof, float))[:, None] / total)
