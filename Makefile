@@ -21,8 +21,8 @@ all: run
 
 help:
 	@echo "make run    set up, build the FMU, run the whole pipeline on $(OBS), print the report path"
-	@echo "make test   set up, then the whole test suite (TEST_JOBS=2 processes)"
-	@echo "make bench  benchmarks (figures printed)"
+	@echo "make test   set up, then the test suite (TEST_JOBS=2 processes)"
+	@echo "make bench  the long statistical checks (tests marked slow), then the benchmarks (figures printed)"
 	@echo "make data   regenerate the shipped fleet data from configs/fleet.yaml and fleet_gap.yaml"
 	@echo "make example  the second worked example (a DC drive, fmus/DCDrive) end to end"
 	@echo "make $(OUT)/report/index.html   stage by stage, only what changed"
@@ -64,10 +64,12 @@ run: setup
 	    --gap-observations $(GAP_OBS) --workdir $(OUT)
 
 # The suite on TEST_JOBS processes (pytest-xdist): CI has two cores, and most tests use one.
+# The long statistical checks (marked slow) run with the benchmarks.
 test: setup
-	$(PY) -m pytest -q -n $(TEST_JOBS) tests
+	$(PY) -m pytest -q -n $(TEST_JOBS) -m "not slow" tests
 
 bench: setup
+	$(PY) -m pytest -q -n $(TEST_JOBS) -m slow tests
 	@for b in benchmarks/*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
 
 data: setup

@@ -35,8 +35,8 @@ def test_diagnose_without_candidate_effects_says_how_to_add_them(tmp_path):
 
 
 def test_smoke_run_then_check_on_the_dc_drive(tmp_path):
-    """run --smoke runs every stage on the DC drive fleet in well under a minute; its
-    --json is strict; check passes on the workdir it leaves, and fails (exit 5, one line)
+    """run --smoke runs every stage on the DC drive fleet (its time printed, not judged: a
+    test checks what is right, benchmarks what is fast); its --json is strict; check passes on the workdir it leaves, and fails (exit 5, one line)
     once the surrogate beside the posterior is not the one it was calibrated with."""
     import time
 
@@ -57,7 +57,7 @@ def test_smoke_run_then_check_on_the_dc_drive(tmp_path):
     assert "run --smoke: small sizes (simulate.train_size=24" in r.stderr
     sims = out["stages"][0]["summary"]
     assert sims["runs"] == 30                                   # 24 + 6: the smoke sizes
-    assert (wd / "report" / "index.html").is_file() and seconds < 60, seconds
+    assert (wd / "report" / "index.html").is_file()
     print(f"\nrun --smoke on the DC drive: {seconds:.1f} s")
 
     r = twinmon("check", "-c", cfg, "--observations", obs, "--workdir", wd, "--json")

@@ -31,37 +31,58 @@ def run_json(*args):
     return json.loads(r.stdout)
 
 
-def test_stages_chain_through_the_cli(small):
+@pytest.fixture(scope="module")
+def chained(small):
+    """Every stage by hand through the CLI into the module's folder (each stage's JSON
+    summary by name); the later tests run ``twinmon run`` on what it made."""
     tmp, cfg = small
     obs, truth = tmp / "fleet.h5", tmp / "fleet_truth.h5"
-    fab = run_json("fabricate", "-c", cfg, "-o", obs, "--truth", truth)
+    out = {"fabricate": run_json("fabricate", "-c", cfg, "-o", obs, "--truth", truth),
+           "simulate": run_json("simulate", "-c", cfg, "-o", tmp / "simulations.h5"),
+           "reduce": run_json("reduce", "-c", cfg, "--simulations", tmp / "simulations.h5",
+                              "-o", tmp / "surrogate.h5"),
+           "calibrate": run_json("calibrate", "-c", cfg, "--surrogate", tmp / "surrogate.h5",
+                                 "--observations", obs, "-o", tmp / "posterior.h5"),
+           "forecast": run_json("forecast", "-c", cfg, "--posterior", tmp / "posterior.h5",
+                                "--surrogate", tmp / "surrogate.h5", "-o",
+                                tmp / "forecast.h5"),
+           # back-test on the user's own history (no truth): cuts at years 3 and 4
+           # (min_years 3)
+           "backtest": run_json("backtest", "-c", cfg, "--set", "backtest.min_years=3",
+                                "--posterior", tmp / "posterior.h5", "--surrogate",
+                                tmp / "surrogate.h5", "-o", tmp / "backtest.h5"),
+           "diagnose": run_json("diagnose", "-c", cfg, "--observations", obs, "-o",
+                                tmp / "gap.h5")}
+    rep = twinmon("report", "-c", cfg, "--workdir", tmp, "--observations", obs,
+                  "--truth", truth, "-o", tmp / "report")
+    assert rep.returncode == 0, rep.stderr
+    return out
+
+
+def test_stages_chain_through_the_cli(small, chained):
+    tmp, cfg = small
+    fab = chained["fabricate"]
     assert fab["units"] == 3 and fab["years"] == 5
-    sim = run_json("simulate", "-c", cfg, "-o", tmp / "simulations.h5")
+    sim = chained["simulate"]
     assert sim["runs"] == 56 and sim["failures"] == 0
-    red = run_json("reduce", "-c", cfg, "--simulations", tmp / "simulations.h5",
-                   "-o", tmp / "surrogate.h5")
+    red = chained["reduce"]
     assert red["modes"] >= 2 and 0.99 < red["variance_ratio"] <= 1
     assert red["test"]["max_rel_error"] < 0.05 and len(red["test"]["q2"]) == red["modes"]
-    cal = run_json("calibrate", "-c", cfg, "--surrogate", tmp / "surrogate.h5",
-                   "--observations", obs, "-o", tmp / "posterior.h5")
+    cal = chained["calibrate"]
     assert set(cal["units"]) == {"Park", "Colt", "Monk"}
     colt = cal["units"]["Colt"]
     assert colt["years"] == [1, 2, 3, 4, 5]
     for p in ("motor_damping", "pump_coef"):
         q = colt["params"][p]
         assert all(a <= m <= b for a, m, b in zip(q["q05"], q["median"], q["q95"]))
-    fc = run_json("forecast", "-c", cfg, "--posterior", tmp / "posterior.h5",
-                  "--surrogate", tmp / "surrogate.h5", "-o", tmp / "forecast.h5")
+    fc = chained["forecast"]
     for u in ("Park", "Colt", "Monk"):
         f = fc["units"][u]
         assert f["root_cause"] in ("healthy", "pump", "motor", "both", "ambiguous")
         assert f["years"] == [6, 7, 8, 9] and len(f["p_unsafe"]) == 4
         assert all(0 <= p <= 1 for p in f["p_unsafe"])
         assert f["detection"]["abnormal"] == (f["root_cause"] != "healthy")
-    # back-test on the user's own history (no truth): cuts at years 3 and 4 (min_years 3)
-    bt = run_json("backtest", "-c", cfg, "--set", "backtest.min_years=3", "--posterior",
-                  tmp / "posterior.h5", "--surrogate", tmp / "surrogate.h5",
-                  "-o", tmp / "backtest.h5")
+    bt = chained["backtest"]
     assert bt["units"]["Colt"]["cuts"] == [3, 4]
     # cut 3 sees years 4, 5; cut 4 sees year 5: three later observations per unit
     assert bt["pairs"] == 9 and 0 <= bt["coverage"] <= 1
@@ -77,11 +98,8 @@ def test_stages_chain_through_the_cli(small):
     assert back.n_pairs == 9
     assert {str(n): v["pairs"] for n, v in back.by_record.items()} == {"3": 6, "4": 3}
     assert all(back.by_record[int(n)]["in_band"] == v["in_band"] for n, v in by.items())
-    gap = run_json("diagnose", "-c", cfg, "--observations", obs, "-o", tmp / "gap.h5")
+    gap = chained["diagnose"]
     assert {u["verdict"] for u in gap["units"].values()} <= {"none", "effect", "unexplained"}
-    rep = twinmon("report", "-c", cfg, "--workdir", tmp, "--observations", obs,
-                  "--truth", truth, "-o", tmp / "report")
-    assert rep.returncode == 0, rep.stderr
     html = (tmp / "report" / "index.html").read_text()
     assert "data:image/png;base64," in html and 'src="http' not in html
     summary = json.loads((tmp / "report" / "summary.json").read_text())
@@ -94,36 +112,46 @@ def test_stages_chain_through_the_cli(small):
             assert json.loads(f.attrs["inputs"])
 
 
-def test_run_skips_up_to_date_stages_and_reruns_changed_ones(small):
+@pytest.fixture(scope="module")
+def run_dir(small, chained):
+    """A workdir holding copies of the hand-made stages' artifacts (``twinmon run`` takes
+    them for its own: their records name the same config and inputs)."""
+    import shutil
+    tmp, _ = small
+    wd = tmp / "run"
+    wd.mkdir()
+    for name in ("simulations", "surrogate", "posterior", "forecast", "gap"):
+        shutil.copy2(tmp / f"{name}.h5", wd)
+    return wd
+
+
+def test_run_skips_up_to_date_stages_and_reruns_changed_ones(small, run_dir):
     tmp, cfg = small
     obs = tmp / "fleet.h5"
-    if not obs.exists():
-        run_json("fabricate", "-c", cfg, "-o", obs)
-    wd = tmp / "run"
-    first = run_json("run", "-c", cfg, "--observations", obs, "--workdir", wd)
-    assert [s["skipped"] for s in first["stages"]] == [False] * 6
-    assert (wd / "report" / "index.html").exists()
-    again = run_json("run", "-c", cfg, "--observations", obs, "--workdir", wd)
-    assert [s["stage"] for s in again["stages"] if s["skipped"]] == [
-        "simulate", "reduce", "calibrate", "forecast", "diagnose"]
+    first = run_json("run", "-c", cfg, "--observations", obs, "--workdir", run_dir)
+    # The stages made by hand are up to date; the report is always written.
+    assert [s["stage"] for s in first["stages"] if not s["skipped"]] == ["report"]
+    assert (run_dir / "report" / "index.html").exists()
     # a forecast-only change re-runs forecast (and the report), nothing upstream
     changed = run_json("run", "-c", cfg, "--set", "forecast.horizon=3", "--observations", obs,
-                       "--workdir", wd)
+                       "--workdir", run_dir)
     ran = [s["stage"] for s in changed["stages"] if not s["skipped"]]
     assert ran == ["forecast", "report"]
+    again = run_json("run", "-c", cfg, "--set", "forecast.horizon=3", "--observations", obs,
+                     "--workdir", run_dir)
+    assert [s["stage"] for s in again["stages"] if s["skipped"]] == [
+        "simulate", "reduce", "calibrate", "forecast", "diagnose"]
 
 
-def test_run_update_diagnoses_only_the_new_years(small):
+def test_run_update_diagnoses_only_the_new_years(small, run_dir):
     """`run --update` hands --update to diagnose: with gap.h5 of the first 4 years in the
     workdir (the other stages up to date), only year 5 is fitted and screened."""
     tmp, cfg = small
     obs = tmp / "fleet.h5"
-    if not obs.exists():
-        run_json("fabricate", "-c", cfg, "-o", obs)
     obs4 = first_years(obs, tmp / "fleet4.h5", 4)
     # The workdir and settings of the test above: its stages are up to date.
     common = ["-c", cfg, "--set", "forecast.horizon=3", "--observations", obs,
-              "--workdir", tmp / "run"]
+              "--workdir", run_dir]
     run_json("run", *common, "--gap-observations", obs4)
     upd = run_json("run", *common, "--update")
     stages = {s["stage"]: s for s in upd["stages"]}
@@ -133,14 +161,12 @@ def test_run_update_diagnoses_only_the_new_years(small):
     assert (u["kept_years"], u["new_years"]) == (4 * n_units, n_units)
 
 
-def test_same_seed_same_posterior(small, tmp_path):
+def test_same_seed_same_posterior(small, chained, tmp_path):
+    """calibrate again with the same inputs and seed: the chained run's draws, bit for bit."""
     tmp, cfg = small
-    obs = tmp / "fleet.h5"
-    if not (tmp / "surrogate.h5").exists():
-        pytest.skip("needs the chained test's surrogate")
-    for name in ("a", "b"):
-        run_json("calibrate", "-c", cfg, "--surrogate", tmp / "surrogate.h5",
-                 "--observations", obs, "-o", tmp_path / f"{name}.h5")
-    with h5py.File(tmp_path / "a.h5") as a, h5py.File(tmp_path / "b.h5") as b:
+    run_json("calibrate", "-c", cfg, "--surrogate", tmp / "surrogate.h5",
+             "--observations", tmp / "fleet.h5", "-o", tmp_path / "again.h5")
+    with h5py.File(tmp / "posterior.h5") as a, h5py.File(tmp_path / "again.h5") as b:
+        assert set(a["units"]) == set(b["units"]) == {"Park", "Colt", "Monk"}
         for u in a["units"]:
             assert np.array_equal(a[f"units/{u}/samples"][()], b[f"units/{u}/samples"][()])

@@ -139,18 +139,6 @@ def test_auto_samples_a_pooling_fleet_jointly_on_the_dc_drive(drive):
     assert causes == {"Alder": "healthy", "Birch": "bearing", "Cedar": "winding"}
 
 
-def test_run_chains_everything_on_the_dc_drive(drive):
-    tmp, cfg, _ = drive
-    obs, truth = tmp / "fleet.h5", tmp / "fleet_truth.h5"
-    if not obs.exists():
-        run_json("fabricate", "-c", cfg, "-o", obs, "--truth", truth)
-    out = run_json("run", "-c", cfg, "--observations", obs, "--truth", truth,
-                   "--workdir", tmp / "run")
-    assert [s["stage"] for s in out["stages"]] == \
-        ["simulate", "reduce", "calibrate", "forecast", "diagnose", "report"]
-    assert (tmp / "run" / "report" / "index.html").exists()
-
-
 @pytest.mark.parametrize("fmi_type, executor", [("CoSimulation", "process"),
                                                 ("CoSimulation", "serial"),
                                                 ("ModelExchange", "process")])

@@ -159,10 +159,11 @@ def test_kill9_of_calibrate_with_a_pool(work, tmp_path):
     # Long enough chains (~5 s of sampling) that the kill lands while they run, not after
     # the pool has shut down.
     args = ["-c", work / "small.yaml", "--surrogate", work / "surrogate.h5",
-            "--observations", work / "fleet.h5", "--set", "calibrate.sampler=openturns"]
+            "--observations", work / "fleet.h5"]
     out = work / "k" / "posterior.h5"
     out.parent.mkdir()
-    p = subprocess.Popen(cmd("calibrate", *args, "--set", "calibrate.samples=8000",
+    p = subprocess.Popen(cmd("calibrate", *args, "--set", "calibrate.sampler=openturns",
+                             "--set", "calibrate.samples=8000",
                              "--set", "calibrate.workers=2", "-o", out),
                          cwd=work, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     workers: set[int] = set()
@@ -186,9 +187,9 @@ def test_kill9_of_calibrate_with_a_pool(work, tmp_path):
         assert wait_for(lambda: not any(scratch.glob("twinmon-*")), 10), \
             f"left in TMPDIR: {sorted(x.name for x in scratch.iterdir())}"
         assert not out.exists()
-        # The re-run and its one-process reference with the default chains: what is
-        # checked is that nothing of the killed run is in the way, and that the workers do
-        # not change the draws, not the long chains themselves.
+        # The re-run and its one-process reference with the default sampler and chains:
+        # what is checked is that nothing of the killed run is in the way, and that the
+        # workers do not change the draws, not the long chains themselves.
         r = twinmon("calibrate", *args, "--set", "calibrate.workers=2", "-o", out, cwd=work,
                     env=env)
         assert_ok(r)

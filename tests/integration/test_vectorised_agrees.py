@@ -18,6 +18,8 @@ import pytest
 
 from twinmon.calibrate import UnitPosterior, _unit_seed, calibrate, read_posterior
 from twinmon.calibrate.samplers.convergence import first_look
+
+pytestmark = pytest.mark.slow
 from twinmon.calibrate.samplers.vectorised import UnitData, calibrate_units
 from twinmon.config import load_config
 from twinmon.observations import read_observations, write_observations

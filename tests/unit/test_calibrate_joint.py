@@ -91,6 +91,7 @@ def test_known_trend_is_recovered(setup, trend_posterior):
     assert np.all(np.median(p.trend["sigma"], axis=0) < cfg.calibrate.prior_width * span)
 
 
+@pytest.mark.slow
 def test_batched_sampler_matches_openturns_gibbs(setup):
     """The numpy sampler (default) and OpenTURNS' Gibbs (the reference) sample one posterior:
     the same unit, data and chain lengths give the same years' means and spreads and the same

@@ -154,6 +154,7 @@ def test_year_weights_closed_form_is_the_general_inverse():
     assert np.array_equal(W, W0.reshape(30, -1)) and np.array_equal(logdet, l0.sum(axis=1))
 
 
+@pytest.mark.slow
 def test_posterior_matches_a_dense_quadrature_over_sigma():
     """One input, eight years with unequal errors: the draws' slope and sigma moments equal
     those of a brute-force posterior (the years' joint Gaussian written out whole, a nearly

@@ -186,6 +186,7 @@ def test_wear_that_reverses_or_oscillates_fails(configs, kind):
     assert failed >= 9
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("d", [1, 2, 3])
 def test_rejects_at_about_its_level_on_histories_of_the_model(configs, d):
     """Lines with the fleet's scatter (sigma drawn from the fleet's prior, the sites'
