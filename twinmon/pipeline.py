@@ -143,10 +143,19 @@ def _run_locked(cfg: Config, obs: Path, gap_obs: Path, wd: Path, truth, force: b
                          lambda: diagnose.diagnose(cfg, gap_obs, p["gap"], update=update),
                          log))
     start = time.perf_counter()
-    # The report is cheap and reads everything: always rebuilt.
-    rep = report.report(cfg, wd / "report", observations=obs, simulations=p["simulations"],
-                        surrogate=p["surrogate"], posterior=p["posterior"],
-                        forecast=p["forecast"], gap=p["gap"], truth=truth)
+    paths = {"observations": obs, "simulations": p["simulations"], "surrogate": p["surrogate"],
+             "posterior": p["posterior"], "forecast": p["forecast"], "gap": p["gap"],
+             "truth": truth}
+    # The report too is made again only when what it reads changed (its figures take
+    # seconds to a minute).
+    done = None if force else report.is_up_to_date(cfg, wd / "report", paths)
+    if done is not None:
+        index = wd / "report" / "index.html"
+        log(f"report: up to date ({index})")
+        stages.append(StageRun("report", str(wd / "report"), True,
+                               time.perf_counter() - start))
+        return RunSummary(stages, str(index), done.get("terminal", ""))
+    rep = report.report(cfg, wd / "report", **paths)
     seconds = time.perf_counter() - start
     log(f"report: done in {seconds:.1f} s -> {rep.index}")
     stages.append(StageRun("report", str(wd / "report"), False, seconds, rep.as_dict()))

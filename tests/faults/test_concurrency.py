@@ -61,18 +61,22 @@ def test_two_runs_into_one_workdir(built):
 
 
 def test_run_does_not_redo_stages_for_execution_settings(built, tmp_path):
-    """Artifacts made by `run` with the config's workers/executor; `run` again with
-    simulate.workers=1 and simulate.executor=serial: every stage but report is skipped."""
+    """Artifacts made by `run` with the config's workers/executor, copied elsewhere; `run`
+    again there with simulate.workers=1, simulate.executor=serial and report.workers=1:
+    every stage is skipped, the report too, and the report named is the copy's."""
     wd = tmp_path / "wd"
-    shutil.copytree(built["wd"], wd, ignore=shutil.ignore_patterns("report"))
+    shutil.copytree(built["wd"], wd)
     snap = Snapshot(wd)
     r = twinmon("run", "-c", built["config"], "--observations", built["root"] / "fleet.h5",
                 "--workdir", wd, "--set", "simulate.workers=1", "--set",
-                "simulate.executor=serial", "--json", cwd=tmp_path)
+                "simulate.executor=serial", "--set", "report.workers=1", "--json",
+                cwd=tmp_path)
     assert_ok(r)
-    stages = {s["stage"]: s["skipped"] for s in json.loads(r.stdout)["stages"]}
+    out = json.loads(r.stdout)
+    stages = {s["stage"]: s["skipped"] for s in out["stages"]}
     assert stages == {"simulate": True, "reduce": True, "calibrate": True, "forecast": True,
-                      "diagnose": True, "report": False}, stages
+                      "diagnose": True, "report": True}, stages
+    assert out["report"] == str(wd / "report" / "index.html")
     snap.check()
 
 

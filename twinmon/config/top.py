@@ -144,4 +144,5 @@ class Config:
 #: Per section, the keys that spread the work over processes without changing any result.
 EXECUTION_ONLY = {"simulate": ("workers", "executor", "chunk_size"),
                   "calibrate": ("workers", "executor"), "diagnose": ("workers", "executor"),
+                  "report": ("workers",),
                   "dask": ("address", "timeout")}

@@ -29,6 +29,41 @@ from .summary import ReportSummary, calibration_diagnostics, unit_summary, words
 #: Units per figure when a large fleet's units are drawn in detail (Figures 6 and 7 give
 #: each unit a column: more would not read).
 GROUP = 4
+#: The config sections a report reads (the others reach it through the artifacts, which
+#: are fingerprinted): recorded in ``summary.json`` (``made_from``).
+CONFIG_SECTIONS = ("model", "safety", "seed", "calibrate", "forecast", "backtest", "diagnose",
+            "report")
+
+
+def made_from(cfg: Config, paths: dict, units: Sequence[str] = ()) -> dict:
+    """What a report is made from, as ``summary.json`` records it (``made_from``): this
+    twinmon's version, the config sections it reads (:data:`CONFIG_SECTIONS`, without the
+    processes that draw), the SHA-256 of each artifact by its role, the units asked for."""
+    from .. import __version__
+    return {"twinmon_version": __version__, "config": cfg.section_yaml(*CONFIG_SECTIONS),
+            "inputs": {role: artifacts.file_sha256(p)
+                       for role, p in sorted(paths.items()) if p is not None},
+            "units": sorted(units)}
+
+
+def is_up_to_date(cfg: Config, output_dir: str | os.PathLike, paths: dict,
+                  units: Sequence[str] = ()) -> Optional[dict]:
+    """The content of ``output_dir``'s ``summary.json`` when that report is whole (the
+    page, the summary and every figure it lists) and was made from the same artifacts,
+    config and version (:func:`made_from`); ``None`` when it must be made again. Used by
+    ``twinmon run``."""
+    import json
+    out = Path(output_dir)
+    try:
+        done = json.loads((out / "summary.json").read_text())
+        want = made_from(cfg, paths, units)
+    except (OSError, ValueError):
+        return None
+    if not isinstance(done, dict) or done.get("made_from") != want \
+            or not (out / "index.html").is_file() \
+            or not all((out / f.get("file", "")).is_file() for f in done.get("figures", [])):
+        return None
+    return done
 
 
 def report(cfg: Config, output_dir: str | os.PathLike, *args, **kwargs):
@@ -99,6 +134,7 @@ def _report(cfg: Config, output_dir: str | os.PathLike, *,
             inp = load(cfg, paths)
             check_consistency(cfg, inp)
             provenance = {role: artifacts.read_provenance(p) for role, p in inp.paths.items()}
+            record = made_from(cfg, paths, units)
             out.parent.mkdir(parents=True, exist_ok=True)
             # One writer per report folder; folders left by a killed report are removed
             # first.
@@ -109,7 +145,7 @@ def _report(cfg: Config, output_dir: str | os.PathLike, *,
                 (tmp / "figures").mkdir(parents=True)
                 try:
                     summary = _render(cfg, inp, tmp, out, provenance, list(units), pool,
-                                      started)
+                                      started, record)
                     _install(tmp, out)
                 finally:
                     shutil.rmtree(tmp, ignore_errors=True)
@@ -145,7 +181,8 @@ def _workers(cfg: Config) -> int:
 
 
 def _render(cfg: Config, inp: Inputs, tmp: Path, out: Path, provenance: dict,
-            requested: list, pool=None, started: Optional[dict] = None) -> ReportSummary:
+            requested: list, pool=None, started: Optional[dict] = None,
+            record: Optional[dict] = None) -> ReportSummary:
     figs = Figures(tmp / "figures", pool)
     w = inp.words
     units = inp.unit_names()
@@ -341,7 +378,8 @@ def _render(cfg: Config, inp: Inputs, tmp: Path, out: Path, provenance: dict,
                   "path": str(out / f["file"])} for f in figs.items],
         surrogate=plain(surrogate_info), calibration=plain(calibration_info),
         artifacts=dict(inp.paths), notes=notes, output=output_words,
-        indicator=plain(indicator_words), fleet=fleet.as_dict() if fleet else None)
+        indicator=plain(indicator_words), fleet=fleet.as_dict() if fleet else None,
+        made_from=record or {})
     if fleet is not None:
         extra["fleet"] = fleet_overview(cfg, summary, fleet, extra.pop("fleet_figure", []))
     (tmp / "summary.json").write_text(to_json(summary.as_dict()))

@@ -49,6 +49,9 @@ class ReportSummary:
     fleet : dict or None
         For a fleet of more than ``report.detail_units`` units: the ranking, verdict counts,
         units at risk and units drawn in detail (:class:`~twinmon.report.fleet.FleetView`).
+    made_from : dict
+        What the report was made from (:func:`~twinmon.report.stage.made_from`): ``twinmon
+        run`` makes it again only when that changed.
     """
 
     output_dir: str
@@ -63,6 +66,7 @@ class ReportSummary:
     output: dict = field(default_factory=dict)
     indicator: dict = field(default_factory=dict)
     fleet: Optional[dict] = None
+    made_from: dict = field(default_factory=dict)
 
     def as_dict(self) -> dict:
         return {**({"fleet": self.fleet} if self.fleet is not None else {}),
@@ -76,6 +80,8 @@ class ReportSummary:
             "output": dict(self.output),
             "indicator": dict(self.indicator),
             "index": self.index,
+            "terminal": self.terminal(),
+            "made_from": dict(self.made_from),
         }
 
     def terminal(self) -> str:
