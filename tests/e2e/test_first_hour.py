@@ -36,8 +36,9 @@ def test_diagnose_without_candidate_effects_says_how_to_add_them(tmp_path):
 
 def test_smoke_run_then_check_on_the_dc_drive(tmp_path):
     """run --smoke runs every stage on the DC drive fleet (its time printed, not judged: a
-    test checks what is right, benchmarks what is fast); its --json is strict; check passes on the workdir it leaves, and fails (exit 5, one line)
-    once the surrogate beside the posterior is not the one it was calibrated with."""
+    test checks what is right, benchmarks what is fast); its --json is strict; check
+    passes on the workdir it leaves, and fails (exit 5, one line) once the surrogate beside
+    the posterior is not the one it was calibrated with."""
     import time
 
     from ..unit.test_jsontext import strict_loads

@@ -82,8 +82,8 @@ def _build(tp: Any, value: Any, path: tuple, source: Path) -> Any:
 def _schema(cls: type) -> tuple[dict, dict]:
     """A config dataclass's field types and fields (keys). Cached: evaluating the string
     annotations compiles each one, and a fleet's ``fabricate.units`` builds the same few
-    classes thousands of times (1.1 s of a forecast's start at 100 units, ten times that
-    at 1000)."""
+    classes thousands of times (half of the 0.7 s a 1000-unit fleet's config took to
+    load)."""
     return (typing.get_type_hints(cls),
             {f.name: f for f in dataclasses.fields(cls) if f.name not in _NOT_KEYS})
 

@@ -31,8 +31,8 @@ from .summary import ReportSummary, calibration_diagnostics, unit_summary, words
 GROUP = 4
 #: The config sections a report reads (the others reach it through the artifacts, which
 #: are fingerprinted): recorded in ``summary.json`` (``made_from``).
-CONFIG_SECTIONS = ("model", "safety", "seed", "calibrate", "forecast", "backtest", "diagnose",
-            "report")
+CONFIG_SECTIONS = ("model", "safety", "seed", "calibrate", "forecast", "backtest",
+                   "diagnose", "report")
 
 
 def made_from(cfg: Config, paths: dict, units: Sequence[str] = ()) -> dict:
