@@ -64,12 +64,13 @@ run: setup
 	    --gap-observations $(GAP_OBS) --workdir $(OUT)
 
 # The suite on TEST_JOBS processes (pytest-xdist): CI has two cores, and most tests use one.
+# The fault cases share one worker (tests/faults/conftest.py: their artifacts made once).
 # The long statistical checks (marked slow) run with the benchmarks.
 test: setup
-	$(PY) -m pytest -q -n $(TEST_JOBS) -m "not slow" tests
+	$(PY) -m pytest -q -n $(TEST_JOBS) --dist loadgroup -m "not slow" tests
 
 bench: setup
-	$(PY) -m pytest -q -n $(TEST_JOBS) -m slow tests
+	$(PY) -m pytest -q -n $(TEST_JOBS) --dist loadgroup -m slow tests
 	@for b in benchmarks/*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
 
 data: setup

@@ -145,13 +145,6 @@ def test_run_skips_up_to_date_stages_and_reruns_changed_ones(small, run_dir):
     assert "report: up to date" in again.stderr
     said = json.loads((run_dir / "report" / "summary.json").read_text())["terminal"]
     assert said.splitlines()[0] in again.stderr and "Colt" in said
-    # A figure gone from the folder: the report is made again.
-    figure = next((run_dir / "report" / "figures").iterdir())
-    figure.unlink()
-    whole = run_json("run", "-c", cfg, "--set", "forecast.horizon=3", "--observations", obs,
-                     "--workdir", run_dir)
-    assert [s["stage"] for s in whole["stages"] if not s["skipped"]] == ["report"]
-    assert figure.is_file()
 
 
 def test_run_update_diagnoses_only_the_new_years(small, run_dir):

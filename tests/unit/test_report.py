@@ -79,9 +79,10 @@ def pipeline(tmp_path_factory, fmu_path):
 
 @pytest.fixture(scope="module")
 def full(pipeline):
-    cfg, _, tmp, art = pipeline
+    """The whole report, its figures drawn by a pool of two worker processes."""
+    _, cfg_path, tmp, art = pipeline
     out = tmp / "report_full"
-    return report(cfg, out, **art), out
+    return report(load_config(cfg_path, ["report.workers=2"]), out, **art), out
 
 
 def _sha(data: bytes) -> str:
@@ -372,20 +373,42 @@ def test_report_of_another_machine_speaks_its_words(tmp_path):
         assert u["last_indicator_text"].endswith(ind.units)
 
 
-def test_figures_drawn_by_worker_processes_are_the_same_bytes(pipeline):
+def test_a_report_is_up_to_date_while_what_it_reads_is_the_same(pipeline, full, tmp_path):
+    """``twinmon run``'s test (``is_up_to_date``): the same artifacts and config, however
+    many processes drew it; not with another setting the report reads, another artifact,
+    or a file of the report gone."""
+    import shutil
+
+    from twinmon.report import is_up_to_date
+    _, cfg_path, tmp, art = pipeline
+    _, out = full
+    same = is_up_to_date(load_config(cfg_path, ["report.workers=1"]), out, art)
+    assert same is not None and same["made_from"]["inputs"].keys() == {
+        k for k, v in art.items() if v is not None}
+    assert is_up_to_date(load_config(cfg_path, ["report.detail_units=2"]), out, art) is None
+    assert is_up_to_date(load_config(cfg_path), out, {**art, "truth": None}) is None
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy)
+    assert is_up_to_date(load_config(cfg_path), copy, art) is not None
+    next((copy / "figures").iterdir()).unlink()
+    assert is_up_to_date(load_config(cfg_path), copy, art) is None
+
+
+def test_figures_drawn_by_worker_processes_are_the_same_bytes(pipeline, full):
     # report.workers > 1 pickles each figure to a pool that lays it out and writes it; the
     # PNGs (and so the page's images) must not depend on it. Digests, not bytes: on a
     # mismatch the message names the figures (pytest's diff of the bytes took over an hour).
     # The pool also reads the units' statistics, in one run of units per worker: the
-    # summaries must not depend on it either.
+    # summaries must not depend on it either. The full report's pool had two workers.
     _, cfg_path, tmp, art = pipeline
     made, said = {}, {}
-    for workers in (1, 2):
-        cfg = load_config(cfg_path, [f"report.workers={workers}"])
-        out = tmp / f"report_w{workers}"
-        s = report(cfg, out, **art)
-        made[workers] = {f["name"]: file_sha256(f["path"]) for f in s.figures}
-        said[workers] = (out / "summary.json").read_text().replace(str(out), "OUT")
+    out = tmp / "report_w1"
+    s = report(load_config(cfg_path, ["report.workers=1"]), out, **art)
+    made[1] = {f["name"]: file_sha256(f["path"]) for f in s.figures}
+    said[1] = (out / "summary.json").read_text().replace(str(out), "OUT")
+    s, out = full
+    made[2] = {f["name"]: file_sha256(f["path"]) for f in s.figures}
+    said[2] = (out / "summary.json").read_text().replace(str(out), "OUT")
     assert len(made[1]) >= 5
     assert [n for n in made[1] if made[2].get(n) != made[1][n]] == []
     assert said[1] == said[2]
