@@ -64,13 +64,14 @@ run: setup
 	    --gap-observations $(GAP_OBS) --workdir $(OUT)
 
 # The suite on TEST_JOBS processes (pytest-xdist): CI has two cores, and most tests use one.
-# The fault cases share one worker (tests/faults/conftest.py: their artifacts made once).
+# Each module on one worker (--dist loadscope): its fixtures are made once, not once per
+# worker that runs some of its tests (20-50 s each for the pipelines they run).
 # The long statistical checks (marked slow) run with the benchmarks.
 test: setup
-	$(PY) -m pytest -q -n $(TEST_JOBS) --dist loadgroup -m "not slow" tests
+	$(PY) -m pytest -q -n $(TEST_JOBS) --dist loadscope -m "not slow" tests
 
 bench: setup
-	$(PY) -m pytest -q -n $(TEST_JOBS) --dist loadgroup -m slow tests
+	$(PY) -m pytest -q -n $(TEST_JOBS) --dist loadscope -m slow tests
 	@for b in benchmarks/*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
 
 data: setup

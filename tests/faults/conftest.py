@@ -189,12 +189,3 @@ def dead_pid() -> int:
         except PermissionError:
             pass
         pid -= 1
-
-
-def pytest_collection_modifyitems(config, items):
-    """Every fault case on one xdist worker (``make test`` runs ``--dist loadgroup``): the
-    artifacts of :func:`built` are then made once, not once per worker (20-25 s each)."""
-    here = Path(__file__).parent
-    for item in items:
-        if here in Path(str(item.fspath)).parents:
-            item.add_marker(pytest.mark.xdist_group("faults"))
