@@ -392,6 +392,11 @@ def test_a_report_is_up_to_date_while_what_it_reads_is_the_same(pipeline, full, 
     assert is_up_to_date(load_config(cfg_path), copy, art) is not None
     next((copy / "figures").iterdir()).unlink()
     assert is_up_to_date(load_config(cfg_path), copy, art) is None
+    # A summary.json edited or damaged into another shape: stale, not a traceback.
+    edited = {**json.loads((out / "summary.json").read_text()), "figures": ["x"]}
+    for bad in (json.dumps(edited), "[1, 2]", "{"):
+        (copy / "summary.json").write_text(bad)
+        assert is_up_to_date(load_config(cfg_path), copy, art) is None
 
 
 def test_figures_drawn_by_worker_processes_are_the_same_bytes(pipeline, full):
