@@ -64,8 +64,9 @@ import numpy as np
 from .gaussian_trend import GaussianTrend, SiteModel, draw_years, log_evidence_at
 from .shape_columns import (ACCELERATING_GROWTHS, ACCELERATING_MIN_YEARS, CHANGE_MIN_YEARS,
                             GROWTH_RATES, NOW_ROWS, OCCAM, POWER_EXPONENTS,
-                            _accelerating_forms, _change_candidates, _change_columns, _change_selection, _reference_weights,
-                            _unit_information, line_now)
+                            _accelerating_forms, _change_candidates, _change_columns,
+                            _change_selection, _reference_weights, _unit_information,
+                            line_now)
 
 #: The shapes, in the order of their code in the posterior (``trend/shape``).
 SHAPES = ("line", "accelerating", "change")
