@@ -488,7 +488,9 @@ def _pooled_truth_check(errors: list) -> dict:
 
 
 def _install(tmp: Path, out: Path) -> None:
-    """Move a finished report into ``out``: figures, then summary.json, index.html last."""
+    """Move a finished report into ``out``: figures, then index.html, summary.json last (it
+    records what the report was made from: a report cut short between the two is made
+    again by ``twinmon run``, not taken as up to date with the old page)."""
     from ..interrupts import raise_if_interrupted
     raise_if_interrupted()          # a Ctrl-C swallowed while rendering: nothing installed
     out.mkdir(parents=True, exist_ok=True)
@@ -498,8 +500,8 @@ def _install(tmp: Path, out: Path) -> None:
         os.replace(figures, old)
     os.replace(tmp / "figures", figures)
     shutil.rmtree(old, ignore_errors=True)
-    os.replace(tmp / "summary.json", out / "summary.json")
     os.replace(tmp / "index.html", out / "index.html")
+    os.replace(tmp / "summary.json", out / "summary.json")
 
 
 def _units(cfg: Config, name: str) -> str:
