@@ -24,6 +24,36 @@ def fmu_path() -> Path:
     return build_fmu(ROOT / "fmus" / "PumpCircuit")
 
 
+def made_once(tmp_path_factory, name: str, make):
+    """``make(folder)`` once per test run, its (picklable) result returned.
+
+    Under pytest-xdist the first worker to ask makes it in a folder of the run's shared base
+    temp folder while holding a lock; the others wait on the lock and read the pickled
+    result (a pipeline fixture used by modules on both workers is made once, not once per
+    worker). Without xdist, a plain session fixture's folder.
+    """
+    import fcntl
+    import os
+    import pickle
+    if os.environ.get("PYTEST_XDIST_WORKER") is None:
+        return make(tmp_path_factory.mktemp(name))
+    shared = tmp_path_factory.getbasetemp().parent
+    done = shared / f"{name}.pickle"
+    with open(shared / f"{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not done.exists():
+            folder = shared / name
+            if folder.exists():          # a worker's attempt that failed
+                import shutil
+                shutil.rmtree(folder)
+            folder.mkdir()
+            result = make(folder)
+            tmp = done.with_suffix(".tmp")
+            tmp.write_bytes(pickle.dumps(result))
+            tmp.replace(done)
+        return pickle.loads(done.read_bytes())
+
+
 def write_yaml(path: Path, data: dict) -> Path:
     path.write_text(yaml.safe_dump(data, sort_keys=False))
     return path
@@ -76,6 +106,10 @@ def calibrated_fleet(tmp_path_factory, fmu_path):
     Returns (cfg, folder, calibrate summary); the folder holds sims.h5, sur.h5, fleet.h5,
     truth.h5 and post.h5.
     """
+    return made_once(tmp_path_factory, "calibrated_fleet", _calibrate_fleet)
+
+
+def _calibrate_fleet(tmp: Path):
     import time
 
     from twinmon.calibrate import calibrate
@@ -83,7 +117,6 @@ def calibrated_fleet(tmp_path_factory, fmu_path):
     from twinmon.fabricate import fabricate
     from twinmon.reduce import reduce
     from twinmon.simulate import simulate
-    tmp = tmp_path_factory.mktemp("calibrated_fleet")
     cfg = load_config(CONFIGS / "fleet.yaml")
     simulate(cfg, tmp / "sims.h5")
     reduce(cfg, tmp / "sims.h5", tmp / "sur.h5")

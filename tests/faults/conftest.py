@@ -21,7 +21,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from ..conftest import CONFIGS, ROOT
+from ..conftest import CONFIGS, ROOT, made_once
 
 #: Seconds any one command may take: a hang is a failure, never a stuck suite.
 TIMEOUT = 120
@@ -144,8 +144,12 @@ def built(tmp_path_factory, pump_fmu):
 
     While that run holds ``wd``, a second ``twinmon run`` into the same ``wd`` is started: its
     result is returned for test_concurrency.py::test_two_runs_into_one_workdir (this saves a
-    second full pipeline)."""
-    root = tmp_path_factory.mktemp("faults_built")
+    second full pipeline). Made once per test run (:func:`made_once`): the cases only read
+    it."""
+    return made_once(tmp_path_factory, "faults_built", _build)
+
+
+def _build(root: Path) -> dict:
     cfg = write_yaml(root / "small.yaml", {"extends": str(CONFIGS / "fleet.yaml"), **SMALL})
     r = twinmon("fabricate", "-c", cfg, "-o", root / "fleet.h5", cwd=root)
     assert r.returncode == 0, r.stderr
