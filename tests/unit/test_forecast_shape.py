@@ -251,12 +251,13 @@ def test_an_unrecorded_repair_is_found_and_restarts_the_trend(dcdrive_fleet):
     from twinmon.forecast import read_forecast
     back = read_forecast(tmp / "fc_rep.h5").units["Rep"]
     assert back.repairs == rep.repairs
-    # The report says it where a user looks: the unit's action and what it rests on.
+    # The report says it where a user looks: the unit's action and what it rests on (the
+    # summary of every unit; figures for one).
     import json
 
     from twinmon.report import report
-    report(load_config(cfg_path), tmp / "report", posterior=tmp / "post.h5",
-           forecast=tmp / "fc_rep.h5")
+    report(load_config(cfg_path, ["report.detail_units=1"]), tmp / "report",
+           posterior=tmp / "post.h5", forecast=tmp / "fc_rep.h5")
     text = json.dumps(json.loads((tmp / "report" / "summary.json").read_text())["units"]["Rep"])
     assert "record the year-6 repair of the bearing" in text
     assert "fell back towards nominal in year 6" in text
