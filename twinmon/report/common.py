@@ -215,7 +215,8 @@ class Figures:
     def new(self, width: float, height: float, **kw):
         from matplotlib.backends.backend_agg import FigureCanvasAgg
         from matplotlib.figure import Figure
-        fig = Figure(figsize=(width, height), layout="constrained", **kw)
+        # At the PNG's resolution: the layout is computed at the figure's (write_png).
+        fig = Figure(figsize=(width, height), layout="constrained", dpi=DPI, **kw)
         FigureCanvasAgg(fig)
         return fig
 
@@ -233,7 +234,7 @@ class Figures:
             except (pickle.PicklingError, AttributeError, TypeError):
                 blob = None          # an artist holding a local function, say
         if blob is None:
-            fig.savefig(path, dpi=DPI)
+            write_png(fig, path)
         else:
             self._pending.append(self._pool.submit(_save_pickled, blob, str(path)))
         self.items.append({"name": name, "section": section, "title": title,
@@ -276,9 +277,27 @@ def freeze_inherited() -> None:
     gc.freeze()
 
 
+def write_png(fig, path) -> None:
+    """Write ``fig`` as a PNG of :data:`DPI` dots per inch, laid out once.
+
+    ``savefig`` on a figure with a layout engine draws it twice: once with drawing disabled
+    only to run the layout, then for the pixels. Run here first and the engine removed, the
+    layout is the same and the figure is drawn once: the same pixels.
+    """
+    import matplotlib
+    engine = fig.get_layout_engine()
+    if engine is not None and fig.dpi == DPI:
+        engine.execute(fig)
+        # None removes the engine, unless the user's matplotlibrc asks for one by default.
+        with matplotlib.rc_context({"figure.autolayout": False,
+                                    "figure.constrained_layout.use": False}):
+            fig.set_layout_engine(None)
+    fig.savefig(path, dpi=DPI)
+
+
 def _save_pickled(blob: bytes, path: str) -> None:
     """Pool task: write a pickled figure as :meth:`Figures.save` would."""
-    load_pickled_figure(blob).savefig(path, dpi=DPI)
+    write_png(load_pickled_figure(blob), path)
 
 
 def load_pickled_figure(blob: bytes):
