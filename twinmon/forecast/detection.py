@@ -191,7 +191,6 @@ def indicator_drift(years, ind_obs, gradient, normal_rate, tolerance, sense: int
         slope's uncertainty: 4.4 times, median over the 96 healthy units of
         ``benchmarks/prognosis.py --healthy-only 96``, seed 31.
     """
-    from scipy import stats
     yrs, vals = yearly_indicator(years, ind_obs)
     g = np.asarray(gradient, float)
     normal = float(g @ np.asarray(normal_rate, float))
@@ -308,8 +307,9 @@ def box_test(b: np.ndarray, C: np.ndarray, dof: int, normal_rate, tolerance,
     b0 : ndarray, shape [d]
         The closest slopes inside the box.
     """
-    from scipy import stats
     from scipy.optimize import lsq_linear
+
+    from ..distributions import f_sf
     r, tol, dirs = (np.asarray(a, float) for a in (normal_rate, tolerance, directions))
     lo = np.where(dirs > 0, -np.inf, r - tol)
     hi = np.where(dirs < 0, np.inf, r + tol)
@@ -321,7 +321,7 @@ def box_test(b: np.ndarray, C: np.ndarray, dof: int, normal_rate, tolerance,
     if T <= 1e-12:
         return 1.0, b0
     k = max(1, int(np.sum(np.isclose(b0, lo) | np.isclose(b0, hi))))
-    p = 0.5 * stats.f.sf(T, 1, dof) + 0.5 * stats.f.sf(T / k, k, dof)
+    p = 0.5 * f_sf(T, 1, dof) + 0.5 * f_sf(T / k, k, dof)
     return float(min(1.0, p)), b0
 
 
@@ -418,11 +418,12 @@ def detectable_multiples(drift: IndicatorDrift, C: np.ndarray, dof: int, toleran
         Multiples of each input's tolerance; inf when neither test can bound it (no slope
         error: too few years); NaN where the tolerance is 0.
     """
-    from scipy import stats
     from scipy.optimize import brentq
+
+    from .. import distributions
     tol = np.asarray(tolerance, float)
     sd = np.sqrt(np.maximum(np.diag(np.atleast_2d(C)), 0.0))
-    q = float(stats.t.isf(level, dof))
+    q = float(distributions.t_isf(level, dof))
     with np.errstate(divide="ignore", invalid="ignore"):
         by_inputs = np.where(tol > 0, 1.0 + q * sd / tol, np.nan)
     by_indicator = np.full(tol.size, np.inf)

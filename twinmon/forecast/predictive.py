@@ -158,7 +158,7 @@ def sample_state(sp: StatePredictive, size: int, rng: np.random.Generator) -> np
 
 def state_interval(sp: StatePredictive, i: int, confidence: float):
     """Centre, lower and upper bound [h] of input ``i``'s predictive interval."""
-    from scipy import stats
-    q = stats.t.ppf(0.5 + confidence / 2, sp.dof)
+    from ..distributions import t_ppf
+    q = t_ppf(0.5 + confidence / 2, sp.dof)
     sd = np.sqrt(sp.cov[:, i, i])
     return sp.loc[:, i], sp.loc[:, i] - q * sd, sp.loc[:, i] + q * sd

@@ -93,13 +93,11 @@ class Trend:
             ``scale = s * sqrt(1 + 1/n + (x0 - xbar)^2 / Sxx)``, the scale of the Student t
             predictive distribution; ``lo, hi = mean -+ t_{n-2,(1+c)/2} * scale``.
         """
-        # scipy.stats.t.ppf's value (it calls stdtrit) without importing scipy.stats (0.6 s
-        # at every report's start: the report draws the trends).
-        from scipy.special import stdtrit
+        from ..distributions import t_ppf
         x0 = np.asarray(x0, float)
         mean = self.intercept + self.slope * x0
         scale = self.residual_std * np.sqrt(1 + 1 / self.n + (x0 - self.x_mean) ** 2 / self.sxx)
-        q = stdtrit(self.dof, 0.5 + confidence / 2)
+        q = t_ppf(0.5 + confidence / 2, self.dof)
         return mean, mean - q * scale, mean + q * scale, scale
 
 
@@ -120,7 +118,8 @@ def fit_trend(years: np.ndarray, values: np.ndarray) -> tuple[Trend, np.ndarray]
     residuals : ndarray, shape [n]
     """
     import openturns as ot
-    from scipy import stats
+
+    from ..distributions import t_ppf
     x = np.asarray(years, float)
     y = np.asarray(values, float)
     n = x.size
@@ -130,7 +129,7 @@ def fit_trend(years: np.ndarray, values: np.ndarray) -> tuple[Trend, np.ndarray]
     b0, b1 = map(float, res.getCoefficients())
     se = float(res.getCoefficientsStandardErrors()[1])
     s2 = float(res.getResidualsVariance())
-    q = stats.t.ppf(0.5 + SLOPE_CI / 2, n - 2)
+    q = t_ppf(0.5 + SLOPE_CI / 2, n - 2)
     resid = np.asarray(res.getSampleResiduals()).ravel()
     trend = Trend(intercept=b0, slope=b1, slope_se=se, slope_ci=(b1 - q * se, b1 + q * se),
                   residual_std=float(np.sqrt(max(s2, 0.0))), n=n, x_mean=float(x.mean()),
@@ -307,7 +306,7 @@ def acceleration_test(years: np.ndarray, values: np.ndarray, direction: int) -> 
     float
         The p-value (1 for fewer than :data:`SHAPE_MIN_YEARS` years or an exact fit).
     """
-    from scipy import stats
+    from ..distributions import t_sf
     x = np.asarray(years, float)
     y = np.asarray(values, float)
     if x.size < SHAPE_MIN_YEARS:
@@ -322,8 +321,8 @@ def acceleration_test(years: np.ndarray, values: np.ndarray, direction: int) -> 
         return 1.0
     t = coef[2] / se
     if direction:
-        return float(stats.t.sf(direction * t, dof))
-    return float(min(1.0, 2 * stats.t.sf(abs(t), dof)))
+        return float(t_sf(direction * t, dof))
+    return float(min(1.0, 2 * t_sf(abs(t), dof)))
 
 
 def shape_gate(cfg: Config, since: dict, years: np.ndarray, mean: np.ndarray,

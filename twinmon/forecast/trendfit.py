@@ -382,9 +382,8 @@ def check_trend_fit(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarr
     TrendFit or None
         None when no year can be predicted (too few years in a segment).
     """
-    from scipy import stats
-
     from ..calibrate.trend import sigma_prior_scale
+    from ..distributions import chi2_sf
     years = np.asarray(years)
     cuts = cut_indices(years, starts, min_years)
     if cuts.size == 0:
@@ -398,8 +397,8 @@ def check_trend_fit(cfg: Config, years: np.ndarray, x: np.ndarray, cov: np.ndarr
         w, mean, S = predict_ahead(cfg, years, x, cov, starts, priors, int(k), grid, tables)
         z[j], marg[j] = standardise(x[k], w, mean, S)
     q = np.sum(z * z, axis=1)
-    year_p = stats.chi2.sf(q, d)
-    p_sum = float(stats.chi2.sf(q.sum(), d * cuts.size))
+    year_p = chi2_sf(q, d)
+    p_sum = float(chi2_sf(q.sum(), d * cuts.size))
     p_worst = float(min(1.0, cuts.size * year_p.min()))
     used = tuple(n for n in ("line", "accelerating", "change") if priors.get(n, 0) > 0)
     return TrendFit(p_value=min(1.0, 2 * min(p_sum, p_worst)), years=years[cuts], z=z,
