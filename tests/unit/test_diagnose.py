@@ -433,6 +433,18 @@ def test_workers_ignore_ctrl_c(two_units, tmp_path, monkeypatch):
         diagnose(cfg, obs, tmp_path / "gap.h5", workers=2)
 
 
+def test_the_default_workers_are_the_cores_this_process_may_use(two_units, tmp_path,
+                                                                monkeypatch):
+    """diagnose.workers 0 counts the cores the process is bound to (taskset, a batch
+    scheduler), as the other stages do, not the machine's: bound to one, no pool."""
+    import twinmon.diagnose as dg
+    cfg, obs = two_units
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0})
+    monkeypatch.setattr(dg, "_map_units", _die_in_worker)      # a pool would fail the test
+    s = diagnose(cfg, obs, tmp_path / "gap.h5")
+    assert cfg.diagnose.workers == 0 and s.workers == 1 and set(s.units) == {"A", "B"}
+
+
 def test_ctrl_c_is_interrupted_and_writes_nothing(two_units, tmp_path, monkeypatch):
     import twinmon.diagnose as dg
 

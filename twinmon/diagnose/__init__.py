@@ -312,7 +312,9 @@ def diagnose(cfg: Config, observations: str | os.PathLike, output: str | os.Path
              None, _posterior_for(posterior, post, cfg, u, uo.years), kept.get(u), noise[u][1])
             for u, uo in obs.units.items()]
     n_workers = workers if workers is not None else cfg.diagnose.workers
-    n_workers = min(n_workers or os.cpu_count() or 1, len(jobs))
+    # The cores this process may use (taskset, a batch scheduler's binding), as the other
+    # stages count them; os.cpu_count() is the machine's.
+    n_workers = min(n_workers or len(os.sched_getaffinity(0)), len(jobs))
     try:
         if n_workers <= 1 and not (cfg.diagnose.executor == "dask" and cfg.dask.address):
             results = {}
