@@ -29,7 +29,7 @@ TIMEOUT = 120
 #: The small design every fixture and case uses (on top of configs/fleet.yaml).
 SMALL = {
     "simulate": {"train_size": 24, "test_size": 8},
-    # No longer chains where the ESS is low: the cases test failures, not mixing.
+    # Chains not extended for a low ESS: the cases test failures, not the mixing.
     "calibrate": {"chains": 2, "samples": 200, "burn_in": 50, "max_extensions": 0},
     # 200, not 100: with 100 samples forecast currently crashes (see test_no_traceback.py::
     # test_forecast_with_failed_twin_runs_no_traceback); the shared artifacts must not

@@ -332,7 +332,8 @@ def test_parallel_workers_give_the_serial_arrays(setup, tmp_path):
                                             "B": [[14, 3.3], [14.2, 3.2]]}.items())}
     obs = tmp_path / "obs.h5"
     write_observations(obs, Observations(sur.time, units, obs))
-    # No longer chains for a low ESS: what is compared is the workers' split, not the mixing.
+    # Chains not extended for a low ESS: what is compared is the workers' split, not the
+    # mixing.
     quick = ["calibrate.samples=200", "calibrate.burn_in=100", "calibrate.noise_std=4.0",
              "calibrate.max_extensions=0"]
     posts = {}
