@@ -234,9 +234,11 @@ NORMAL_DOF = 10 ** 5
 
 def t_sf(x: np.ndarray, dof: float) -> np.ndarray:
     """Student's t upper tail at ``x`` (the normal's from :data:`NORMAL_DOF` on)."""
-    from scipy.special import ndtr, stdtr
+    from scipy.special import ndtr
+
+    from ..distributions import t_sf as exact
     x = np.asarray(x, float)
-    return ndtr(-x) if dof >= NORMAL_DOF else stdtr(dof, -x)
+    return ndtr(-x) if dof >= NORMAL_DOF else exact(x, dof)
 
 
 def t_isf(p: float, dof: float) -> float:

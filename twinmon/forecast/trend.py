@@ -184,14 +184,14 @@ def slope_p_value(slope: float, se: float, dof: float, normal_rate: float, toler
                   direction: int) -> float:
     """:func:`slope_test`'s p-value of a slope ``slope`` with standard error ``se`` (Student t
     with ``dof``): one-sided towards ``direction`` (+-1), two-sided for 0."""
-    from scipy import special
+    from ..distributions import t_sf
 
     def one_sided(d: int) -> float:
         excess = d * slope - (d * normal_rate + tolerance)
         if se > 0:
-            # Student's t upper tail: scipy.stats.t.sf's value, bit for bit, without its
-            # per-call overhead (the fleet's prior tests every unit's inputs up front).
-            return float(special.stdtr(dof, -excess / se))
+            # Not scipy.stats.t.sf (the same value): its per-call overhead counts here, as
+            # the fleet's prior tests every unit's inputs up front.
+            return float(t_sf(excess / se, dof))
         return 0.0 if excess > 0 else 1.0     # a perfect fit: the slope is known exactly
 
     if direction:

@@ -59,6 +59,6 @@ from .unit_summary import UnitSummary
 
 __all__ = ["report", "is_up_to_date", "made_from", "ReportSummary", "UnitSummary", "Words",
            "indicator_rows", "DPI", "SECTIONS", "UNIT_COLOURS", "LIMIT_COLOUR", "Figures",
-           "fig_last_transients", "fig_indicator_history", "fig_surrogate", "fig_estimates", "fig_trends",
-           "fig_marginals", "fig_indicator_forecast", "fig_residual_map", "fig_candidates",
-           "fig_overlay"]
+           "fig_last_transients", "fig_indicator_history", "fig_surrogate", "fig_estimates",
+           "fig_trends", "fig_marginals", "fig_indicator_forecast", "fig_residual_map",
+           "fig_candidates", "fig_overlay"]
