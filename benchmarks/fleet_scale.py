@@ -30,7 +30,8 @@ process); "1 proc RSS" is the largest single process's high-water mark (``wait4`
 
 The default (``make bench``) is the full run. On this 2-core machine 1000 units took
 302 s from simulate through report (``--sizes 1000 --dask-sizes --update-sizes 1000
---reference 0``, load 1.1-2.4: 11 min 20 s in all with the 9-year runs and the updates); the
+--reference 0``, load 1.1-2.4: 11 min 20 s in all with the 9-year runs and the updates),
+and 565 s (21 min in all) on a day the machine ran at half that speed (docs/cluster.md); the
 default adds 30 and 300 units, Dask at 30 and 300 and OpenTURNS' sampler at 30 units.
 
     .venv/bin/python benchmarks/fleet_scale.py                 # 30, 300, 1000 (make bench)
