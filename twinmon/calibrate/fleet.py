@@ -39,7 +39,6 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
-from scipy.optimize import minimize
 from scipy.special import logsumexp
 
 #: Smallest spread (log units) of the units' sigma about the fleet's median: below it the
@@ -198,6 +197,9 @@ def fit_fleet_prior(sigmas: Sequence[np.ndarray], base: np.ndarray) -> FleetPrio
     -------
     FleetPrior
     """
+    # Imported here: scipy.optimize takes 0.7 s to import, and the forecast's workers read
+    # this module's constants and resampler without ever fitting.
+    from scipy.optimize import minimize
     base = np.asarray(base, float)
     d = base.size
     sig = [np.asarray(s, float) for s in sigmas]

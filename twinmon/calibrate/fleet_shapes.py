@@ -33,7 +33,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import minimize
 
 #: The calibration's prior counts as this many units of the fleet (the Dirichlet's
 #: concentration beyond its flat part): one per form, so that the prior alone does not leave
@@ -121,6 +120,9 @@ def fit_fleet_shapes(shares: np.ndarray, available: np.ndarray, base: np.ndarray
     -------
     FleetShapes
     """
+    # Imported here, as in fleet.py: the forecast's workers read this module's prior
+    # without fitting it, and scipy.optimize takes 0.7 s to import.
+    from scipy.optimize import minimize
     base = np.asarray(base, float)
     ok = base > 0
     S = np.asarray(shares, float)[:, ok]
