@@ -1,9 +1,9 @@
 """A fixed reference workload, timed, so that benchmark figures taken on different days can
 be told apart from the machine's own speed.
 
-This machine's speed has moved by a factor of two from one day to another with the same code
-(docs/cluster.md: every stage of the 1000-unit run took two to two and a half times as long,
-and the same commit, run again, took as long as the current one). The workload is what
+This machine's speed has moved by a factor of two from one day to another (docs/cluster.md:
+every stage of the 1000-unit run took two to two and a half times as long, while the code of
+the earlier run, timed again beside the current code, took the same time as it). The workload is what
 twinmon's per-unit work is made of: a pure-Python loop and thousands of small numpy
 operations (the draws' and the trend-fit check's 2 x 2 to 8 x 8 systems), whose cost is
 their overhead more than their arithmetic. It is timed in CPU seconds of this process, so
