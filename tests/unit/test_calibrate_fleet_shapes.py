@@ -197,6 +197,48 @@ def test_units_within_normal_ageing_get_the_prior_of_units_like_them():
     assert _shapes_dict(pri)["steady"] == {"pooled": False}
 
 
+def test_a_units_prior_of_the_shapes_follows_its_evidence_of_drifting():
+    """The prior a unit's future is drawn under: the fleet's wear prior for a unit whose
+    slope draws all lie beyond normal ageing, the sound units' for one whose draws all lie
+    within it, the two averaged by the share in between; a draw counts once however many of
+    its inputs are beyond, and only on an input's degrading side."""
+    from twinmon.calibrate.fleet_shapes import FleetShapes
+    from twinmon.config import load_config
+    from twinmon.forecast.directions import Direction
+    from twinmon.forecast.pooling import ShapePriors, drift_probability
+
+    from ..conftest import CONFIGS
+    cfg = load_config(CONFIGS / "dcdrive.yaml")
+    names = cfg.model.input_names
+    spec = [cfg.model.inputs[n] for n in names]
+    edge = np.array([s.normal_rate + s.normal_rate_tolerance for s in spec])
+    directions = {n: Direction(+1, "config") for n in names}
+    w = np.full(4, 0.25)
+    inside = np.tile(edge * 0.5, (4, 1))
+    assert drift_probability(cfg, inside, w, directions) == 0.0
+    # One draw beyond on both inputs, one on the first alone: two of four draws.
+    some = inside.copy()
+    some[0] = 2 * edge + 1e-3
+    some[1, 0] = 2 * edge[0] + 1e-3
+    assert drift_probability(cfg, some, w, directions) == 0.5
+    # Past the other side of the band: not wear for an input that degrades upwards, wear
+    # for one whose direction is unknown.
+    low = np.tile(np.array([s.normal_rate - s.normal_rate_tolerance for s in spec]) - 1.0,
+                  (4, 1))
+    assert drift_probability(cfg, low, w, directions) == 0.0
+    assert drift_probability(cfg, low, w, {n: Direction(0, "inferred") for n in names}) == 1.0
+
+    base = np.array([0.6, 0.2, 0.2])
+    drifting = FleetShapes(np.array([0.2, 0.7, 0.1]), base, 20, 8.0)
+    steady = FleetShapes(np.array([0.8, 0.1, 0.1]), base, 8, 8.0)
+    pri = ShapePriors(drifting, steady)
+    assert pri.blend(1.0) is drifting and pri.blend(0.0) is steady
+    half = pri.blend(0.5)
+    np.testing.assert_allclose(half.proportions, [0.5, 0.4, 0.1])
+    np.testing.assert_array_equal(half.base, base)
+    assert ShapePriors(drifting).blend(0.3) is drifting
+
+
 def test_records_too_short_to_show_a_shape_teach_the_fleet_none():
     """The fleet's prior of the shapes is learnt from units whose current segment spans
     forecast.pool_shapes_min_years: over fewer, a unit's evidence leans on the line

@@ -29,7 +29,7 @@ from .judge import (MIN_LINE_DRAWS, MIN_TREND_YEARS, STATUS_OK, STATUS_UNRELIABL
                     history_slope_draws, judge, prognosis_status, recent_restarts)
 from .plan import (accelerating, level_cause, level_plan, maintenance_plan, nominal_plan,
                    restore_points, unconfirmed)
-from .pooling import ShapePriors, _pool_unit
+from .pooling import ShapePriors, _pool_unit, drift_probability
 from .predictive import (residual_correlation, sample_predictive, sample_state,
                          state_interval, state_predictive)
 from .streams import unit_rng
@@ -227,10 +227,17 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict, fleet=None,
     applied = None
     if shapes is not None and "shape" in calibrated:
         # The fleet's prior of the shapes by what the unit's slopes show (ShapePriors): a
-        # unit none of whose inputs drifts beyond normal ageing takes the prior of the units
-        # like it, not the one learnt from the wear of the others.
-        applied = shapes.of(any(t.rejects for t in trends.values())) \
-            if isinstance(shapes, ShapePriors) else shapes
+        # unit that surely drifts beyond normal ageing (a slope test rejects) takes the one
+        # learnt from the fleet's wear; another, the two averaged by its posterior
+        # probability of drifting, so that a unit whose record shows no wear takes the
+        # prior of the units like it.
+        applied = shapes
+        if isinstance(shapes, ShapePriors):
+            p = 1.0 if any(t.rejects for t in trends.values()) else drift_probability(
+                cfg, slope_draws, fleet.weights(np.asarray(calibrated["sigma"], float))
+                if fleet is not None else np.full(len(slope_draws), 1.0 / len(slope_draws)),
+                directions)
+            applied = shapes.blend(p)
         future, _, ess = _pool_unit(cfg, unit, calibrated, calibrated_samples, fleet, applied,
                                     stream=6)
         pool_ess = min(ess, pool_ess) if np.isfinite(pool_ess) else ess
