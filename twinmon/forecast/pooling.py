@@ -60,7 +60,7 @@ class ShapePriors:
         ``forecast.alpha`` alone decides it too often for the steady prior: a pump whose
         coefficient fell 3.73 -> 3.01 with its yearly fall growing from 0.01 to 0.15 (its
         slope -0.080 +- 0.017 against normal ageing's -0.02 +- 0.03, p = 0.038) took the
-        sound units' prior, its forecast held the line at 0.87 and missed from the first
+        sound units' prior, its forecast held the line at 0.87 and missed from the second
         year on (benchmarks/RESULTS.md, *The fleet's prior of the shapes by a unit's
         evidence of drifting*)."""
         if self.steady is None or p_drifting >= 1.0:
