@@ -185,7 +185,7 @@ def test_units_within_normal_ageing_get_the_prior_of_units_like_them():
     _, pri = fleet_priors(cfg, post, shape_priors, directions)
     assert isinstance(pri, ShapePriors) and pri.steady is not None
     assert pri.steady.n_units == 8 and pri.drifting.n_units == 20
-    assert pri.of(False) is pri.steady and pri.of(True) is pri.drifting
+    assert pri.blend(0.0) is pri.steady and pri.blend(1.0) is pri.drifting
     assert pri.steady.proportions[0] > 0.6 > pri.drifting.proportions[0]
     assert _shapes_dict(pri)["steady"]["units"] == 8
     # Without directions, or with too few sound units, one prior for all.
@@ -193,7 +193,7 @@ def test_units_within_normal_ageing_get_the_prior_of_units_like_them():
     few = SimpleNamespace(units={k: v for k, v in units.items() if k < "S2" or k[0] == "W"},
                           path="<memory>")
     _, pri = fleet_priors(cfg, few, shape_priors, directions)
-    assert pri.steady is None and pri.of(False) is pri.drifting
+    assert pri.steady is None and pri.blend(0.0) is pri.drifting
     assert _shapes_dict(pri)["steady"] == {"pooled": False}
 
 

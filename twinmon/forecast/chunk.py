@@ -29,7 +29,7 @@ from .judge import (MIN_LINE_DRAWS, MIN_TREND_YEARS, STATUS_OK, STATUS_UNRELIABL
                     history_slope_draws, judge, prognosis_status, recent_restarts)
 from .plan import (accelerating, level_cause, level_plan, maintenance_plan, nominal_plan,
                    restore_points, unconfirmed)
-from .pooling import ShapePriors, _pool_unit, drift_probability
+from .pooling import ShapePriors, _pool_unit, drift_probability, sigma_weights
 from .predictive import (residual_correlation, sample_predictive, sample_state,
                          state_interval, state_predictive)
 from .streams import unit_rng
@@ -234,9 +234,7 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict, fleet=None,
         applied = shapes
         if isinstance(shapes, ShapePriors):
             p = 1.0 if any(t.rejects for t in trends.values()) else drift_probability(
-                cfg, slope_draws, fleet.weights(np.asarray(calibrated["sigma"], float))
-                if fleet is not None else np.full(len(slope_draws), 1.0 / len(slope_draws)),
-                directions)
+                cfg, slope_draws, sigma_weights(calibrated, fleet), directions)
             applied = shapes.blend(p)
         future, _, ess = _pool_unit(cfg, unit, calibrated, calibrated_samples, fleet, applied,
                                     stream=6)

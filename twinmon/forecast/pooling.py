@@ -49,10 +49,6 @@ class ShapePriors:
     drifting: FleetShapes
     steady: Optional[FleetShapes] = None
 
-    def of(self, drifting: bool) -> FleetShapes:
-        """The prior of a unit that drifts (or not)."""
-        return self.drifting if drifting or self.steady is None else self.steady
-
     def blend(self, p_drifting: float) -> FleetShapes:
         """The prior a unit's future is drawn under when it drifts with probability
         ``p_drifting`` (:func:`drift_probability`): ``p drifting + (1 - p) steady``, the two
@@ -103,6 +99,14 @@ def fleet_priors(cfg: Config, post, shape_priors: dict, directions: dict | None 
     return fleet, ShapePriors(every, steady)
 
 
+def sigma_weights(trend: dict, fleet=None) -> np.ndarray:
+    """Weights [n] (summing to 1) that take a unit's trend draws to the fleet's prior of the
+    year-to-year sd (``fleet``, a FleetPrior, as :func:`_pool_unit` resamples them); equal
+    without one."""
+    sigma = np.asarray(trend["sigma"], float)
+    return fleet.weights(sigma) if fleet is not None else np.full(len(sigma), 1.0 / len(sigma))
+
+
 def drift_probability(cfg: Config, slopes: np.ndarray, weights: np.ndarray,
                       directions: dict) -> float:
     """The posterior probability that some input of a unit wears beyond normal ageing: the
@@ -128,8 +132,7 @@ def _drifts(cfg: Config, trend: dict, directions: dict, fleet=None) -> bool:
     from ..calibrate.trend import last_segment
     from .trend import POSTERIOR_DOF, slope_p_value
     slope = last_segment(trend, "slope")                                  # [n, d]
-    w = (fleet.weights(np.asarray(trend["sigma"], float)) if fleet is not None
-         else np.full(len(slope), 1.0 / len(slope)))
+    w = sigma_weights(trend, fleet)
     b = w @ slope
     se = np.sqrt(np.maximum(w @ (slope - b) ** 2, 0.0))
     return any(slope_p_value(b[i], se[i], POSTERIOR_DOF, cfg.model.inputs[name].normal_rate,
@@ -249,8 +252,7 @@ def fleet_shape_prior(cfg: Config, post, shape_priors: dict, fleet=None,
         if "shape" not in trend:
             continue
         forms = form_of(trend["shape"], trend["growth"])
-        w = (fleet.weights(np.asarray(trend["sigma"], float)) if fleet is not None
-             else np.full(forms.size, 1.0 / forms.size))
+        w = sigma_weights(trend, fleet)
         shares.append(np.bincount(forms, weights=w, minlength=base.size)[:base.size])
         start = np.asarray(trend["start"])
         last = start[(start >= 0).sum(axis=0) - 1, np.arange(start.shape[1])]   # [d]
@@ -312,8 +314,7 @@ def _pool_unit(cfg: Config, unit: str, trend: dict, samples: np.ndarray,
     from ..calibrate.fleet import systematic_resample
     from ..calibrate.shapes import form_of
     from ..calibrate.trend import TREND_DRAWS
-    sigma = np.asarray(trend["sigma"], float)
-    w = fleet.weights(sigma) if fleet is not None else np.full(len(sigma), 1.0 / len(sigma))
+    w = sigma_weights(trend, fleet)
     if shapes is not None and "shape" in trend:
         w = w * np.exp(shapes.log_weights(form_of(trend["shape"], trend["growth"])))
         w /= w.sum()
