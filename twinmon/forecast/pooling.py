@@ -14,7 +14,7 @@ forecast takes from the rest of its fleet.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Optional
 
 import numpy as np
@@ -63,7 +63,6 @@ class ShapePriors:
             return self.drifting
         if p_drifting <= 0.0:
             return self.steady
-        from dataclasses import replace
         return replace(self.drifting, proportions=p_drifting * self.drifting.proportions
                        + (1.0 - p_drifting) * self.steady.proportions)
 
