@@ -33,24 +33,25 @@ YEARS = np.arange(1, 11)
 # Fixtures
 # ---------------------------------------------------------------------------------------
 def write_synthetic_posterior(path, cfg, lines: dict, seed: int = 0, n_s: int = 200,
-                              scatter=(0.25, 0.03), post_std=(0.3, 0.05)):
+                              scatter=(0.25, 0.03), post_std=(0.3, 0.05), years=YEARS):
     """A posterior artifact (calibrate's writer) whose yearly estimates follow given lines.
 
     ``lines``: unit -> [(intercept, slope)] per input, or the path itself [n_y, d]. The
     yearly means scatter about it by ``scatter`` (per input); draws scatter about the mean
-    by ``post_std``.
+    by ``post_std``. Every unit has the recorded ``years``.
     """
     rng = np.random.default_rng(seed)
     d = len(cfg.model.inputs)
     units = {}
+    years = np.asarray(years)
     for unit, coefs in lines.items():
-        n_y = YEARS.size
+        n_y = years.size
         centre = (np.array(coefs, float) if np.ndim(coefs) == 2 and len(coefs) == n_y
-                  else np.column_stack([a + b * YEARS for a, b in coefs]))
+                  else np.column_stack([a + b * years for a, b in coefs]))
         centre = centre + rng.standard_normal((n_y, d)) * np.asarray(scatter)
         samples = centre[:, None, :] + rng.standard_normal((n_y, n_s, d)) * np.asarray(post_std)
         units[unit] = UnitPosterior(
-            years=YEARS.copy(), samples=samples, mean=samples.mean(axis=1),
+            years=years.copy(), samples=samples, mean=samples.mean(axis=1),
             median=np.median(samples, axis=1), q05=np.quantile(samples, 0.05, axis=1),
             q95=np.quantile(samples, 0.95, axis=1), rhat=np.ones((n_y, d)),
             ess=np.full((n_y, d), float(n_s)), acceptance=np.full((n_y, 2), 0.3),
@@ -472,6 +473,30 @@ def test_a_year_the_trend_cannot_follow_is_unreliable_in_the_artifact_and_json(
     assert stored.status == "unreliable" and stored.status_reason == bad["status_reason"]
     assert stored.trend_fit == bad["trend_fit"]
     assert "(prognosis unreliable: the trend missed" in stored.plan
+
+
+def test_a_fault_seen_in_three_years_extends_an_unchecked_trend(setup, tmp_path):
+    """Three recorded years of a motor wearing 2.0 a year, its estimates close to the line
+    (a year-by-year posterior's three years leave the slope's test one degree of freedom):
+    the drift is seen and named, but no year could be predicted from three before it, so
+    the trend the failure year extends was never checked: unreliable, with the record's
+    years in the reason. Four years give the check a year to predict, and that reason
+    goes."""
+    cfg, _, tmp, _ = setup
+    fast = [(9.0, 2.0), (3.7, -0.02)]
+    short = forecast(cfg, write_synthetic_posterior(tmp_path / "p3.h5", cfg, {"Short": fast},
+                                                    years=YEARS[:3], scatter=(0.02, 0.002)),
+                     tmp / "sur.h5", tmp_path / "fc3.h5").units["Short"]
+    assert short.root_cause == "motor" and short.trend_fit == {}
+    assert short.status == "unreliable"
+    assert short.status_reason.startswith(
+        "prognosis unreliable: with 3 recorded year(s) (years 1-3) no year could be predicted "
+        "from the 3 or more of its trend before it")
+    four = forecast(cfg, write_synthetic_posterior(tmp_path / "p4.h5", cfg, {"Four": fast},
+                                                   years=YEARS[:4], scatter=(0.02, 0.002)),
+                    tmp / "sur.h5", tmp_path / "fc4.h5").units["Four"]
+    assert four.root_cause == "motor" and four.trend_fit["years"] == [4]
+    assert "no year could be predicted" not in four.status_reason
 
 
 def test_text_lines_give_the_year_to_act_by_and_the_median_year(setup, tmp_path):

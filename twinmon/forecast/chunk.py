@@ -36,7 +36,7 @@ from .streams import unit_rng
 from .trend import (posterior_slope_test, repair_years, segment_trend, shape_gate,
                     slope_test)
 from .trendfit import (change_year, check_trend_fit, describe_latest, describe_miss,
-                       unit_sites)
+                       describe_unchecked, unit_sites)
 from .twin import SOURCE_FAILED, TwinResult, evaluate_twin
 from .unit import UnitForecast
 
@@ -447,6 +447,10 @@ def _finish_unit(cfg: Config, unit: str, up, p: dict, twin: TwinResult,
             latest = describe_latest(cfg, fit, int(p["years"][-1]), fc.trend_fit_alpha)
             if latest:
                 uf.status, uf.status_reason = STATUS_UNRELIABLE, latest
+    elif uf.status == STATUS_OK and fc.trend_fit_alpha > 0 and uf.root_cause != HEALTHY:
+        # No year could be predicted from the years before it: the fault is seen (the drift
+        # test needs no trend shape) but the trend its prognosis extends is unchecked.
+        uf.status, uf.status_reason = STATUS_UNRELIABLE, describe_unchecked(p["years"])
     if uf.status == STATUS_OK:
         # No fault found, but a failure year from the trend's bend alone.
         line = p["future_line"]

@@ -510,6 +510,28 @@ def describe_latest(cfg: Config, fit: TrendFit, last_year: int, alpha: float) ->
             "faster wear apart; next year's transient will")
 
 
+def describe_unchecked(years: np.ndarray, min_years: int = MIN_YEARS) -> str:
+    """The unit's status reason when no year of its record could be predicted (a record,
+    or every trend segment of it, of ``min_years`` years or fewer) and its verdict is not
+    healthy: the trend its failure year and intervals extend was never checked.
+
+    A line through three years' estimates follows their errors as readily as the wear
+    (benchmarks/prognosis.py ``--family irregular``): on the pump's flow alone (seed 137)
+    three of the five units with three recorded years and a fault or ambiguity named were
+    told a failure in year 8 or 9 with P(unsafe) 0.75-0.85 that none of them reaches, their
+    indicator's 90 % interval covering 0-2 of the 7 future years (a healthy unit among
+    them, its third year's estimates far along the ridge of the two inputs); of the DC
+    drive's twelve (seeds 79 and 131) three were told their failure year, three a year off,
+    one two years late, and one failing in year 9 was told no failure."""
+    years = np.asarray(years)
+    return (f"prognosis unreliable: with {years.size} recorded year(s) (years "
+            f"{int(years[0])}-{int(years[-1])}) no year could be predicted from the "
+            f"{min_years} or more of its trend before it, so the trend its failure year and "
+            "intervals extend was never checked against the unit's own history (a line "
+            "through so few years follows their estimates' errors as readily as the wear); "
+            "the next year's transient allows the check")
+
+
 def describe_miss(cfg: Config, fit: TrendFit, alpha: float) -> str:
     """The unit's status reason when the check fails: the years missed, the p-value, the
     worst input and what to do."""
