@@ -59,9 +59,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks" / "tools"))
 
-from speed import reference_seconds  # noqa: E402
 from twinmon.config import CalibrateConfig  # noqa: E402
 from twinmon.observations import read_observations, write_observations  # noqa: E402
 
@@ -287,8 +285,7 @@ def main() -> None:
         wd = Path(tempfile.mkdtemp(prefix="fleet_scale_"))
     load0 = os.getloadavg()
     print(f"fleet_scale: work folder {wd}; {os.cpu_count()} cores; load average "
-          f"{load0[0]:.1f} {load0[1]:.1f} {load0[2]:.1f}; reference workload "
-          f"{reference_seconds():.2f} s of CPU (benchmarks/tools/speed.py)", flush=True)
+          f"{load0[0]:.1f} {load0[1]:.1f} {load0[2]:.1f}", flush=True)
     rows: list[Row] = []
     samp = sampler_overrides()
     try:
@@ -408,8 +405,7 @@ def main() -> None:
         print_table(rows)
         print_targets(rows, args.sizes)
         load1 = os.getloadavg()
-        print(f"load average at the end {load1[0]:.1f} {load1[1]:.1f} {load1[2]:.1f}; "
-              f"reference workload {reference_seconds():.2f} s of CPU")
+        print(f"load average at the end {load1[0]:.1f} {load1[1]:.1f} {load1[2]:.1f}")
         if not (args.workdir and args.keep):
             shutil.rmtree(wd, ignore_errors=True)
 
