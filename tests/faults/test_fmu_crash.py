@@ -58,14 +58,17 @@ def test_crash_in_this_process_is_one_line(crashing_fmu, tmp_path, value, signal
 
 def test_crash_outside_an_fmu_call_is_not_the_fmus(crashing_fmu, tmp_path):
     # The handler gives a crash elsewhere back to the handler it replaced (the default).
+    # That crash leaves the extracted FMU behind, as any process killed outright does: in
+    # the test's own folder, not the machine's temporary one.
     script = (
         "import ctypes, numpy as np\n"
         "from twinmon.fmu import FMUModel\n"
         f"m = FMUModel({str(crashing_fmu)!r}, ['sensor.m_flow'], np.arange(1, 26) * 2.0)\n"
         "m.run({})\n"
         "ctypes.string_at(0)\n")
+    env = {**os.environ, "TMPDIR": str(tmp_path)}
     r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
-                       timeout=120)
+                       timeout=120, env=env)
     assert r.returncode == -11 and "the FMU" not in r.stderr, (r.returncode, r.stderr)
 
 
