@@ -35,6 +35,10 @@ year's chi-square with ``d`` (one outlying year), times ``m`` (Bonferroni over t
 The sites are the laplace method's (each year's likelihood summarised, ``UnitPosterior.site``);
 for a posterior without them the yearly posterior means and covariances stand in
 (:func:`unit_sites`).
+
+A record whose every segment has :data:`MIN_YEARS` years or fewer leaves no year to predict:
+nothing is checked, and a unit whose verdict is not healthy is then unreliable for that
+reason (:func:`describe_unchecked`).
 """
 from __future__ import annotations
 
