@@ -233,8 +233,12 @@ def _plan_unit(cfg: Config, unit: str, up, directions: dict, fleet=None,
         # prior of the units like it.
         applied = shapes
         if isinstance(shapes, ShapePriors):
+            # The calibrated draws with their weights to the fleet's sigma (slope_draws are
+            # those draws resampled: the weights are not theirs).
+            from ..calibrate.trend import last_segment
             p = 1.0 if any(t.rejects for t in trends.values()) else drift_probability(
-                cfg, slope_draws, sigma_weights(calibrated, fleet), directions)
+                cfg, last_segment(calibrated, "slope"), sigma_weights(calibrated, fleet),
+                directions)
             applied = shapes.blend(p)
         future, _, ess = _pool_unit(cfg, unit, calibrated, calibrated_samples, fleet, applied,
                                     stream=6)
